@@ -1,0 +1,1 @@
+"""Links to the field (Modbus, CAN, simulated plant servers)."""
