@@ -1,0 +1,482 @@
+"""The identification experiment: relay with hysteresis behind an adaptive phase filter.
+
+A sample-driven object that replaces the controller for the length of the
+experiment (``step(t, pv) -> mv``; timestamps come from the caller, no clock,
+no I/O). Stages:
+
+1. ``noise``: hold the MV for a few samples to learn the operating point (the
+   set point of the relay is the PV found here) and the measurement noise;
+   the hysteresis is 3 noise standard deviations unless given.
+2. ``relay``: a relay of amplitude ``amp`` around the starting MV, biased by
+   ``bias·amp`` so the oscillation carries a DC component that reveals the
+   static gain. The control error passes through a first-order lag
+   ``1/(τs + 1)`` before the relay; the lag adds ``θ = atan(ωτ)`` of phase so
+   that the limit cycle settles where the *process* phase lag equals the
+   requested value. ``θ`` is corrected once per period from the measured
+   process phase (methods.md §6), so the describing function's bias never
+   enters.
+
+The point ``F(jω)`` is the ratio of the Fourier coefficients of PV and MV over
+the last two whole periods (Hann window; the MV integrated exactly as a held
+signal), and the static gain the ratio of their mean deviations from the
+operating point. The experiment stops when the phase is within tolerance and
+consecutive estimates agree.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum, IntEnum
+
+import numpy as np
+
+from .fourier import held_coefficient, sampled_coefficient
+
+
+class Code(IntEnum):
+    """Outcome of an experiment; the value is what ``ite`` shows when it has ended."""
+
+    OK = 0
+    ABORTED = 1
+    PV_OUT_OF_LIMITS = 2
+    NO_OSCILLATION = 3
+    NOT_CONVERGED = 4
+    BAD_SAMPLE = 5
+    MV_RANGE = 6
+    LINK_FAULT = 7
+
+
+MESSAGES: dict[Code, str] = {
+    Code.OK: "ok",
+    Code.ABORTED: "aborted (TBRK)",
+    Code.PV_OUT_OF_LIMITS: "PV left its safety limits",
+    Code.NO_OSCILLATION: "no oscillation: the relay did not make the PV cross the set point repeatedly",
+    Code.NOT_CONVERGED: "the identified point did not converge within the time limit",
+    Code.BAD_SAMPLE: "invalid sample (non-finite PV or timestamps not increasing)",
+    Code.MV_RANGE: "the relay cannot move the MV within its limits",
+    Code.LINK_FAULT: "link to the loop failed",
+}
+
+
+class Stage(str, Enum):
+    """What the experiment is doing now."""
+
+    NOISE = "noise"
+    RELAY = "relay"
+    DONE = "done"
+
+
+@dataclass(frozen=True)
+class RelayConfig:
+    """Settings of one experiment.
+
+    amp: largest change of the MV from its starting value (MV units, > 0).
+    phase_deg: requested process phase lag at the identified point, degrees (90–170).
+    hysteresis: relay hysteresis in PV units; ``None`` measures the noise first.
+    bias: asymmetry of the relay as a fraction of ``amp`` (0 ≤ bias < 0.5); the
+        MV alternates between ``mv0 + amp`` and ``mv0 − amp·(1 − 2·bias)``.
+    reverse: reverse-acting loop (more MV gives less PV).
+    pv_limits, mv_limits: safety range of the PV and allowed range of the MV.
+    time_limit: longest experiment, seconds.
+    noise_samples: samples of the noise-measuring stage.
+    max_periods: give up after this many oscillation periods.
+    phase_tol_deg: accepted error of the phase, degrees.
+    gain_tol: accepted relative change of the point between consecutive estimates.
+    """
+
+    amp: float
+    phase_deg: float = 135.0
+    hysteresis: float | None = None
+    bias: float = 0.2
+    reverse: bool = False
+    pv_limits: tuple[float, float] = (-math.inf, math.inf)
+    mv_limits: tuple[float, float] = (-math.inf, math.inf)
+    time_limit: float = math.inf
+    noise_samples: int = 30
+    max_periods: int = 25
+    phase_tol_deg: float = 0.5
+    gain_tol: float = 0.003
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.amp) and self.amp > 0.0):
+            raise ValueError(f"amp must be a positive number of MV units, got {self.amp}")
+        if not 90.0 <= self.phase_deg <= 170.0:
+            raise ValueError(f"phase must be between 90 and 170 degrees of lag, got {self.phase_deg}")
+        if self.hysteresis is not None and not (math.isfinite(self.hysteresis) and self.hysteresis >= 0.0):
+            raise ValueError(f"hysteresis must be ≥ 0 PV units, got {self.hysteresis}")
+        if not 0.0 <= self.bias < 0.5:
+            raise ValueError(f"bias must be in [0, 0.5), got {self.bias}")
+        if not self.time_limit > 0.0:
+            raise ValueError(f"time limit must be positive seconds, got {self.time_limit}")
+        if self.noise_samples < 5:
+            raise ValueError(f"noise_samples must be at least 5, got {self.noise_samples}")
+        for name, (lo, hi) in (("pv_limits", self.pv_limits), ("mv_limits", self.mv_limits)):
+            if not lo < hi:
+                raise ValueError(f"{name} must be (low, high) with low < high, got ({lo}, {hi})")
+
+
+@dataclass(frozen=True)
+class Point:
+    """One point of the process frequency response: ``F(j·omega)``, omega in rad/s."""
+
+    omega: float
+    value: complex
+
+    @property
+    def gain(self) -> float:
+        """``|F(jω)|`` (PV units per MV unit)."""
+        return abs(self.value)
+
+    @property
+    def phase_deg(self) -> float:
+        """``arg F(jω)`` in degrees, negative for lag, in (−360, 0]."""
+        lag = math.degrees(-math.atan2(self.value.imag, self.value.real)) % 360.0
+        return -lag
+
+
+@dataclass(frozen=True)
+class Identification:
+    """What a successful experiment found.
+
+    static_gain: ``F(0)`` estimate; ``inf`` when the data cannot tell it from
+        an integrating process (the mean MV shift is too small to measure).
+    duration: seconds from the first sample to the end; periods: ``duration``
+        in oscillation periods; hysteresis and noise_std in PV units.
+    """
+
+    point: Point
+    static_gain: float
+    duration: float
+    periods: float
+    samples: int
+    hysteresis: float
+    noise_std: float
+
+
+@dataclass(frozen=True)
+class Status:
+    """Progress report: ``ite`` is the estimated seconds left while running, the code when done."""
+
+    stage: Stage
+    progress: float
+    ite: float
+    relay: int
+    filter_phase_deg: float
+    periods: int
+    code: Code | None
+    message: str
+
+
+# A static gain above this many times |F(jω)| is indistinguishable from an
+# integrating process with the resolution of the mean MV shift.
+_INTEGRATING_RATIO = 200.0
+# Minimum number of whole periods before convergence is judged: one for the
+# start-up transient, two for the first filter corrections, two per estimate.
+_MIN_PERIODS = 5
+_MAX_LOG_STEP = math.log(2.0)
+_MAX_FILTER_PHASE = math.radians(89.0)
+
+
+class RelayExperiment:
+    """Relay + adaptive phase filter identification of one frequency-response point."""
+
+    def __init__(self, config: RelayConfig, mv0: float) -> None:
+        if not math.isfinite(mv0):
+            raise ValueError(f"starting MV must be finite, got {mv0}")
+        self.config = config
+        self.mv0 = mv0
+        lo, hi = config.mv_limits
+        self._mv_high = min(mv0 + config.amp, hi)
+        self._mv_low = max(mv0 - config.amp * (1.0 - 2.0 * config.bias), lo)
+        self._t: list[float] = []
+        self._y: list[float] = []
+        self._u: list[float] = []
+        self.stage = Stage.NOISE
+        self.code: Code | None = None
+        self.message = ""
+        self.result: Identification | None = None
+        self._sign = -1.0 if config.reverse else 1.0
+        self._sp = 0.0
+        self._eps = 0.0
+        self._noise = 0.0
+        self._relay = 0
+        self._filtered = 0.0
+        self._crossing = 0.0
+        self._theta = 0.0
+        self._tau = 0.0
+        self._switches: list[int] = []
+        self._rising: list[int] = []
+        # Sub-sample times of the rising crossings: the period they give is
+        # free of the sampling jitter of the switch instants.
+        self._crossings: list[float] = []
+        self._estimates: list[tuple[Point, float]] = []
+        self._trace = []
+        self._last: tuple[float, float] | None = None
+        self._slope = 1.0
+        self._relay_start = 0
+        self._peak_error = 0.0
+        if self._mv_high <= mv0 or self._mv_low >= mv0:
+            self._finish(Code.MV_RANGE, f"MV {mv0} is at a limit of {config.mv_limits}; the relay cannot move it")
+
+    # -- public interface -------------------------------------------------
+
+    @property
+    def done(self) -> bool:
+        """True once the experiment has ended (successfully or not)."""
+        return self.stage is Stage.DONE
+
+    def abort(self) -> None:
+        """TBRK: end the experiment now; the caller restores the loop."""
+        if not self.done:
+            self._finish(Code.ABORTED, MESSAGES[Code.ABORTED])
+
+    def fail(self, code: Code, message: str) -> None:
+        """End the experiment with an error found outside it (e.g. a link fault)."""
+        if not self.done:
+            self._finish(code, message)
+
+    def step(self, t: float, pv: float) -> float:
+        """Take the PV sampled at time ``t`` (seconds) and return the MV to hold until the next sample."""
+        if self.done:
+            return self.mv0
+        if not (math.isfinite(t) and math.isfinite(pv)):
+            self._finish(Code.BAD_SAMPLE, f"non-finite sample: t={t}, pv={pv}")
+            return self.mv0
+        if self._t and t <= self._t[-1]:
+            self._finish(Code.BAD_SAMPLE, f"timestamp {t} s does not follow {self._t[-1]} s")
+            return self.mv0
+        lo, hi = self.config.pv_limits
+        if not lo <= pv <= hi:
+            self._finish(Code.PV_OUT_OF_LIMITS, f"PV {pv:g} left the limits [{lo:g}, {hi:g}]")
+            return self.mv0
+        self._t.append(t)
+        self._y.append(pv)
+        if t - self._t[0] > self.config.time_limit:
+            self._timeout()
+            return self.mv0
+        if self.stage is Stage.NOISE:
+            if len(self._y) >= self.config.noise_samples:
+                self._start_relay()
+            else:
+                self._u.append(self.mv0)
+                return self.mv0
+        mv = self._relay_step(t, pv)
+        if self.done:
+            return self.mv0
+        self._u.append(mv)
+        return mv
+
+    def status(self) -> Status:
+        """Stage, progress (0–1), ite and the live relay/filter state."""
+        if self.done:
+            ite = float(self.code) if self.code is not None else 0.0
+            progress = 1.0
+        else:
+            left = self._seconds_left()
+            elapsed = self._t[-1] - self._t[0] if self._t else 0.0
+            ite = left
+            progress = elapsed / (elapsed + left) if elapsed + left > 0.0 else 0.0
+        return Status(
+            stage=self.stage,
+            progress=progress,
+            ite=ite,
+            relay=self._relay,
+            filter_phase_deg=math.degrees(self._theta),
+            periods=max(len(self._rising) - 1, 0),
+            code=self.code,
+            message=self.message,
+        )
+
+    # -- stages -----------------------------------------------------------
+
+    def _start_relay(self) -> None:
+        t = np.asarray(self._t)
+        y = np.asarray(self._y)
+        slope, offset = np.polyfit(t - t[0], y, 1)
+        residual = y - (offset + slope * (t - t[0]))
+        self._noise = float(np.std(residual, ddof=2))
+        self._sp = float(np.mean(y))
+        h = self.config.hysteresis
+        self._eps = 3.0 * self._noise if h is None else h
+        self.stage = Stage.RELAY
+        self._relay = 1
+        self._relay_start = len(self._t) - 1
+        self._filtered = 0.0
+        self._crossing = self._t[-1]
+
+    def _relay_step(self, t: float, pv: float) -> float:
+        e = self._sign * (self._sp - pv)
+        before = self._filtered
+        dt = t - self._t[-2]
+        if self._tau > 0.0:
+            self._filtered += (1.0 - math.exp(-dt / self._tau)) * (e - self._filtered)
+        else:
+            self._filtered = e
+        self._peak_error = max(self._peak_error, abs(self._filtered))
+        k = len(self._t) - 1
+        old = self._relay_mv()
+        if self._relay > 0 and self._filtered < -self._eps:
+            self._switch(-1, k, -self._eps, before, dt)
+        elif self._relay < 0 and self._filtered > self._eps:
+            self._switch(1, k, self._eps, before, dt)
+            self._on_period()
+        else:
+            return old
+        if self.done:
+            return self.mv0
+        # The crossing happened between the last two samples; switching one
+        # sample period after it, with the interval's MV averaged to keep the
+        # area, makes the limit cycle periodic in continuous time instead of
+        # jittering by a sample at every switch. The frequency-response
+        # estimate depends on that periodicity.
+        late = (self._crossing - self._t[k - 1]) / dt
+        return old * late + self._relay_mv() * (1.0 - late)
+
+    def _switch(self, relay: int, k: int, threshold: float, before: float, dt: float) -> None:
+        frac = (threshold - before) / (self._filtered - before)
+        self._crossing = self._t[k - 1] + frac * dt
+        self._relay = relay
+        self._switches.append(k)
+        if relay > 0:
+            self._rising.append(k)
+            self._crossings.append(self._crossing)
+
+    def _relay_mv(self) -> float:
+        return self._mv_high if self._relay > 0 else self._mv_low
+
+    def _on_period(self) -> None:
+        t = self._t
+        if len(self._rising) == 1:
+            # First rising switch: only half a period is known. Start the filter
+            # at the describing-function guess.
+            half = t[self._rising[0]] - t[self._switches[-2]]
+            omega = math.pi / half
+            ratio = min(1.0, self._eps / self._peak_error) if self._peak_error > 0 else 0.0
+            self._set_filter(math.pi - math.radians(self.config.phase_deg) - math.asin(ratio), omega)
+            return
+        # The MV of this sample is not recorded yet; the window [a, b] needs
+        # the MVs held before t[b] only.
+        tt = np.asarray(t)
+        uu = np.asarray(self._u)
+        yy = np.asarray(self._y)
+        ta, tb = self._crossings[-2], self._crossings[-1]
+        omega = 2.0 * math.pi / (tb - ta)
+        lag = self._lag(self._estimate(tt, uu, yy, ta, tb, omega, hann=False))
+        self._trace.append((omega, self._tau, math.degrees(math.atan(omega*self._tau)), math.degrees(lag)))
+        self._adapt(omega, lag)
+        if len(self._rising) >= 3:
+            self._judge(tt, uu, yy)
+
+    def _judge(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> None:
+        ta, tb = self._crossings[-3], self._crossings[-1]
+        omega = 4.0 * math.pi / (tb - ta)
+        value = self._estimate(tt, uu, yy, ta, tb, omega, hann=True)
+        du = held_coefficient(tt, uu - self.mv0, ta, tb, 0.0).real
+        dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0).real
+        # Compare estimates through |F|/K0, which stays bounded as K0 grows.
+        inverse_gain = du / dy * abs(value) if dy != 0.0 else 0.0
+        point = Point(omega, value)
+        self._estimates.append((point, inverse_gain))
+        periods = len(self._rising) - 1
+        if periods < _MIN_PERIODS or len(self._estimates) < 2:
+            return
+        (prev, prev_inv), (cur, cur_inv) = self._estimates[-2], self._estimates[-1]
+        phase_ok = abs(-cur.phase_deg - self.config.phase_deg) <= self.config.phase_tol_deg
+        change = abs(cur.value - prev.value) / abs(cur.value)
+        if phase_ok and change <= self.config.gain_tol and abs(cur_inv - prev_inv) <= 0.02:
+            self._succeed(cur, cur_inv)
+
+    def _succeed(self, point: Point, inverse_gain: float) -> None:
+        static = point.gain / inverse_gain if inverse_gain * _INTEGRATING_RATIO > 1.0 else math.inf
+        duration = self._t[-1] - self._t[0]
+        self.result = Identification(
+            point=point,
+            static_gain=static,
+            duration=duration,
+            periods=duration * point.omega / (2.0 * math.pi),
+            samples=len(self._t),
+            hysteresis=self._eps,
+            noise_std=self._noise,
+        )
+        self._finish(Code.OK, MESSAGES[Code.OK])
+
+    # -- helpers ----------------------------------------------------------
+
+    def _estimate(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, ta: float, tb: float, omega: float, hann: bool) -> complex:
+        # Means are removed first: over a window that is not exactly whole
+        # periods they would leak into the coefficient.
+        u = u - held_coefficient(t, u, ta, tb, 0.0, hann).real
+        y = y - sampled_coefficient(t, y, ta, tb, 0.0, hann).real
+        return self._sign * sampled_coefficient(t, y, ta, tb, omega, hann) / held_coefficient(t, u, ta, tb, omega, hann)
+
+    @staticmethod
+    def _lag(value: complex) -> float:
+        return (-math.atan2(value.imag, value.real)) % (2.0 * math.pi)
+
+    def _adapt(self, omega: float, lag: float) -> None:
+        """Retune the filter for the next period from the period just measured.
+
+        Two things move when the filter changes: the frequency of the cycle and
+        the process phase there. The measured pairs ``(ln ω, lag)`` trace the
+        process phase curve, and a secant step on it predicts the frequency
+        with the requested lag; the loop's phase balance, calibrated on the
+        period just measured (it absorbs hysteresis and sampling delays),
+        gives the filter phase needed there.
+        """
+        target = math.radians(self.config.phase_deg)
+        theta_now = math.atan(omega * self._tau)
+        offset = math.pi - lag - theta_now
+        if self._last is not None:
+            w_prev, lag_prev = self._last
+            dlog = math.log(omega / w_prev)
+            if abs(dlog) > 0.005:
+                self._slope = min(max((lag - lag_prev) / dlog, 0.2), 5.0)
+        self._last = (omega, lag)
+        step = min(max((target - lag) / self._slope, -_MAX_LOG_STEP), _MAX_LOG_STEP)
+        self._set_filter(math.pi - target - offset, omega * math.exp(step))
+
+    def _set_filter(self, theta: float, omega: float) -> None:
+        self._theta = min(max(theta, 0.0), _MAX_FILTER_PHASE)
+        self._tau = math.tan(self._theta) / omega
+
+    def _check_oscillation(self, k: int) -> None:
+        periods = len(self._rising) - 1
+        if periods >= self.config.max_periods:
+            self._finish(Code.NOT_CONVERGED, f"no convergence after {periods} periods")
+            return
+        if len(self._switches) < 3:
+            return
+        halves = np.diff([self._t[i] for i in self._switches])
+        if self._t[k] - self._t[self._switches[-1]] > 5.0 * max(halves):
+            self._finish(Code.NO_OSCILLATION, "the oscillation died out (increase amp or reduce hysteresis)")
+
+    def _timeout(self) -> None:
+        if len(self._switches) < 3:
+            self._finish(Code.NO_OSCILLATION, MESSAGES[Code.NO_OSCILLATION] + " within the time limit")
+        else:
+            self._finish(Code.NOT_CONVERGED, MESSAGES[Code.NOT_CONVERGED])
+
+    def _seconds_left(self) -> float:
+        t = self._t
+        if not t:
+            return 0.0
+        dt = (t[-1] - t[0]) / max(len(t) - 1, 1)
+        noise_left = max(self.config.noise_samples - len(t), 0) * dt
+        if len(self._rising) >= 2:
+            period = t[self._rising[-1]] - t[self._rising[-2]]
+        elif len(self._switches) >= 2:
+            period = 2.0 * (t[self._switches[-1]] - t[self._switches[-2]])
+        elif self.stage is Stage.RELAY:
+            # Before the first switch the period is unknown; the first switch
+            # comes after roughly a quarter of it.
+            period = 4.0 * (t[-1] - t[self._relay_start])
+        else:
+            return noise_left
+        periods_left = max(_MIN_PERIODS + 1 - (len(self._rising) - 1), 1)
+        return noise_left + periods_left * period
+
+    def _finish(self, code: Code, message: str) -> None:
+        self.stage = Stage.DONE
+        self.code = code
+        self.message = message
