@@ -175,6 +175,7 @@ _INTEGRATING_RATIO = 200.0
 # start-up transient, two for the first filter corrections, two per estimate.
 _MIN_PERIODS = 5
 _MAX_LOG_STEP = math.log(2.0)
+_RELAXATION = 0.75
 _MAX_FILTER_PHASE = math.radians(89.0)
 
 
@@ -211,7 +212,6 @@ class RelayExperiment:
         # free of the sampling jitter of the switch instants.
         self._crossings: list[float] = []
         self._estimates: list[tuple[Point, float]] = []
-        self._trace = []
         self._last: tuple[float, float] | None = None
         self._slope = 1.0
         self._relay_start = 0
@@ -355,20 +355,38 @@ class RelayExperiment:
             ratio = min(1.0, self._eps / self._peak_error) if self._peak_error > 0 else 0.0
             self._set_filter(math.pi - math.radians(self.config.phase_deg) - math.asin(ratio), omega)
             return
-        # The MV of this sample is not recorded yet; the window [a, b] needs
-        # the MVs held before t[b] only.
+        # The MV of this sample is not recorded yet; the windows need the MVs
+        # held before this sample only.
         tt = np.asarray(t)
         uu = np.asarray(self._u)
         yy = np.asarray(self._y)
+        detrended = yy - self._drift(tt, yy, self._crossings[-3:]) if len(self._crossings) >= 3 else yy
         ta, tb = self._crossings[-2], self._crossings[-1]
         omega = 2.0 * math.pi / (tb - ta)
         lag = self._lag(self._estimate(tt, uu, yy, ta, tb, omega, hann=False))
-        self._trace.append((omega, self._tau, math.degrees(math.atan(omega*self._tau)), math.degrees(lag)))
         self._adapt(omega, lag)
         if len(self._rising) >= 3:
-            self._judge(tt, uu, yy)
+            self._judge(tt, uu, detrended)
+
+    @staticmethod
+    def _drift(tt: np.ndarray, yy: np.ndarray, bounds: list[float]) -> np.ndarray:
+        """Linear drift of the PV across consecutive whole periods between ``bounds`` (seconds).
+
+        A slow drift (the tail of a transient, an integrating process settling
+        its mean) leaks into the Fourier coefficients. The mean over a whole
+        period is free of the oscillation, so the change of the means from
+        period to period measures the drift alone.
+        """
+        first = sampled_coefficient(tt, yy, bounds[0], bounds[1], 0.0, hann=False).real
+        last = sampled_coefficient(tt, yy, bounds[-2], bounds[-1], 0.0, hann=False).real
+        spacing = 0.5 * (bounds[-1] + bounds[-2] - bounds[1] - bounds[0])
+        return (last - first) / spacing * (tt - 0.5 * (bounds[0] + bounds[-1]))
 
     def _judge(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> None:
+        """Estimate the point over the last two periods and stop if it has converged.
+
+        ``yy`` has its drift removed already.
+        """
         ta, tb = self._crossings[-3], self._crossings[-1]
         omega = 4.0 * math.pi / (tb - ta)
         value = self._estimate(tt, uu, yy, ta, tb, omega, hann=True)
@@ -434,7 +452,15 @@ class RelayExperiment:
                 self._slope = min(max((lag - lag_prev) / dlog, 0.2), 5.0)
         self._last = (omega, lag)
         step = min(max((target - lag) / self._slope, -_MAX_LOG_STEP), _MAX_LOG_STEP)
-        self._set_filter(math.pi - target - offset, omega * math.exp(step))
+        # Measurements a period after a change still carry its transient;
+        # partial (geometric) steps keep the correction from overshooting.
+        omega_next = omega * math.exp(_RELAXATION * step)
+        theta_next = min(max(math.pi - target - offset, 0.0), _MAX_FILTER_PHASE)
+        tau = math.tan(theta_next) / omega_next
+        if self._tau > 0.0:
+            tau = self._tau ** (1.0 - _RELAXATION) * tau**_RELAXATION
+        self._tau = tau
+        self._theta = math.atan(omega_next * tau)
 
     def _set_filter(self, theta: float, omega: float) -> None:
         self._theta = min(max(theta, 0.0), _MAX_FILTER_PHASE)

@@ -1,0 +1,108 @@
+"""Robust PI/PID gains from one frequency-response point and the static gain.
+
+The static gain ``K0`` and the point ``F(jω*) = r·e^{−jφ}`` fix a
+three-parameter model exactly: first order plus dead time
+``K0·e^{−Ls}/(Ts + 1)`` with ``T = sqrt((K0/r)² − 1)/ω*`` and
+``L = (φ − atan(ω*T))/ω*``, or, when the static gain is too large to tell from
+an integrator, ``Kv·e^{−Ls}/s`` with ``Kv = r·ω*`` and ``L = (φ − π/2)/ω*``.
+The gains are those with the largest integral gain ``ki = k/ti`` for which
+the loop with that model keeps its maximum sensitivity at ``Ms`` (MIGO,
+see :mod:`autotuner.robustness`). PID fixes ``td`` as a fraction of ``ti``
+(at most ¼, so a series form always exists) and takes the fraction with the
+largest ``ki``; PI is the fraction 0, so PID never has less integral gain on
+the model. The set-point weight ``b`` is the largest in [0, 1] whose
+set-point response has no resonance peak on the model.
+
+The derivation and its check on the benchmark batch are in docs/design-rule.md.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .gains import Gains
+from .process import Process
+from .relay import Point
+from .robustness import Plant, log_grid, max_sensitivity, migo, pid_frequency_response
+
+# A static gain this many times |F(jω*)| or more is designed as an integrator.
+INTEGRATING_RATIO = 200.0
+TD_RATIOS = (0.0, 0.1, 0.15, 0.2, 0.25)
+DEFAULT_ND = 10.0
+
+
+@dataclass(frozen=True)
+class Design:
+    """Gains with the model they were designed on and the Ms they give on it."""
+
+    gains: Gains
+    model: Process
+    model_ms: float
+
+
+def fit_model(point: Point, static_gain: float) -> Process:
+    """Three-parameter model through ``point`` with the given static gain (``inf``: integrating).
+
+    Raises ValueError if the point does not lag by 90°–180° or the data are not finite.
+    """
+    w, r = point.omega, point.gain
+    lag = -math.radians(point.phase_deg)
+    if not (math.isfinite(w) and w > 0.0 and math.isfinite(r) and r > 0.0):
+        raise ValueError(f"the point must have a positive finite frequency and gain, got ω={w}, |F|={r}")
+    if not math.pi / 2 <= lag <= math.pi:
+        raise ValueError(f"the point must lag by 90° to 180° for a PI(D) design, it lags by {math.degrees(lag):.1f}°")
+    if math.isnan(static_gain) or static_gain <= 0.0:
+        raise ValueError(f"the static gain must be positive (or inf for integrating), got {static_gain}")
+    if static_gain >= INTEGRATING_RATIO * r:
+        kv = r * w
+        return Process.from_tf((kv,), (1.0, 0.0), (lag - math.pi / 2) / w, text="IPDT model")
+    if static_gain <= r:
+        # No lag can explain a gain at ω* as large as the static gain: dead time only.
+        return Process.from_tf((r,), (1.0,), lag / w, text="dead-time model")
+    t = math.sqrt((static_gain / r) ** 2 - 1.0) / w
+    return Process.from_tf((static_gain,), (t, 1.0), (lag - math.atan(w * t)) / w, text="FOPDT model")
+
+
+def _plant(model: Process) -> Plant:
+    return Plant(model.freqresp, integrators=model.integrator_count, rhp_poles=0)
+
+
+def setpoint_weight(model: Process, k: float, ti: float, td: float, nd: float, w: np.ndarray) -> float:
+    """Largest ``b`` in [0, 1] with ``|G_yr(jω)| ≤ 1`` on the model (no set-point overshoot peak)."""
+    f = model.freqresp(w)
+    loop = pid_frequency_response(w, k, ti, td, nd) * f
+    s = 1j * w
+    prop = k * f / (1.0 + loop)
+    rest = (k / (ti * s)) * f / (1.0 + loop)
+    lo, hi = 0.0, 1.0
+    if np.max(np.abs(hi * prop + rest)) <= 1.0 + 1e-9:
+        return 1.0
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        if np.max(np.abs(mid * prop + rest)) <= 1.0 + 1e-9:
+            lo = mid
+        else:
+            hi = mid
+    return round(lo, 3)
+
+
+def design(point: Point, static_gain: float, controller: str = "PI", ms: float = 1.4, nd: float = DEFAULT_ND) -> Design:
+    """Robust PI or PID gains (standard form) from the identified point and static gain.
+
+    ``ms`` is the required maximum sensitivity (1.2–2.0 is the usual range).
+    """
+    if controller not in ("PI", "PID"):
+        raise ValueError(f"controller must be PI or PID, got {controller!r}")
+    if not 1.05 <= ms <= 4.0:
+        raise ValueError(f"Ms must be between 1.05 and 4, got {ms}")
+    model = fit_model(point, static_gain)
+    w = log_grid(point.omega)
+    ratios = TD_RATIOS if controller == "PID" else (0.0,)
+    best = max((migo([_plant(model)], point.omega, ms, ratio, nd, w) for ratio in ratios), key=lambda m: m.ki)
+    b = setpoint_weight(model, best.k, best.ti, best.td, nd, w)
+    gains = Gains(k=best.k, ti=best.ti, td=best.td, nd=nd, b=b, c=0.0)
+    loop = pid_frequency_response(w, best.k, best.ti, best.td, nd) * model.freqresp(w)
+    return Design(gains=gains, model=model, model_ms=max_sensitivity(loop))
