@@ -55,7 +55,10 @@ def fit_model(point: Point, static_gain: float) -> Process:
     if not math.pi / 2 <= lag <= math.pi:
         raise ValueError(f"the point must lag by 90° to 180° for a PI(D) design, it lags by {math.degrees(lag):.1f}°")
     if math.isnan(static_gain) or static_gain <= 0.0:
-        raise ValueError(f"the static gain must be positive (or inf for integrating), got {static_gain}")
+        raise ValueError(
+            f"the static gain must be positive (or inf for integrating), got {static_gain:.4g}: "
+            "an unstable process, or a load change during the experiment"
+        )
     if static_gain >= INTEGRATING_RATIO * r:
         kv = r * w
         return Process.from_tf((kv,), (1.0, 0.0), (lag - math.pi / 2) / w, text="IPDT model")

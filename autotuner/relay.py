@@ -32,6 +32,7 @@ from enum import Enum, IntEnum
 import numpy as np
 
 from .fourier import held_coefficient, sampled_coefficient
+from .phase_filter import PhaseFilter
 
 
 class Code(IntEnum):
@@ -45,6 +46,7 @@ class Code(IntEnum):
     BAD_SAMPLE = 5
     MV_RANGE = 6
     LINK_FAULT = 7
+    NO_DESIGN = 8
 
 
 MESSAGES: dict[Code, str] = {
@@ -56,6 +58,7 @@ MESSAGES: dict[Code, str] = {
     Code.BAD_SAMPLE: "invalid sample (non-finite PV or timestamps not increasing)",
     Code.MV_RANGE: "the relay cannot move the MV within its limits",
     Code.LINK_FAULT: "link to the loop failed",
+    Code.NO_DESIGN: "no robust PI/PID design from the identified data",
 }
 
 
@@ -176,7 +179,6 @@ _INTEGRATING_RATIO = 200.0
 _MIN_PERIODS = 5
 _MAX_LOG_STEP = math.log(2.0)
 _RELAXATION = 0.75
-_MAX_FILTER_PHASE = math.radians(89.0)
 
 
 class RelayExperiment:
@@ -204,8 +206,9 @@ class RelayExperiment:
         self._relay = 0
         self._filtered = 0.0
         self._crossing = 0.0
-        self._theta = 0.0
-        self._tau = 0.0
+        self._filter = PhaseFilter()
+        self._omega = 0.0
+        self._dt = 0.0
         self._switches: list[int] = []
         self._rising: list[int] = []
         # Sub-sample times of the rising crossings: the period they give is
@@ -282,7 +285,7 @@ class RelayExperiment:
             progress=progress,
             ite=ite,
             relay=self._relay,
-            filter_phase_deg=math.degrees(self._theta),
+            filter_phase_deg=math.degrees(self._filter.phase(self._omega)),
             periods=max(len(self._rising) - 1, 0),
             code=self.code,
             message=self.message,
@@ -298,6 +301,7 @@ class RelayExperiment:
         self._noise = float(np.std(residual, ddof=2))
         self._sp = float(np.mean(y))
         h = self.config.hysteresis
+        self._dt = float(t[-1] - t[0]) / (len(t) - 1)
         self._eps = 3.0 * self._noise if h is None else h
         self.stage = Stage.RELAY
         self._relay = 1
@@ -309,10 +313,7 @@ class RelayExperiment:
         e = self._sign * (self._sp - pv)
         before = self._filtered
         dt = t - self._t[-2]
-        if self._tau > 0.0:
-            self._filtered += (1.0 - math.exp(-dt / self._tau)) * (e - self._filtered)
-        else:
-            self._filtered = e
+        self._filtered = self._filter.step(e, dt)
         self._peak_error = max(self._peak_error, abs(self._filtered))
         k = len(self._t) - 1
         old = self._relay_mv()
@@ -406,7 +407,10 @@ class RelayExperiment:
             self._succeed(cur, cur_inv)
 
     def _succeed(self, point: Point, inverse_gain: float) -> None:
-        static = point.gain / inverse_gain if inverse_gain * _INTEGRATING_RATIO > 1.0 else math.inf
+        # Within the resolution of the mean MV shift, a vanishing |F|/K0 is an
+        # integrator; a negative one (unstable process, or a load change during
+        # the experiment) is reported as it is and refused by the design.
+        static = point.gain / inverse_gain if abs(inverse_gain) * _INTEGRATING_RATIO > 1.0 else math.inf
         duration = self._t[-1] - self._t[0]
         self.result = Identification(
             point=point,
@@ -443,8 +447,7 @@ class RelayExperiment:
         gives the filter phase needed there.
         """
         target = math.radians(self.config.phase_deg)
-        theta_now = math.atan(omega * self._tau)
-        offset = math.pi - lag - theta_now
+        offset = math.pi - lag - self._filter.phase(omega)
         if self._last is not None:
             w_prev, lag_prev = self._last
             dlog = math.log(omega / w_prev)
@@ -453,23 +456,23 @@ class RelayExperiment:
         self._last = (omega, lag)
         step = min(max((target - lag) / self._slope, -_MAX_LOG_STEP), _MAX_LOG_STEP)
         # Measurements a period after a change still carry its transient;
-        # partial (geometric) steps keep the correction from overshooting.
+        # partial steps keep the correction from overshooting.
         omega_next = omega * math.exp(_RELAXATION * step)
-        theta_next = min(max(math.pi - target - offset, 0.0), _MAX_FILTER_PHASE)
-        tau = math.tan(theta_next) / omega_next
-        if self._tau > 0.0:
-            tau = self._tau ** (1.0 - _RELAXATION) * tau**_RELAXATION
-        self._tau = tau
-        self._theta = math.atan(omega_next * tau)
+        now = self._filter.phase(omega_next)
+        self._set_filter(now + _RELAXATION * (math.pi - target - offset - now), omega_next)
 
     def _set_filter(self, theta: float, omega: float) -> None:
-        self._theta = min(max(theta, 0.0), _MAX_FILTER_PHASE)
-        self._tau = math.tan(self._theta) / omega
+        self._filter.set_phase(theta, omega)
+        self._omega = omega
+        if self.config.hysteresis is None:
+            # Keep the hysteresis at three standard deviations of the noise as
+            # it comes out of the filter, so a lead never makes the relay chatter.
+            self._eps = 3.0 * self._noise * self._filter.noise_gain(self._dt)
 
     def _check_oscillation(self, k: int) -> None:
         periods = len(self._rising) - 1
         if periods >= self.config.max_periods:
-            self._finish(Code.NOT_CONVERGED, f"no convergence after {periods} periods")
+            self._not_converged(f"after {periods} periods")
             return
         if len(self._switches) < 3:
             return
@@ -481,7 +484,17 @@ class RelayExperiment:
         if len(self._switches) < 3:
             self._finish(Code.NO_OSCILLATION, MESSAGES[Code.NO_OSCILLATION] + " within the time limit")
         else:
-            self._finish(Code.NOT_CONVERGED, MESSAGES[Code.NOT_CONVERGED])
+            self._not_converged("within the time limit")
+
+    def _not_converged(self, when: str) -> None:
+        text = f"no convergence {when}"
+        if self._estimates:
+            lag = -self._estimates[-1][0].phase_deg
+            text += (
+                f": the process lags {lag:.1f}° where {self.config.phase_deg:g}° was requested"
+                " (out of reach of this process?)"
+            )
+        self._finish(Code.NOT_CONVERGED, text)
 
     def _seconds_left(self) -> float:
         t = self._t

@@ -17,7 +17,7 @@ import numpy as np
 
 from .design import Design, design
 from .process import Process
-from .relay import Code, Identification, RelayConfig, RelayExperiment, Status
+from .relay import MESSAGES, Code, Identification, RelayConfig, RelayExperiment, Status
 from .simulate import PlantSim
 
 SAMPLES_PER_PERIOD = 100
@@ -59,8 +59,12 @@ class TuneResult:
             "controller": self.controller,
             "point": None
             if ident is None
-            else {"omega": ident.point.omega, "gain": ident.point.gain, "phase_deg": ident.point.phase_deg},
-            "static_gain": None if ident is None or math.isinf(ident.static_gain) else ident.static_gain,
+            else {
+                "omega": float(ident.point.omega),
+                "gain": float(ident.point.gain),
+                "phase_deg": float(ident.point.phase_deg),
+            },
+            "static_gain": None if ident is None or math.isinf(ident.static_gain) else float(ident.static_gain),
             "gains": None if des is None else des.gains.as_json(),
             "experiment": {
                 "duration": float(self.trace.t[-1] - self.trace.t[0]) if len(self.trace.t) else 0.0,
@@ -132,5 +136,8 @@ def tune(
     des = None
     code, message = experiment.code or Code.OK, experiment.message
     if ident is not None:
-        des = design(ident.point, ident.static_gain, controller, ms)
+        try:
+            des = design(ident.point, ident.static_gain, controller, ms)
+        except ValueError as exc:
+            code, message = Code.NO_DESIGN, f"{MESSAGES[Code.NO_DESIGN]}: {exc}"
     return TuneResult(code, message, controller, ident, des, trace)
