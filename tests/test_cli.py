@@ -1,0 +1,214 @@
+"""The command line contract of docs/design.md: options, the JSON object, exit codes."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from autotuner import __version__
+from autotuner.cli import app
+
+runner = CliRunner()
+
+PLANT = "exp(-s)/(2*s+1)"
+# A plant with 135° of lag that the relay cannot excite: the hysteresis is far
+# larger than any PV change amp = 1 can cause, so it fails fast with "no oscillation".
+FAILING = ["--plant", "1/(s+1)", "--hysteresis", "100"]
+
+
+def true_response(omega: float) -> complex:
+    """F(jω) of PLANT computed directly, independent of the parser and the model code."""
+    s = 1j * omega
+    return complex(np.exp(-s) / (2.0 * s + 1.0))
+
+
+def _strict_json(text: str) -> dict:
+    def reject(name: str) -> None:
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    return json.loads(text, parse_constant=reject)
+
+
+def _last_json(stdout: str) -> dict:
+    return _strict_json(stdout.strip().splitlines()[-1])
+
+
+def _invoke(*args: str):
+    return runner.invoke(app, list(args))
+
+
+def check_contract(doc: dict, controller: str = "PI") -> None:
+    """Keys and types of the design.md JSON for a successful tuning of PLANT."""
+    assert set(doc) == {"tbsy", "te", "ite", "message", "controller", "point", "static_gain", "gains", "experiment"}
+    assert doc["tbsy"] is False and doc["te"] is False
+    assert doc["ite"] == 0 and isinstance(doc["ite"], int)
+    assert doc["message"] == "ok"
+    assert doc["controller"] == controller
+    assert set(doc["point"]) == {"omega", "gain", "phase_deg"}
+    assert all(isinstance(v, float) for v in doc["point"].values())
+    assert isinstance(doc["static_gain"], float)
+    assert set(doc["gains"]) == {"pk", "pti", "ptd", "pnd", "pb", "pc"}
+    assert all(isinstance(v, float) for v in doc["gains"].values())
+    assert set(doc["experiment"]) == {"duration", "periods", "samples"}
+    assert isinstance(doc["experiment"]["duration"], float) and doc["experiment"]["duration"] > 0
+    assert isinstance(doc["experiment"]["periods"], (int, float)) and doc["experiment"]["periods"] > 0
+    assert isinstance(doc["experiment"]["samples"], int) and doc["experiment"]["samples"] > 0
+
+    point = doc["point"]
+    assert point["phase_deg"] == pytest.approx(-135.0, abs=2.0)
+    assert point["gain"] == pytest.approx(abs(true_response(point["omega"])), rel=0.01)
+    assert math.degrees(np.angle(true_response(point["omega"]))) == pytest.approx(point["phase_deg"], abs=2.0)
+    assert doc["static_gain"] == pytest.approx(1.0, rel=0.02)
+
+
+@pytest.mark.parametrize("controller", ["PI", "PID"])
+def test_tune_json_contract(controller: str) -> None:
+    result = _invoke("tune", "--plant", PLANT, "--controller", controller, "--json")
+    assert result.exit_code == 0, result.output
+    doc = _last_json(result.stdout)
+    check_contract(doc, controller)
+    if controller == "PI":
+        assert doc["gains"]["ptd"] == 0.0
+    else:
+        assert doc["gains"]["ptd"] > 0.0
+
+
+def test_tune_json_with_noise_is_seeded() -> None:
+    args = ("tune", "--plant", PLANT, "--noise", "0.005", "--seed", "3", "--json")
+    first, second = _invoke(*args), _invoke(*args)
+    assert first.exit_code == 0, first.output
+    assert _last_json(first.stdout) == _last_json(second.stdout)
+    assert _last_json(first.stdout)["point"]["phase_deg"] == pytest.approx(-135.0, abs=2.0)
+
+
+def test_tune_human_output_on_demo_plant() -> None:
+    result = _invoke("tune")
+    assert result.exit_code == 0, result.output
+    out = result.stdout
+    for label in ("point", "static gain", "experiment", "standard (ISA)", "series", "parallel", "model", "Ms on model"):
+        assert label in out
+    assert "rad/s" in out and "periods" in out and "samples" in out
+    assert "{" not in out  # not JSON
+
+
+def test_tune_failure_exits_1_with_json() -> None:
+    result = _invoke("tune", *FAILING, "--json")
+    assert result.exit_code == 1
+    doc = _last_json(result.stdout)
+    assert doc["te"] is True and doc["tbsy"] is False
+    assert isinstance(doc["ite"], int) and doc["ite"] != 0
+    assert "oscillation" in doc["message"]
+    assert doc["gains"] is None and doc["point"] is None
+
+
+def test_tune_failure_exits_1_human() -> None:
+    result = _invoke("tune", *FAILING)
+    assert result.exit_code == 1
+    assert "failed" in result.stdout and "oscillation" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("plant", "token", "position"),
+    [("1/(s+1", "(", 2), ("2s+1", "s", 1), ("exp(s)/(s+1)", None, None), ("foo", "foo", 0)],
+)
+def test_bad_plant_exits_2_and_names_the_token(plant: str, token: str | None, position: int | None) -> None:
+    result = _invoke("tune", "--plant", plant, "--json")
+    assert result.exit_code == 2
+    assert result.stdout == ""
+    assert "Traceback" not in result.output
+    assert plant in result.stderr
+    if token is not None:
+        assert f"'{token}'" in result.stderr and f"position {position}" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "words"),
+    [
+        ("--amp", "-1", "amp"),
+        ("--amp", "0", "amp"),
+        ("--phase", "200", "phase"),
+        ("--phase", "45", "phase"),
+        ("--ts", "0", "sample time"),
+        ("--ts", "-0.1", "sample time"),
+        ("--hysteresis", "-1", "hysteresis"),
+        ("--noise", "-1", "noise"),
+        ("--ms", "0.9", "--ms"),
+        ("--ms", "9", "--ms"),
+        ("--controller", "PD", "--controller"),
+        ("--amp", "x", "--amp"),
+    ],
+)
+def test_bad_option_exits_2(option: str, value: str, words: str) -> None:
+    result = _invoke("tune", option, value, "--json")
+    assert result.exit_code == 2, result.output
+    assert result.stdout == ""
+    assert words in result.stderr
+    assert "Traceback" not in result.output
+
+
+def test_controller_is_case_insensitive() -> None:
+    result = _invoke("tune", "--plant", PLANT, "--controller", "pid", "--json")
+    assert result.exit_code == 0
+    assert _last_json(result.stdout)["controller"] == "PID"
+
+
+def test_version() -> None:
+    for args in (["--version"], ["version"]):
+        result = runner.invoke(app, args)
+        assert result.exit_code == 0
+        assert result.stdout.strip() == __version__
+
+
+def test_bench_small_batch(tmp_path: Path) -> None:
+    batch = tmp_path / "batch.csv"
+    batch.write_text("id,family,params,expr\nP1-X,P1,T=1,exp(-s)/(s+1)\n")
+    output = tmp_path / "bench.md"
+    result = _invoke("bench", "--batch", str(batch), "--workers", "1", "--output", str(output))
+    assert result.exit_code == 0, result.output
+    table = output.read_text()
+    assert table.startswith("| id |") and "P1-X" in table and "**median**" in table
+    assert table.strip() in result.stdout
+    assert "wall time" in result.stderr
+
+
+def test_bench_bad_batch_exits_2(tmp_path: Path) -> None:
+    batch = tmp_path / "batch.csv"
+    batch.write_text("id,family,params,expr\nP1-X,P1,T=1,exp(-s)/(s+1\n")
+    result = _invoke("bench", "--batch", str(batch), "--workers", "1")
+    assert result.exit_code == 2
+    assert "position" in result.stderr
+    result = _invoke("bench", "--batch", str(tmp_path / "missing.csv"))
+    assert result.exit_code == 2
+
+
+def _console_script() -> Path:
+    script = Path(sys.executable).parent / ("autotuner.exe" if sys.platform == "win32" else "autotuner")
+    if not script.exists():
+        pytest.skip(f"console script not installed next to {sys.executable}")
+    return script
+
+
+def test_installed_console_script_json() -> None:
+    proc = subprocess.run(
+        [str(_console_script()), "tune", "--plant", PLANT, "--json"],
+        capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    check_contract(_last_json(proc.stdout))
+
+
+def test_installed_console_script_exit_codes() -> None:
+    script = str(_console_script())
+    failed = subprocess.run([script, "tune", *FAILING, "--json"], capture_output=True, text=True, timeout=120)
+    assert failed.returncode == 1
+    assert _last_json(failed.stdout)["te"] is True
+    bad = subprocess.run([script, "tune", "--plant", "2s+1"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2
+    assert "position 1" in bad.stderr and "Traceback" not in bad.stderr
