@@ -60,6 +60,8 @@ def closed_loop_stable(loop: np.ndarray, w: np.ndarray, integrators: int = 0, rh
     ``−integrators·π`` of phase, and the negative frequencies mirror the
     positive ones.
     """
+    if not np.all(np.isfinite(loop)):
+        return False
     phase = np.unwrap(np.angle(1.0 + loop))
     turn = phase[-1] - phase[0]
     clockwise = (integrators * math.pi - 2.0 * turn) / (2.0 * math.pi)
@@ -103,18 +105,23 @@ class MigoResult:
 
 @dataclass(frozen=True)
 class Plant:
-    """A frequency response with what the Nyquist criterion needs to know about its poles."""
+    """A frequency response with what the Nyquist criterion needs to know about its poles.
+
+    ``margin`` multiplies the required Ms for this plant: a plant that only
+    bounds the uncertainty (not the best guess) may be held to a looser limit.
+    """
 
     freqresp: FreqResp
     integrators: int = 0
     rhp_poles: int = 0
+    margin: float = 1.0
 
 
 def _largest_gain(z_list: Sequence[np.ndarray], w: np.ndarray, plants: Sequence[Plant], ms: float) -> float:
     """Largest ``k`` keeping every loop ``k·z`` stable and outside the Ms circle (0 if none)."""
-    r2 = 1.0 / ms**2
     lows, highs = [], []
-    for z in z_list:
+    for z, plant in zip(z_list, plants):
+        r2 = 1.0 / (ms * plant.margin) ** 2
         a = np.abs(z) ** 2
         b = z.real
         disc = b * b - a * (1.0 - r2)
