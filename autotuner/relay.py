@@ -322,10 +322,12 @@ class RelayExperiment:
         elif self._relay < 0 and self._filtered > self._eps:
             self._switch(1, k, self._eps, before, dt)
             self._on_period()
-        else:
-            return old
+        if not self.done:
+            self._check_oscillation(k)
         if self.done:
             return self.mv0
+        if self._switches[-1:] != [k]:
+            return old
         # The crossing happened between the last two samples; switching one
         # sample period after it, with the interval's MV averaged to keep the
         # area, makes the limit cycle periodic in continuous time instead of
@@ -394,7 +396,7 @@ class RelayExperiment:
         du = held_coefficient(tt, uu - self.mv0, ta, tb, 0.0).real
         dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0).real
         # Compare estimates through |F|/K0, which stays bounded as K0 grows.
-        inverse_gain = du / dy * abs(value) if dy != 0.0 else 0.0
+        inverse_gain = self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
         point = Point(omega, value)
         self._estimates.append((point, inverse_gain))
         periods = len(self._rising) - 1
