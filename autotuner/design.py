@@ -110,7 +110,12 @@ def _plant(model: Process, margin: float = 1.0) -> Plant:
 
 
 def setpoint_weight(model: Process, k: float, ti: float, td: float, nd: float, w: np.ndarray) -> float:
-    """Largest ``b`` in [0, 1] with ``|G_yr(jω)| ≤ 1`` on the model (no set-point overshoot peak)."""
+    """Largest ``b`` in [0, 1] with ``|G_yr(jω)| ≤ 1`` on the model (no set-point overshoot peak).
+
+    When even ``b = 0`` peaks above 1 (high integral gain on a lag-dominant
+    process: the integral path alone overshoots), 0 is returned, which gives
+    the lowest peak available from ``b``.
+    """
     f = model.freqresp(w)
     loop = pid_frequency_response(w, k, ti, td, nd) * f
     s = 1j * w
@@ -125,7 +130,7 @@ def setpoint_weight(model: Process, k: float, ti: float, td: float, nd: float, w
             lo = mid
         else:
             hi = mid
-    return round(lo, 3)
+    return math.floor(lo * 1000.0) / 1000.0  # rounding up could cross the limit
 
 
 def design(point: Point, static_gain: float, controller: str = "PI", ms: float = 1.4, nd: float = DEFAULT_ND) -> Design:

@@ -43,9 +43,15 @@ class ExpressionError(ValueError):
         self.text = text
         self.position = position
         self.token = token
+        self._args = (reason, text, position, token, detail)
         detail = f": {detail}" if detail else ""
         super().__init__(f"{reason} at position {position} in {text!r}{detail}\n"
                          f"  {text}\n  {' ' * position}^")
+
+    def __reduce__(self) -> tuple:
+        # Exceptions pickle through their args; these need the constructor's
+        # (a worker process of the benchmark sends them back).
+        return (type(self), self._args)
 
 
 @dataclass(frozen=True)

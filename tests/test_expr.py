@@ -155,3 +155,14 @@ def test_bench_expression_matches_tabulated_figures(row):
     # w135 is tabulated to 6 digits: allow the phase error that implies
     phase_deg = math.degrees(np.angle(f))
     assert (phase_deg + 135 + 180) % 360 - 180 == pytest.approx(0, abs=0.01)
+
+
+def test_expression_error_survives_pickling():
+    # The benchmark parses in worker processes, which send errors back pickled.
+    import pickle
+
+    with pytest.raises(ExpressionError) as info:
+        parse_process("2s+1")
+    copy = pickle.loads(pickle.dumps(info.value))
+    assert str(copy) == str(info.value)
+    assert (copy.position, copy.token) == (info.value.position, info.value.token)
