@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .design import TD_RATIOS, DEFAULT_ND
+from .design import DEFAULT_ND, TD_RATIOS, design, fit_model
 from .expr import parse_process
 from .gains import Gains
 from .process import Process
-from .relay import RelayConfig
+from .relay import Point, RelayConfig
 from .robustness import Plant, check_loop, log_grid, migo, pid_frequency_response
 from .simulate import PlantSim
 from .tuning import SAMPLES_PER_PERIOD, phase_frequency, run_experiment, tune
@@ -170,10 +170,47 @@ def run_one(row: dict[str, str]) -> Row:
     )
 
 
-def run_batch(rows: list[dict[str, str]], workers: int | None = None) -> list[Row]:
-    """Benchmark every row, in parallel over all cores."""
+@dataclass(frozen=True)
+class DesignRow:
+    """The design rule alone, from the exact point and static gain of one process."""
+
+    id: str
+    fopdt_ms: float
+    fopdt_ratio: float
+    pi_ms: float
+    pi_ratio: float
+    pid_ms: float
+    pid_over_pi: float
+
+
+def design_one(row: dict[str, str]) -> DesignRow:
+    """Design from the exact 135° point: FOPDT-only MIGO (the starting derivation) against the project's rule."""
+    process = parse_process(row["expr"])
+    w135 = phase_frequency(process, 135.0)
+    assert w135 is not None
+    point = Point(w135, complex(process.freqresp(w135)))
+    static = process.static_gain()
+    w = log_grid(w135)
+    limit = migo([Plant(process.freqresp, integrators=process.integrator_count)], w135, 1.4)
+    model = fit_model(point, static)
+    start = migo([Plant(model.freqresp, integrators=model.integrator_count)], w135, 1.4)
+    pi = design(point, static, "PI").gains
+    pid = design(point, static, "PID").gains
+    return DesignRow(
+        id=row["id"],
+        fopdt_ms=_judge(process, Gains(k=start.k, ti=start.ti), w),
+        fopdt_ratio=start.ki / limit.ki,
+        pi_ms=_judge(process, pi, w),
+        pi_ratio=pi.ki / limit.ki,
+        pid_ms=_judge(process, pid, w),
+        pid_over_pi=pid.ki / pi.ki,
+    )
+
+
+def run_batch(rows: list[dict[str, str]], workers: int | None = None, design_only: bool = False) -> list:
+    """Benchmark every row (experiment and design, or with ``design_only`` the rule alone), on all cores."""
     with ProcessPoolExecutor(max_workers=workers or os.cpu_count()) as pool:
-        return list(pool.map(run_one, rows, chunksize=1))
+        return list(pool.map(design_one if design_only else run_one, rows, chunksize=1))
 
 
 _COLUMNS = (
@@ -206,16 +243,32 @@ def _fmt(value: float | str, spec: str) -> str:
     return spec.format(value)
 
 
-def format_table(rows: list[Row]) -> str:
+_DESIGN_COLUMNS = (
+    ("id", "id", "{}"),
+    ("FOPDT-only Ms", "fopdt_ms", "ms"),
+    ("FOPDT-only ki/max", "fopdt_ratio", "{:.3f}"),
+    ("PI Ms", "pi_ms", "ms"),
+    ("PI ki/max", "pi_ratio", "{:.3f}"),
+    ("PID Ms", "pid_ms", "ms"),
+    ("PID ki / PI ki", "pid_over_pi", "{:.3f}"),
+)
+
+
+def format_table(rows: list) -> str:
     """The benchmark table (markdown) with a median and a worst line per column."""
-    head = "| " + " | ".join(c[0] for c in _COLUMNS) + " |"
-    rule = "|" + "|".join("---" for _ in _COLUMNS) + "|"
+    columns = _DESIGN_COLUMNS if rows and isinstance(rows[0], DesignRow) else _COLUMNS
+    head = "| " + " | ".join(c[0] for c in columns) + " |"
+    rule = "|" + "|".join("---" for _ in columns) + "|"
     lines = [head, rule]
     for r in rows:
-        lines.append("| " + " | ".join(_fmt(getattr(r, attr), spec) for _, attr, spec in _COLUMNS) + " |")
+        lines.append("| " + " | ".join(_fmt(getattr(r, attr), spec) for _, attr, spec in columns) + " |")
     medians, worsts = ["**median**"], ["**worst**"]
-    for _, attr, spec in _COLUMNS[1:]:
-        low_is_worse = attr.endswith("ratio") or attr == "migo_pid_over_pi"
+    for _, attr, spec in columns[1:]:
+        if attr == "omega":  # a frequency has no better or worse
+            medians.append("")
+            worsts.append("")
+            continue
+        low_is_worse = "ratio" in attr or "over" in attr
         values = [getattr(r, attr) for r in rows]
         finite = [v for v in values if math.isfinite(v)]
         med = statistics.median(finite) if finite else math.nan

@@ -231,6 +231,8 @@ def bench(
                                                "Default: the Åström–Hägglund batch shipped with the package.")] = None,
     workers: Annotated[int | None, typer.Option(min=1, help="Worker processes. Default: all cores.")] = None,
     output: Annotated[Path | None, typer.Option(help="Also write the table (markdown) to this file.")] = None,
+    design_only: Annotated[bool, typer.Option("--design-only", help="Only the design rule, from the exact "
+                                              "135° point and static gain (no experiment).")] = False,
 ) -> None:
     """Benchmark the experiment and the design on every process of a batch against the usual relay tuners."""
     start = time.perf_counter()
@@ -242,7 +244,7 @@ def bench(
         _bad_input(f"bad batch {batch}: missing column {exc}")
     except (OSError, ValueError) as exc:  # unreadable file, bad expression
         _bad_input(f"bad batch {batch}: {exc}")
-    table = format_table(run_batch(rows, workers))
+    table = format_table(run_batch(rows, workers, design_only))
     print(table)
     if output is not None:
         output.write_text(table + "\n")
