@@ -251,3 +251,16 @@ def test_relay_is_clipped_to_mv_limits():
 def test_config_errors_name_the_setting(kwargs, word):
     with pytest.raises(ValueError, match=word):
         RelayConfig(**kwargs)
+
+
+def test_a_fault_reported_from_outside_ends_the_experiment():
+    sim = PlantSim(parse_process("exp(-s)/(2*s+1)"), 0.05, mv0=1.0)
+    experiment = RelayExperiment(RelayConfig(amp=1.0), mv0=1.0)
+    for _ in range(100):
+        sim.advance(experiment.step(sim.t, sim.measure()))
+    experiment.fail(Code.LINK_FAULT, "Modbus timeout")
+    assert experiment.code is Code.LINK_FAULT and experiment.message == "Modbus timeout"
+    assert experiment.status().ite == int(Code.LINK_FAULT)
+    assert experiment.step(sim.t, sim.measure()) == 1.0
+    experiment.abort()  # a later TBRK does not overwrite the first outcome
+    assert experiment.code is Code.LINK_FAULT
