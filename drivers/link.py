@@ -1,0 +1,86 @@
+"""What the tuning session needs from a loop in the field, whatever the transport.
+
+One implementation per transport (Modbus, CAN, in-process simulation); none
+of their details reach the engine. All calls are async and raise
+:class:`LinkError` on any failure — a timeout, an exception response, a bus
+error, or a value that must not be used as data (NaN, infinity, stale).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Protocol
+
+from autotuner.gains import Gains
+
+
+class LinkError(Exception):
+    """The loop cannot be read or written right now; the message says why."""
+
+
+class Mode(IntEnum):
+    """Controller mode of the loop: MAN holds the manual MV, AUTO runs the PID."""
+
+    MAN = 0
+    AUTO = 1
+
+
+@dataclass(frozen=True)
+class LoopState:
+    """A snapshot of the loop: mode, MV and SP (engineering units) and the PID gains."""
+
+    mode: Mode
+    mv: float
+    sp: float
+    gains: Gains
+
+
+@dataclass(frozen=True)
+class TuneFlags:
+    """The autotuner handshake of the PIDAT block: TUNE/TBRK in, TBSY/TE/ite out."""
+
+    tune: bool = False
+    tbrk: bool = False
+    tbsy: bool = False
+    te: bool = False
+    ite: float = 0.0
+
+
+def checked(name: str, value: float) -> float:
+    """``value`` if finite, else a LinkError naming the signal (a NaN is never data)."""
+    if not math.isfinite(value):
+        raise LinkError(f"{name} is not a number ({value})")
+    return value
+
+
+class Link(Protocol):
+    """A loop reachable through some transport."""
+
+    async def open(self) -> None:
+        """Connect; raises LinkError if the device cannot be reached."""
+
+    async def close(self) -> None:
+        """Disconnect; never raises."""
+
+    async def read_pv(self) -> float:
+        """The current PV (engineering units)."""
+
+    async def write_mv(self, mv: float) -> None:
+        """Set the manual MV (used while the loop is in MAN)."""
+
+    async def read_state(self) -> LoopState:
+        """Mode, MV, SP and gains of the loop."""
+
+    async def write_mode(self, mode: Mode) -> None:
+        """Switch the loop to MAN or AUTO."""
+
+    async def write_gains(self, gains: Gains) -> None:
+        """Write PID gains (standard form) to the controller."""
+
+    async def read_flags(self) -> TuneFlags:
+        """The handshake bits as the device holds them."""
+
+    async def write_flags(self, flags: TuneFlags) -> None:
+        """Publish TBSY, TE and ite to the device (TUNE and TBRK are the device's inputs)."""

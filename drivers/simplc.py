@@ -1,0 +1,106 @@
+"""A simulated PLC: a process under a PIDU-like PID unit, with the autotuner handshake.
+
+It is what the simulated plant servers (Modbus, CAN) expose: PV, MV, SP,
+mode (MAN/AUTO), the PID gains, the manual MV, and the TUNE/TBRK/TBSY/TE/ite
+bits. In MAN the PID unit copies the manual MV to its output and tracks it,
+so returning to AUTO is bumpless, as on the real block. Faults can be
+injected for tests: a PV that reads NaN.
+
+Time is the plant's: :meth:`tick` advances one sample; :func:`run` ticks in
+real time (or ``speed`` times faster), deadline-scheduled so it does not drift.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from dataclasses import dataclass, field
+
+from autotuner.design import design
+from autotuner.gains import Gains
+from autotuner.pid import PidUnit
+from autotuner.process import Process
+from autotuner.relay import Point
+from autotuner.simulate import PlantSim
+from autotuner.tuning import default_sample_time, phase_frequency
+
+from .link import Mode, TuneFlags
+
+
+def safe_gains(process: Process) -> Gains:
+    """A cautious PI for the simulated plant's starting state (designed from the exact 135° point at Ms 1.2)."""
+    w = phase_frequency(process, 135.0)
+    if w is None:
+        return Gains(k=0.1, ti=10.0)
+    g = design(Point(w, complex(process.freqresp(w))), process.static_gain(), "PI", ms=1.2).gains
+    return Gains(k=g.k, ti=g.ti, b=1.0)
+
+
+@dataclass
+class SimulatedPlc:
+    """Process ``process`` sampled every ``ts`` seconds (plant time) under a PID unit, starting steady in AUTO."""
+
+    process: Process
+    ts: float = 0.0
+    pv0: float = 50.0
+    mv0: float = 50.0
+    noise_std: float = 0.0
+    seed: int | None = 0
+    mv_limits: tuple[float, float] = (0.0, 100.0)
+    mode: Mode = Mode.AUTO
+    flags: TuneFlags = field(default_factory=TuneFlags)
+    nan_pv: bool = False
+
+    def __post_init__(self) -> None:
+        if self.ts <= 0.0:
+            self.ts = default_sample_time(self.process)
+        self.sim = PlantSim(self.process, self.ts, pv0=self.pv0, mv0=self.mv0, noise_std=self.noise_std,
+                            seed=self.seed, mv_limits=self.mv_limits)
+        lo, hi = self.mv_limits
+        self.pid = PidUnit(safe_gains(self.process), kind="PI", lolim=lo, hilim=hi)
+        self.sp = self.pv0
+        self.hv = self.mv0
+        self.mv = self.mv0
+        self.pv = self.sim.measure()
+        self.pid.reset(self.mv0, self.sp, self.pv)
+
+    @property
+    def t(self) -> float:
+        """Plant time, seconds."""
+        return self.sim.t
+
+    @property
+    def gains(self) -> Gains:
+        """The PID unit's gains."""
+        return self.pid.gains
+
+    def set_gains(self, gains: Gains) -> None:
+        """New gains, bumpless (the PID unit moves the change into its integral state)."""
+        self.pid.gains = gains
+
+    def read_pv(self) -> float:
+        """The PV as the PLC serves it (NaN while the fault is injected)."""
+        return math.nan if self.nan_pv else self.pv
+
+    def tick(self) -> None:
+        """One sample: controller output from the current PV, then the plant advances ``ts``."""
+        man = self.mode is Mode.MAN
+        self.mv = self.pid.step(self.sim.t, self.sp, self.pv, man=man, hv=self.hv if man else None)
+        if not man:
+            self.hv = self.mv  # the manual value follows, so a switch to MAN is bumpless too
+        self.mv = self.sim.advance(self.mv)
+        self.pv = self.sim.measure()
+
+
+async def run(plc: SimulatedPlc, speed: float = 1.0, stop: asyncio.Event | None = None) -> None:
+    """Tick ``plc`` every ``ts/speed`` wall seconds until ``stop`` is set (or forever)."""
+    period = plc.ts / speed
+    start = time.monotonic()
+    k = 0
+    while stop is None or not stop.is_set():
+        k += 1
+        delay = start + k * period - time.monotonic()
+        if delay > 0.0:
+            await asyncio.sleep(delay)
+        plc.tick()
