@@ -123,15 +123,8 @@ def run_experiment(
     return experiment, Trace(np.asarray(ts), np.asarray(pvs), np.asarray(mvs))
 
 
-def tune(
-    sim: PlantSim,
-    config: RelayConfig,
-    controller: str = "PI",
-    ms: float = 1.4,
-    on_status: Callable[[Status], None] | None = None,
-) -> TuneResult:
-    """Run the experiment on ``sim`` and design ``controller`` ("PI" or "PID") for maximum sensitivity ``ms``."""
-    experiment, trace = run_experiment(sim, config, on_status)
+def result_of(experiment: RelayExperiment, trace: Trace, controller: str, ms: float) -> TuneResult:
+    """The outcome of an ended experiment, with ``controller`` designed for ``ms`` on success."""
     ident = experiment.result
     des = None
     code, message = experiment.code or Code.OK, experiment.message
@@ -141,3 +134,15 @@ def tune(
         except ValueError as exc:
             code, message = Code.NO_DESIGN, f"{MESSAGES[Code.NO_DESIGN]}: {exc}"
     return TuneResult(code, message, controller, ident, des, trace)
+
+
+def tune(
+    sim: PlantSim,
+    config: RelayConfig,
+    controller: str = "PI",
+    ms: float = 1.4,
+    on_status: Callable[[Status], None] | None = None,
+) -> TuneResult:
+    """Run the experiment on ``sim`` and design ``controller`` ("PI" or "PID") for maximum sensitivity ``ms``."""
+    experiment, trace = run_experiment(sim, config, on_status)
+    return result_of(experiment, trace, controller, ms)

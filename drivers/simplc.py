@@ -100,7 +100,7 @@ async def run(plc: SimulatedPlc, speed: float = 1.0, stop: asyncio.Event | None 
     k = 0
     while stop is None or not stop.is_set():
         k += 1
-        delay = start + k * period - time.monotonic()
-        if delay > 0.0:
-            await asyncio.sleep(delay)
+        # Always yield, even when late: a plant that catches up must not starve
+        # the other tasks of the loop (the servers, the session).
+        await asyncio.sleep(max(start + k * period - time.monotonic(), 0.0))
         plc.tick()

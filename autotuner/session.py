@@ -1,0 +1,144 @@
+"""One tuning of a loop in the field, in real time, through a :class:`drivers.link.Link`.
+
+The session owns the clock. It saves the loop (mode, MV, gains), takes it
+over in MAN, samples it on a deadline schedule (sample k is due at
+``start + k·ts``, so delays do not accumulate), feeds the experiment the
+*measured* sample times (jitter then does not bias the identified point),
+and whatever way the experiment ends — success, TBRK, PV limits, link loss,
+cancellation (Ctrl-C, SIGTERM) — writes the saved MV back and returns the
+loop to its saved mode (the PID unit tracks the manual MV, so the return to
+AUTO is bumpless). New gains are written only on success and only if asked.
+
+``speed`` runs a simulated plant's clock faster than the wall clock: the
+session then samples every ``ts/speed`` wall seconds and scales the measured
+times back to plant seconds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags
+
+from .relay import MESSAGES, Code, RelayConfig, RelayExperiment, Status
+from .tuning import Trace, TuneResult, result_of
+
+RESTORE_ATTEMPTS = 3
+# Handshake bits (TBSY, ite) are refreshed this often, wall seconds.
+FLAGS_PERIOD = 0.5
+
+
+async def _restore(link: Link, saved: LoopState) -> str:
+    """Saved MV, then saved mode; '' on success, else why the loop is not restored."""
+    error = ""
+    for attempt in range(RESTORE_ATTEMPTS):
+        try:
+            await link.write_mv(saved.mv)
+            await link.write_mode(Mode(saved.mode))
+            return ""
+        except LinkError as exc:
+            error = str(exc)
+            await asyncio.sleep(0.1 * (attempt + 1))
+    return f"LOOP NOT RESTORED ({error}): set mode {Mode(saved.mode).name} and MV {saved.mv:g} by hand"
+
+
+async def _publish(link: Link, flags: TuneFlags) -> None:
+    try:
+        await link.write_flags(flags)
+    except LinkError:
+        pass  # the handshake is informative; the experiment's own I/O reports link faults
+
+
+async def tune_link(
+    link: Link,
+    config: RelayConfig,
+    ts: float,
+    controller: str = "PI",
+    ms: float = 1.4,
+    apply: bool = False,
+    speed: float = 1.0,
+    stop: asyncio.Event | None = None,
+    on_status: Callable[[Status], None] | None = None,
+) -> TuneResult:
+    """Run the experiment on the loop behind ``link`` every ``ts`` plant seconds and design ``controller``."""
+    if not ts > 0.0 or not speed > 0.0:
+        raise ValueError(f"sample time and speed must be positive, got ts={ts}, speed={speed}")
+    try:
+        saved = await link.read_state()
+    except LinkError as exc:
+        return TuneResult(Code.LINK_FAULT, f"cannot read the loop: {exc}", controller, None, None, _trace([], [], []))
+
+    experiment = RelayExperiment(config, mv0=saved.mv)
+    times: list[float] = []
+    pvs: list[float] = []
+    mvs: list[float] = []
+    restore_error = ""
+    try:
+        await _publish(link, TuneFlags(tbsy=True, te=False, ite=0.0))
+        await link.write_mv(saved.mv)
+        await link.write_mode(Mode.MAN)
+        period = ts / speed
+        start = time.monotonic()
+        flags_due = start
+        k = 0
+        while not experiment.done:
+            delay = start + k * period - time.monotonic()
+            if delay > 0.0:
+                await asyncio.sleep(delay)
+            k += 1
+            if stop is not None and stop.is_set():
+                experiment.abort()
+                break
+            before = time.monotonic()
+            pv = await link.read_pv()
+            t = (0.5 * (before + time.monotonic()) - start) * speed
+            mv = experiment.step(t, pv)
+            if experiment.done:
+                break
+            await link.write_mv(mv)
+            times.append(t)
+            pvs.append(pv)
+            mvs.append(mv)
+            status = experiment.status()
+            if on_status is not None:
+                on_status(status)
+            if time.monotonic() >= flags_due:
+                flags_due += FLAGS_PERIOD
+                await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite))
+    except LinkError as exc:
+        experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
+    except asyncio.CancelledError:
+        experiment.abort()
+        restore_error = await _restore(link, saved)
+        raise
+    finally:
+        if not restore_error:
+            restore_error = await _restore(link, saved)
+    result = _result(experiment, controller, ms, _trace(times, pvs, mvs), restore_error)
+    if result.ok and apply:
+        try:
+            await link.write_gains(result.design.gains)
+        except LinkError as exc:
+            result = TuneResult(Code.LINK_FAULT, f"gains not written: {exc}", controller,
+                                result.identification, result.design, result.trace)
+    await _publish(link, TuneFlags(tbsy=False, te=not result.ok, ite=float(result.code)))
+    if on_status is not None:
+        on_status(experiment.status())
+    return result
+
+
+def _trace(t: list[float], pv: list[float], mv: list[float]) -> Trace:
+    return Trace(np.asarray(t, dtype=float), np.asarray(pv, dtype=float), np.asarray(mv, dtype=float))
+
+
+def _result(experiment: RelayExperiment, controller: str, ms: float, trace: Trace, restore_error: str) -> TuneResult:
+    result = result_of(experiment, trace, controller, ms)
+    if not restore_error:
+        return result
+    code = Code.LINK_FAULT if result.code is Code.OK else result.code
+    return TuneResult(code, f"{result.message}; {restore_error}", controller, result.identification,
+                      result.design, trace)
