@@ -1,0 +1,443 @@
+"""The loop over CAN: python-can for the bus, cantools and a DBC file for the frames.
+
+:class:`CanLink` implements :class:`drivers.link.Link`. A :class:`can.Notifier`
+hands every received frame to the event loop, where it is decoded with the
+DBC and kept, signal by signal, with its receive time (``time.monotonic``).
+Reads return the latest values; writes encode command frames and send them.
+
+The frames and signals are those of the default DBC ``drivers/data/autotuner.dbc``
+(see docs/can.md). Another DBC may be used as long as it has the same message
+and signal names; the ids, lengths, layouts, byte orders and scalings are its own.
+
+Conventions on the wire:
+
+* ``Ti = 0`` means no integral action (``Gains.ti = math.inf``); a received
+  ``Ti`` that is 0 or +inf reads as ``math.inf``, so a DBC with scaled-integer
+  signals can carry it too.
+* ``Mode`` is 0 = MAN, 1 = AUTO; the handshake bits are 0/1.
+
+Nothing waits unboundedly: every wait is bounded by ``timeout``, and every
+python-can or cantools failure becomes a :class:`LinkError`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import Iterable
+from importlib import resources
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qsl, urlsplit
+
+import can
+import cantools
+
+from autotuner.gains import Gains
+
+from .link import LinkError, LoopState, Mode, TuneFlags, checked
+
+#: Frames the node sends (cyclic status, gains on request) and the link reads.
+PROCESS, STATUS, SETPOINT = "AT_Process", "AT_Status", "AT_Setpoint"
+GAINS = ("AT_Gains1", "AT_Gains2", "AT_Gains3")
+#: Frames the link sends and the node applies.
+CMD_MV, CMD_MODE, CMD_SP, CMD_FLAGS = "AT_CmdMV", "AT_CmdMode", "AT_CmdSP", "AT_CmdFlags"
+CMD_GAINS = ("AT_CmdGains1", "AT_CmdGains2", "AT_CmdGains3")
+CMD_APPLY, REQUEST = "AT_CmdGainsApply", "AT_Request"
+
+#: Every message name a DBC must define, with the signals each must carry.
+REQUIRED: dict[str, tuple[str, ...]] = {
+    PROCESS: ("PV", "MV"),
+    STATUS: ("Mode", "TUNE", "TBRK", "TBSY", "TE", "Counter", "ITE"),
+    SETPOINT: ("SP", "HV"),
+    GAINS[0]: ("K", "Ti"),
+    GAINS[1]: ("Td", "N"),
+    GAINS[2]: ("B", "C"),
+    CMD_MV: ("HV",),
+    CMD_MODE: ("Mode",),
+    CMD_SP: ("SP",),
+    CMD_FLAGS: ("TBSY", "TE", "ITE"),
+    CMD_GAINS[0]: ("K", "Ti"),
+    CMD_GAINS[1]: ("Td", "N"),
+    CMD_GAINS[2]: ("B", "C"),
+    CMD_APPLY: ("Apply",),
+    REQUEST: ("All",),
+}
+
+# How often the notifier's receive thread wakes to see whether it is stopped (s);
+# close() waits for it, so this bounds the time close() takes.
+_RX_POLL = 0.05
+
+
+def default_dbc() -> Path:
+    """Path of the DBC shipped for the simulated PLC."""
+    return Path(str(resources.files("drivers") / "data" / "autotuner.dbc"))
+
+
+def load_dbc(dbc: str | Path | None = None) -> cantools.database.can.Database:
+    """The DBC at ``dbc`` (default: the shipped one), checked for the frames the link needs.
+
+    Raises ValueError naming what is missing or why the file cannot be read.
+    """
+    path = Path(dbc) if dbc is not None else default_dbc()
+    try:
+        db = cantools.database.load_file(str(path), database_format="dbc")
+    except (OSError, cantools.database.Error, ValueError) as exc:
+        raise ValueError(f"cannot load DBC {path}: {exc}") from exc
+    missing = []
+    for name, signals in REQUIRED.items():
+        try:
+            msg = db.get_message_by_name(name)
+        except KeyError:
+            missing.append(name)
+            continue
+        have = {s.name for s in msg.signals}
+        missing += [f"{name}.{s}" for s in signals if s not in have]
+    if missing:
+        raise ValueError(f"DBC {path} lacks {', '.join(missing)} (see docs/can.md)")
+    return db
+
+
+def ti_to_wire(ti: float) -> float:
+    """Integral time as sent: 0 for no integral action."""
+    return ti if math.isfinite(ti) else 0.0
+
+
+def ti_from_wire(ti: float) -> float:
+    """Integral time as received: 0 (or +inf) means no integral action."""
+    if math.isnan(ti) or ti < 0.0:
+        raise ValueError(f"Ti is not a valid integral time ({ti})")
+    return math.inf if ti == 0.0 or ti == math.inf else ti
+
+
+def gains_to_wire(g: Gains) -> tuple[dict[str, float], dict[str, float], dict[str, float]]:
+    """The three gains frames' signals for ``g``."""
+    return ({"K": g.k, "Ti": ti_to_wire(g.ti)}, {"Td": g.td, "N": g.nd}, {"B": g.b, "C": g.c})
+
+
+def gains_from_wire(values: dict[str, Any]) -> Gains:
+    """Gains from the signals K, Ti, Td, N, B, C (ValueError if they are not valid gains)."""
+    return Gains(k=float(values["K"]), ti=ti_from_wire(float(values["Ti"])), td=float(values["Td"]),
+                 nd=float(values["N"]), b=float(values["B"]), c=float(values["C"]))
+
+
+def encode(db: cantools.database.can.Database, name: str, values: dict[str, Any]) -> can.Message:
+    """A python-can message for DBC message ``name`` (ValueError if a value does not fit)."""
+    msg = db.get_message_by_name(name)
+    try:
+        data = msg.encode(values, scaling=True, padding=False, strict=True)
+    except (cantools.database.Error, ValueError, KeyError, OverflowError) as exc:
+        raise ValueError(f"cannot encode {name} {values}: {exc}") from exc
+    return can.Message(arbitration_id=msg.frame_id, is_extended_id=msg.is_extended_frame,
+                       data=data, is_fd=msg.is_fd)
+
+
+def open_bus(interface: str, channel: str, **kwargs: Any) -> can.BusABC:
+    """A python-can bus; any failure (unknown interface, no device, driver missing) is a LinkError."""
+    try:
+        return can.Bus(interface=interface, channel=channel, **kwargs)
+    except (can.CanError, ValueError, ImportError, OSError, TypeError) as exc:
+        raise LinkError(f"cannot open CAN interface {interface!r} channel {channel!r}: {exc}") from exc
+
+
+class _Receiver(can.Listener):
+    """Runs in the event loop (the notifier is given the loop): decode and keep the latest values."""
+
+    def __init__(self, link: "CanLink") -> None:
+        self.link = link
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.link._received(msg)
+
+    def on_error(self, exc: Exception) -> None:
+        self.link._bus_error(exc)
+
+    def stop(self) -> None:
+        pass
+
+
+class CanLink:
+    """A loop behind a CAN node, per the DBC ``dbc`` (default: the shipped one).
+
+    ``interface`` and ``channel`` are python-can's (``"socketcan"``/``"can0"``,
+    ``"pcan"``/``"PCAN_USBBUS1"``, ``"virtual"``/any name, ...); ``bus_kwargs``
+    (e.g. ``bitrate``) go to :class:`can.Bus`.
+
+    ``timeout`` (s) bounds every wait: for a first or fresh frame, for a send.
+    ``stale_after`` (s): a PV older than this is not returned — the link waits
+    for a newer frame (up to ``timeout``) and raises LinkError if none comes.
+    ``None`` means three times the observed period of the PV frame (at most
+    ``timeout``; ``timeout`` until two frames have been seen).
+    """
+
+    def __init__(self, interface: str = "virtual", channel: str = "autotuner", dbc: str | Path | None = None,
+                 timeout: float = 1.0, stale_after: float | None = None, **bus_kwargs: Any) -> None:
+        if not timeout > 0.0:
+            raise ValueError(f"timeout must be > 0, got {timeout}")
+        if stale_after is not None and not stale_after > 0.0:
+            raise ValueError(f"stale_after must be > 0, got {stale_after}")
+        self.interface = interface
+        self.channel = channel
+        self.db = load_dbc(dbc)
+        self.timeout = float(timeout)
+        self.stale_after = stale_after
+        self.bus_kwargs = bus_kwargs
+        self._bus: can.BusABC | None = None
+        self._notifier: can.Notifier | None = None
+        self._ids = {m.frame_id: m for m in self.db.messages
+                     if m.name in (PROCESS, STATUS, SETPOINT, *GAINS)}
+        # name -> (decoded signals, monotonic receive time)
+        self._latest: dict[str, tuple[dict[str, Any], float]] = {}
+        # Replaced (and the old one set) on every frame: waiters wake and look again.
+        self._changed = asyncio.Event()
+        #: Why the last undecodable frame could not be decoded.
+        self.last_bad_frame = ""
+        self._error: Exception | None = None
+        self._pv_interval: float | None = None
+        self._counter: int | None = None
+        #: Health counters: frames received / undecodable, error frames, lost AT_Status frames (counter gaps).
+        self.stats = {"frames": 0, "bad_frames": 0, "error_frames": 0, "lost_status": 0}
+
+    def __repr__(self) -> str:
+        return f"CanLink(can://{self.interface}/{self.channel})"
+
+    @classmethod
+    def from_url(cls, url: str, dbc: str | Path | None = None, **kwargs: Any) -> "CanLink":
+        """``can://INTERFACE/CHANNEL[?bitrate=N&timeout=S&stale_after=S]``.
+
+        CHANNEL is everything after the first slash (``can://slcan//dev/ttyACM0``
+        gives channel ``/dev/ttyACM0``). Raises ValueError for anything else.
+        """
+        parts = urlsplit(url)
+        if parts.scheme != "can":
+            raise ValueError(f"not a CAN link URL (want can://INTERFACE/CHANNEL): {url!r}")
+        interface = parts.netloc
+        channel = parts.path[1:] if parts.path.startswith("/") else ""
+        if not interface or not channel or parts.fragment:
+            raise ValueError(f"a CAN link URL is can://INTERFACE/CHANNEL, e.g. can://socketcan/can0 or "
+                             f"can://virtual/autotuner; got {url!r}")
+        options: dict[str, Any] = {}
+        for key, value in parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False):
+            try:
+                if key == "bitrate":
+                    options[key] = int(value)
+                elif key in ("timeout", "stale_after"):
+                    options[key] = float(value)
+                else:
+                    raise ValueError(f"unknown option {key!r} (bitrate, timeout, stale_after)")
+            except ValueError as exc:
+                raise ValueError(f"bad CAN link URL {url!r}: {exc}") from exc
+        options.update(kwargs)
+        return cls(interface, channel, dbc=dbc, **options)
+
+    # ----------------------------------------------------------------- receive
+
+    def _received(self, msg: can.Message) -> None:
+        now = time.monotonic()
+        if msg.is_error_frame:
+            self.stats["error_frames"] += 1
+            return
+        if msg.is_remote_frame:
+            return
+        spec = self._ids.get(msg.arbitration_id)
+        if spec is None or bool(msg.is_extended_id) != bool(spec.is_extended_frame):
+            return
+        try:
+            values = spec.decode(bytes(msg.data), decode_choices=False, scaling=True)
+        except (cantools.database.Error, ValueError, KeyError, IndexError) as exc:
+            self.stats["bad_frames"] += 1
+            self.last_bad_frame = f"{spec.name}: {exc}"
+            return
+        self.stats["frames"] += 1
+        if spec.name == PROCESS:
+            prev = self._latest.get(PROCESS)
+            if prev is not None:
+                dt = now - prev[1]
+                self._pv_interval = dt if self._pv_interval is None else 0.8 * self._pv_interval + 0.2 * dt
+        elif spec.name == STATUS:
+            counter = int(values["Counter"])
+            if self._counter is not None:
+                modulus = 1 << spec.get_signal_by_name("Counter").length
+                self.stats["lost_status"] += (counter - self._counter - 1) % modulus
+            self._counter = counter
+        self._latest[spec.name] = (values, now)
+        self._wake()
+
+    def _wake(self) -> None:
+        changed, self._changed = self._changed, asyncio.Event()
+        changed.set()
+
+    def _bus_error(self, exc: Exception) -> None:
+        self._error = exc
+        self._wake()
+
+    def _check(self) -> None:
+        if self._bus is None:
+            raise LinkError(f"{self!r} is not open")
+        if self._error is not None:
+            raise LinkError(f"CAN bus error on {self.interface}/{self.channel}: {self._error}")
+
+    async def _fresh(self, names: Iterable[str], after: float) -> dict[str, Any]:
+        """The signals of ``names`` once each has been received after ``after`` (monotonic), within ``timeout``."""
+        names = tuple(names)
+        deadline = time.monotonic() + self.timeout
+
+        def ready() -> bool:
+            return self._bus is None or self._error is not None or all(n in self._latest and self._latest[n][1] > after for n in names)
+
+        self._check()
+        while not ready():
+            changed = self._changed
+            try:
+                await asyncio.wait_for(changed.wait(), max(0.0, deadline - time.monotonic()))
+            except TimeoutError:
+                late = [n for n in names if n not in self._latest or self._latest[n][1] <= after]
+                seen = [f"{n} {time.monotonic() - self._latest[n][1]:.3g} s ago" for n in late if n in self._latest]
+                raise LinkError(f"no fresh {', '.join(late)} from the CAN node within {self.timeout:g} s"
+                                + (f" (last: {'; '.join(seen)})" if seen else " (never received)")) from None
+        self._check()
+        out: dict[str, Any] = {}
+        for n in names:
+            out.update(self._latest[n][0])
+        return out
+
+    # ------------------------------------------------------------------- send
+
+    async def _send(self, *frames: tuple[str, dict[str, Any]]) -> None:
+        self._check()
+        try:
+            messages = [encode(self.db, name, values) for name, values in frames]
+        except ValueError as exc:
+            raise LinkError(str(exc)) from exc
+        bus = self._bus
+        assert bus is not None
+
+        def send_all() -> None:
+            for m in messages:
+                bus.send(m, timeout=self.timeout)
+
+        try:
+            await asyncio.wait_for(asyncio.to_thread(send_all), self.timeout + 0.5)
+        except TimeoutError:
+            raise LinkError(f"CAN send did not complete within {self.timeout:g} s") from None
+        except (can.CanError, OSError, ValueError) as exc:
+            raise LinkError(f"CAN send failed on {self.interface}/{self.channel}: {exc}") from exc
+
+    # ------------------------------------------------------------------- Link
+
+    async def open(self) -> None:
+        """Open the bus and start receiving (it does not wait for a frame: reads do)."""
+        if self._bus is not None:
+            return
+        self._bus = open_bus(self.interface, self.channel, **self.bus_kwargs)
+        self._changed = asyncio.Event()
+        self._error = None
+        self._latest.clear()
+        try:
+            self._notifier = can.Notifier(self._bus, [_Receiver(self)], timeout=_RX_POLL,
+                                          loop=asyncio.get_running_loop())
+        except (can.CanError, ValueError, OSError) as exc:
+            self._bus.shutdown()
+            self._bus = None
+            raise LinkError(f"cannot receive on {self.interface}/{self.channel}: {exc}") from exc
+
+    async def close(self) -> None:
+        """Stop receiving and release the bus; never raises."""
+        notifier, bus = self._notifier, self._bus
+        self._notifier = self._bus = None
+        self._wake()  # waiters see the link closed
+        try:
+            if notifier is not None:
+                notifier.stop(timeout=_RX_POLL + 1.0)
+        except Exception:  # noqa: BLE001 - close never raises
+            pass
+        try:
+            if bus is not None:
+                bus.shutdown()
+        except Exception:  # noqa: BLE001
+            pass
+
+    async def __aenter__(self) -> "CanLink":
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    def _stale_limit(self) -> float:
+        if self.stale_after is not None:
+            return self.stale_after
+        if self._pv_interval is None:
+            return self.timeout
+        return min(self.timeout, 3.0 * self._pv_interval)
+
+    @property
+    def pv_age(self) -> float:
+        """Seconds since the last PV frame (inf if none yet)."""
+        last = self._latest.get(PROCESS)
+        return math.inf if last is None else time.monotonic() - last[1]
+
+    async def read_pv(self) -> float:
+        """The latest PV; waits up to ``timeout`` for one if it is older than the stale limit."""
+        self._check()
+        last = self._latest.get(PROCESS)
+        now = time.monotonic()
+        if last is None or now - last[1] > self._stale_limit():
+            after = -math.inf if last is None else last[1]
+            try:
+                await self._fresh((PROCESS,), after)
+            except LinkError as exc:
+                raise LinkError(f"stale PV: {exc}") from None
+            last = self._latest[PROCESS]
+        return checked("PV", float(last[0]["PV"]))
+
+    async def write_mv(self, mv: float) -> None:
+        """Send the manual MV (AT_CmdMV)."""
+        await self._send((CMD_MV, {"HV": checked("MV", float(mv))}))
+
+    async def write_mode(self, mode: Mode) -> None:
+        """Send the mode (AT_CmdMode)."""
+        await self._send((CMD_MODE, {"Mode": int(Mode(mode))}))
+
+    async def write_sp(self, sp: float) -> None:
+        """Send the set point (AT_CmdSP)."""
+        await self._send((CMD_SP, {"SP": checked("SP", float(sp))}))
+
+    async def write_gains(self, gains: Gains) -> None:
+        """Send the three staged gains frames, then AT_CmdGainsApply (the node applies them together)."""
+        g1, g2, g3 = gains_to_wire(gains)
+        await self._send((CMD_GAINS[0], g1), (CMD_GAINS[1], g2), (CMD_GAINS[2], g3), (CMD_APPLY, {"Apply": 1}))
+
+    async def request(self) -> None:
+        """Ask the node for all its frames now (AT_Request)."""
+        await self._send((REQUEST, {"All": 1}))
+
+    async def read_state(self) -> LoopState:
+        """Mode, MV, SP and gains from frames received after this call (requested with AT_Request)."""
+        t0 = time.monotonic()
+        await self.request()
+        v = await self._fresh((PROCESS, STATUS, SETPOINT, *GAINS), t0)
+        try:
+            mode = Mode(int(v["Mode"]))
+            gains = gains_from_wire(v)
+        except ValueError as exc:
+            raise LinkError(f"the CAN node sent invalid state: {exc}") from exc
+        return LoopState(mode=mode, mv=checked("MV", float(v["MV"])), sp=checked("SP", float(v["SP"])),
+                         gains=gains)
+
+    async def read_flags(self) -> TuneFlags:
+        """The handshake bits from the latest AT_Status frame (a fresh one if it is stale)."""
+        self._check()
+        last = self._latest.get(STATUS)
+        if last is None or time.monotonic() - last[1] > self._stale_limit():
+            v = await self._fresh((STATUS,), -math.inf if last is None else last[1])
+        else:
+            v = last[0]
+        return TuneFlags(tune=bool(v["TUNE"]), tbrk=bool(v["TBRK"]), tbsy=bool(v["TBSY"]), te=bool(v["TE"]),
+                         ite=checked("ite", float(v["ITE"])))
+
+    async def write_flags(self, flags: TuneFlags) -> None:
+        """Send TBSY, TE and ite (AT_CmdFlags); TUNE and TBRK are the node's own."""
+        await self._send((CMD_FLAGS, {"TBSY": int(flags.tbsy), "TE": int(flags.te),
+                                      "ITE": checked("ite", float(flags.ite))}))

@@ -1,0 +1,219 @@
+"""A CAN node in front of a :class:`drivers.simplc.SimulatedPlc` (the simulated plant server for CAN).
+
+The node sends, every ``period`` wall seconds, AT_Process (PV, MV), AT_Status
+(mode, handshake bits, rolling counter, ite) and AT_Setpoint (SP, manual MV);
+every ``gains_every`` periods, and at once on AT_Request, also the three gains
+frames. It applies the command frames it receives (manual MV, mode, SP,
+handshake outputs, gains) to the PLC. Frames and signals are those of the DBC
+(default ``drivers/data/autotuner.dbc``; see docs/can.md).
+
+The node does not tick the PLC: run :func:`drivers.simplc.run` next to it
+(``period`` is in wall seconds, so for a plant run ``speed`` times faster than
+real time pass ``period = plc.ts / speed``).
+
+Fault injection: ``node.silent = True`` stops every transmission (the node
+"goes silent"), while received commands are still applied, as with a node
+whose transmitter has failed; ``node.deaf = True`` ignores received commands.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import can
+
+from autotuner.gains import Gains
+
+from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, GAINS, PROCESS, REQUEST,
+                       SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire, load_dbc, open_bus)
+from .link import LinkError, Mode
+from .simplc import SimulatedPlc
+
+log = logging.getLogger(__name__)
+
+_RX_POLL = 0.05
+
+
+def _finite(x: Any) -> float | None:
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+class CanPlcNode:
+    """Serves ``plc`` on ``bus`` per ``db``; build it with :func:`serve_can`."""
+
+    def __init__(self, plc: SimulatedPlc, bus: can.BusABC, db: Any, period: float, gains_every: int = 10) -> None:
+        if not period > 0.0:
+            raise ValueError(f"period must be > 0, got {period}")
+        self.plc = plc
+        self.bus = bus
+        self.db = db
+        self.period = float(period)
+        self.gains_every = max(1, int(gains_every))
+        #: Fault injection: no frames are sent while True.
+        self.silent = False
+        #: Fault injection: received commands are ignored while True.
+        self.deaf = False
+        #: Frames sent, commands applied, commands rejected (undecodable or invalid values).
+        self.stats = {"sent": 0, "applied": 0, "rejected": 0, "send_errors": 0}
+        self._counter = 0
+        self._staged: dict[str, dict[str, Any]] = {}
+        self._cmds = {self.db.get_message_by_name(n).frame_id: self.db.get_message_by_name(n)
+                      for n in (CMD_MV, CMD_MODE, CMD_SP, CMD_FLAGS, *CMD_GAINS, CMD_APPLY, REQUEST)}
+        self._task: asyncio.Task[None] | None = None
+        self._notifier: can.Notifier | None = None
+
+    def start(self) -> None:
+        """Start receiving and the cyclic transmission (call from the event loop)."""
+        loop = asyncio.get_running_loop()
+        self._notifier = can.Notifier(self.bus, [self._on_message], timeout=_RX_POLL, loop=loop)
+        self._task = loop.create_task(self._cyclic(), name="can-node-cyclic")
+
+    async def close(self) -> None:
+        """Stop transmitting and receiving, release the bus; never raises."""
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            try:
+                await task
+            except (asyncio.CancelledError, Exception):  # noqa: BLE001
+                pass
+        notifier, self._notifier = self._notifier, None
+        try:
+            if notifier is not None:
+                notifier.stop(timeout=_RX_POLL + 1.0)
+        except Exception:  # noqa: BLE001
+            pass
+        try:
+            self.bus.shutdown()
+        except Exception:  # noqa: BLE001
+            pass
+
+    async def __aenter__(self) -> "CanPlcNode":
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # ---------------------------------------------------------------- transmit
+
+    def _send(self, name: str, values: dict[str, Any]) -> None:
+        if self.silent:
+            return
+        try:
+            self.bus.send(encode(self.db, name, values), timeout=self.period)
+            self.stats["sent"] += 1
+        except (can.CanError, OSError, ValueError) as exc:
+            self.stats["send_errors"] += 1
+            log.warning("CAN node: cannot send %s: %s", name, exc)
+
+    def publish(self, gains: bool = False) -> None:
+        """Send the cyclic frames now (and the gains frames if ``gains``)."""
+        plc = self.plc
+        f = plc.flags
+        self._send(PROCESS, {"PV": plc.read_pv(), "MV": plc.mv})
+        self._send(STATUS, {"Mode": int(plc.mode), "TUNE": int(f.tune), "TBRK": int(f.tbrk), "TBSY": int(f.tbsy),
+                            "TE": int(f.te), "Counter": self._counter, "ITE": f.ite})
+        self._counter = (self._counter + 1) % 16
+        self._send(SETPOINT, {"SP": plc.sp, "HV": plc.hv})
+        if gains:
+            for name, values in zip(GAINS, gains_to_wire(plc.gains)):
+                self._send(name, values)
+
+    async def _cyclic(self) -> None:
+        start = time.monotonic()
+        k = 0
+        while True:
+            self.publish(gains=k % self.gains_every == 0)
+            k += 1
+            delay = start + k * self.period - time.monotonic()
+            if delay < -self.period:  # fell behind (loop blocked): restart the schedule, skip the backlog
+                start, k = time.monotonic(), 0
+                delay = 0.0
+            await asyncio.sleep(max(0.0, delay))
+
+    # ----------------------------------------------------------------- receive
+
+    def _on_message(self, msg: can.Message) -> None:
+        if self.deaf or msg.is_error_frame or msg.is_remote_frame:
+            return
+        spec = self._cmds.get(msg.arbitration_id)
+        if spec is None or bool(msg.is_extended_id) != bool(spec.is_extended_frame):
+            return
+        try:
+            values = spec.decode(bytes(msg.data), decode_choices=False, scaling=True)
+            self._apply(spec.name, values)
+        except Exception as exc:  # noqa: BLE001 - a bad command frame never stops the node
+            self.stats["rejected"] += 1
+            log.warning("CAN node: rejected %s: %s", spec.name, exc)
+            return
+        self.stats["applied"] += 1
+
+    def _apply(self, name: str, v: dict[str, Any]) -> None:
+        plc = self.plc
+        if name == CMD_MV:
+            hv = _finite(v["HV"])
+            if hv is None:
+                raise ValueError(f"manual MV {v['HV']}")
+            plc.hv = hv
+        elif name == CMD_MODE:
+            plc.mode = Mode(int(v["Mode"]))
+        elif name == CMD_SP:
+            sp = _finite(v["SP"])
+            if sp is None:
+                raise ValueError(f"SP {v['SP']}")
+            plc.sp = sp
+        elif name == CMD_FLAGS:
+            ite = _finite(v["ITE"])
+            if ite is None:
+                raise ValueError(f"ite {v['ITE']}")
+            plc.flags = dataclasses.replace(plc.flags, tbsy=bool(v["TBSY"]), te=bool(v["TE"]), ite=ite)
+        elif name in CMD_GAINS:
+            self._staged[name] = v
+        elif name == CMD_APPLY:
+            if not v["Apply"]:
+                return
+            staged, self._staged = self._staged, {}
+            missing = [n for n in CMD_GAINS if n not in staged]
+            if missing:
+                raise ValueError(f"gains apply without {', '.join(missing)}")
+            merged: dict[str, Any] = {}
+            for n in CMD_GAINS:
+                merged.update(staged[n])
+            gains: Gains = gains_from_wire(merged)
+            plc.set_gains(gains)
+            self.publish(gains=True)  # echo the gains now applied
+        elif name == REQUEST:
+            if v["All"]:
+                self.publish(gains=True)
+
+
+async def serve_can(plc: SimulatedPlc, interface: str = "virtual", channel: str = "autotuner",
+                    dbc: str | Path | None = None, period: float | None = None, gains_every: int = 10,
+                    **bus_kwargs: Any) -> CanPlcNode:
+    """Start a node serving ``plc`` on a python-can bus; it sends its cyclic frames every ``period`` wall
+    seconds (default ``plc.ts``). Close it with ``await node.close()``.
+
+    Raises LinkError if the bus cannot be opened, ValueError for a bad DBC or period.
+    """
+    db = load_dbc(dbc)
+    period = plc.ts if period is None else period
+    if not period > 0.0:
+        raise ValueError(f"period must be > 0, got {period}")
+    bus = open_bus(interface, channel, **bus_kwargs)
+    try:
+        node = CanPlcNode(plc, bus, db, period, gains_every)
+        node.start()
+    except BaseException:
+        bus.shutdown()
+        raise
+    return node
+
+
+__all__ = ["CanPlcNode", "serve_can", "LinkError"]

@@ -1,0 +1,372 @@
+"""CAN link and simulated CAN node over python-can's virtual bus (no mocks), and the default DBC."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import math
+import struct
+import time
+
+import cantools
+import pytest
+
+from autotuner.expr import parse_process
+from autotuner.gains import Gains
+from drivers.can_link import (REQUIRED, CanLink, default_dbc, gains_from_wire, gains_to_wire, load_dbc,
+                              ti_from_wire, ti_to_wire)
+from drivers.can_node import serve_can
+from drivers.link import LinkError, Mode, TuneFlags
+from drivers.simplc import SimulatedPlc
+
+PLANT = "exp(-s)/(2*s+1)"
+PERIOD = 0.01  # wall seconds between the node's cyclic frames
+_channels = itertools.count()
+
+
+def f32(x: float) -> float:
+    """``x`` as it comes back from an IEEE float32 signal."""
+    return struct.unpack("<f", struct.pack("<f", x))[0]
+
+
+def arun(coro, limit: float = 5.0):
+    """Run ``coro`` with a hard bound, so a hang fails the test instead of stalling the suite."""
+    return asyncio.run(asyncio.wait_for(coro, limit))
+
+
+@contextlib.asynccontextmanager
+async def rig(dbc=None, period=PERIOD, timeout=0.3, stale_after=None):
+    """A simulated PLC served by a CAN node and a CanLink to it, on a fresh virtual channel."""
+    channel = f"test-can-{next(_channels)}"
+    plc = SimulatedPlc(parse_process(PLANT))
+    node = await serve_can(plc, "virtual", channel, dbc=dbc, period=period)
+    link = CanLink("virtual", channel, dbc=dbc, timeout=timeout, stale_after=stale_after)
+    await link.open()
+    try:
+        yield plc, node, link
+    finally:
+        await link.close()
+        await node.close()
+
+
+async def settle(seconds: float = 5 * PERIOD) -> None:
+    await asyncio.sleep(seconds)
+
+
+# ------------------------------------------------------------------------- DBC
+
+DB = cantools.database.load_file(str(default_dbc()))
+
+IDS = {
+    "AT_Process": 0x100, "AT_Status": 0x101, "AT_Setpoint": 0x102,
+    "AT_Gains1": 0x110, "AT_Gains2": 0x111, "AT_Gains3": 0x112,
+    "AT_CmdMV": 0x200, "AT_CmdMode": 0x201, "AT_CmdSP": 0x202, "AT_CmdFlags": 0x203,
+    "AT_CmdGains1": 0x210, "AT_CmdGains2": 0x211, "AT_CmdGains3": 0x212, "AT_CmdGainsApply": 0x213,
+    "AT_Request": 0x220,
+}
+
+
+def test_default_dbc_ships_with_the_package_and_has_the_documented_ids():
+    assert default_dbc().is_file()
+    assert default_dbc().parent.name == "data" and default_dbc().parent.parent.name == "drivers"
+    assert {m.name: m.frame_id for m in DB.messages} == IDS
+    for m in DB.messages:
+        assert not m.is_extended_frame and m.frame_id <= 0x7FF
+        assert {s.name for s in m.signals} == set(REQUIRED[m.name])
+    load_dbc()  # passes its own check
+
+
+# Messages whose signals are two little-endian IEEE float32s, bytes 0-3 and 4-7.
+FLOAT_PAIRS = {
+    "AT_Process": ("PV", "MV"), "AT_Setpoint": ("SP", "HV"),
+    "AT_Gains1": ("K", "Ti"), "AT_Gains2": ("Td", "N"), "AT_Gains3": ("B", "C"),
+    "AT_CmdGains1": ("K", "Ti"), "AT_CmdGains2": ("Td", "N"), "AT_CmdGains3": ("B", "C"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(FLOAT_PAIRS))
+def test_float_pair_frames_are_two_little_endian_float32(name):
+    a, b = FLOAT_PAIRS[name]
+    raw = struct.pack("<ff", 12.375, -0.1)
+    assert DB.encode_message(name, {a: 12.375, b: -0.1}) == raw
+    out = DB.decode_message(IDS[name], raw)
+    assert out == {a: 12.375, b: f32(-0.1)}
+    nan = DB.decode_message(IDS[name], struct.pack("<ff", math.nan, math.inf))
+    assert math.isnan(nan[a]) and nan[b] == math.inf
+
+
+@pytest.mark.parametrize("name, signal", [("AT_CmdMV", "HV"), ("AT_CmdSP", "SP")])
+def test_single_float_command_frames(name, signal):
+    raw = struct.pack("<f", 42.5)
+    assert DB.encode_message(name, {signal: 42.5}) == raw
+    assert DB.decode_message(IDS[name], raw) == {signal: 42.5}
+
+
+def test_status_frame_layout():
+    # byte 0: Mode, TUNE, TBRK, TBSY, TE in bits 0..4; byte 1: counter (low nibble); bytes 4-7: ite float32
+    raw = bytes([0b1_0101, 0x0B, 0, 0]) + struct.pack("<f", 7.5)
+    values = {"Mode": 1, "TUNE": 0, "TBRK": 1, "TBSY": 0, "TE": 1, "Counter": 11, "ITE": 7.5}
+    assert DB.encode_message("AT_Status", values) == raw
+    assert DB.decode_message(IDS["AT_Status"], raw, decode_choices=False) == values
+    assert DB.decode_message(IDS["AT_Status"], raw)["Mode"] == "AUTO"
+
+
+def test_command_bit_frames_layout():
+    assert DB.encode_message("AT_CmdMode", {"Mode": 1}) == b"\x01"
+    assert DB.decode_message(IDS["AT_CmdMode"], b"\x00", decode_choices=False) == {"Mode": 0}
+    raw = bytes([0b10, 0, 0, 0]) + struct.pack("<f", 3.0)
+    assert DB.encode_message("AT_CmdFlags", {"TBSY": 0, "TE": 1, "ITE": 3.0}) == raw
+    assert DB.decode_message(IDS["AT_CmdFlags"], raw) == {"TBSY": 0, "TE": 1, "ITE": 3.0}
+    assert DB.encode_message("AT_CmdGainsApply", {"Apply": 1}) == b"\x01"
+    assert DB.encode_message("AT_Request", {"All": 1}) == b"\x01"
+
+
+def test_no_integral_action_is_ti_zero_on_the_wire():
+    assert ti_to_wire(math.inf) == 0.0 and ti_to_wire(2.5) == 2.5
+    assert ti_from_wire(0.0) == math.inf and ti_from_wire(math.inf) == math.inf and ti_from_wire(2.5) == 2.5
+    for bad in (math.nan, -1.0):
+        with pytest.raises(ValueError):
+            ti_from_wire(bad)
+    g = Gains(k=-1.5, ti=math.inf, td=0.25, nd=8.0, b=0.5, c=0.0)
+    wire = gains_to_wire(g)
+    assert wire[0] == {"K": -1.5, "Ti": 0.0}
+    assert gains_from_wire({**wire[0], **wire[1], **wire[2]}) == g
+
+
+def test_load_dbc_errors(tmp_path):
+    broken = tmp_path / "broken.dbc"
+    broken.write_text(default_dbc().read_text().replace("AT_Request", "AT_Ask").replace(" Apply ", " Go "))
+    with pytest.raises(ValueError, match="AT_Request.*|.*AT_CmdGainsApply.Apply"):
+        load_dbc(broken)
+    with pytest.raises(ValueError, match="cannot load DBC"):
+        load_dbc(tmp_path / "missing.dbc")
+
+
+# ------------------------------------------------------------------------- URL
+
+def test_from_url():
+    link = CanLink.from_url("can://virtual/autotuner")
+    assert (link.interface, link.channel, link.timeout, link.stale_after) == ("virtual", "autotuner", 1.0, None)
+    link = CanLink.from_url("can://slcan//dev/ttyACM0?bitrate=500000&timeout=0.2&stale_after=0.05")
+    assert (link.interface, link.channel) == ("slcan", "/dev/ttyACM0")
+    assert link.bus_kwargs == {"bitrate": 500000} and link.timeout == 0.2 and link.stale_after == 0.05
+
+
+@pytest.mark.parametrize("url", [
+    "modbus://localhost:502", "can://virtual", "can://virtual/", "can:///can0", "can:virtual/can0",
+    "virtual/can0", "can://socketcan/can0?bitrate=fast", "can://socketcan/can0?speed=1",
+    "can://socketcan/can0#x",
+])
+def test_bad_urls(url):
+    with pytest.raises(ValueError, match="CAN link URL"):
+        CanLink.from_url(url)
+
+
+def test_unknown_interface_is_a_link_error():
+    async def main():
+        link = CanLink("no-such-interface", "x")
+        with pytest.raises(LinkError, match="cannot open CAN interface"):
+            await link.open()
+        await link.close()
+    arun(main())
+
+
+def test_calls_on_a_closed_link_are_link_errors():
+    async def main():
+        link = CanLink("virtual", f"test-can-{next(_channels)}", timeout=0.1)
+        with pytest.raises(LinkError, match="not open"):
+            await link.read_pv()
+        with pytest.raises(LinkError, match="not open"):
+            await link.write_mv(1.0)
+    arun(main())
+
+
+# ----------------------------------------------------------------- link ↔ node
+
+def test_read_pv_is_the_plc_pv_after_a_tick():
+    async def main():
+        async with rig() as (plc, node, link):
+            assert await link.read_pv() == f32(plc.pv)
+            plc.mode = Mode.MAN
+            plc.hv = 80.0
+            for _ in range(30):
+                plc.tick()
+            assert plc.pv != 50.0
+            await settle()
+            assert await link.read_pv() == f32(plc.pv)
+            assert link.pv_age < 3 * PERIOD
+    arun(main())
+
+
+def test_writes_reach_the_plc():
+    async def main():
+        async with rig() as (plc, node, link):
+            await link.write_mode(Mode.MAN)
+            await link.write_mv(37.25)
+            await link.write_sp(61.5)
+            await settle()
+            assert plc.mode is Mode.MAN and plc.hv == 37.25 and plc.sp == 61.5
+            await link.write_mode(Mode.AUTO)
+            await settle()
+            assert plc.mode is Mode.AUTO
+            with pytest.raises(LinkError):
+                await link.write_mv(math.nan)
+    arun(main())
+
+
+def test_write_gains_with_no_integral_action_and_read_state():
+    async def main():
+        async with rig() as (plc, node, link):
+            g = Gains(k=2.5, ti=math.inf, td=0.75, nd=5.0, b=0.5, c=0.25)
+            await link.write_gains(g)
+            await settle()
+            assert plc.gains == g
+            plc.mode = Mode.MAN
+            plc.hv = 42.0
+            plc.tick()
+            state = await link.read_state()
+            assert state.mode is Mode.MAN
+            assert state.mv == f32(plc.mv) and state.sp == f32(plc.sp)
+            assert state.gains == g  # all exactly representable in float32; ti = inf travels as Ti = 0
+            g2 = Gains(k=0.3, ti=1.7)
+            await link.write_gains(g2)
+            await settle()
+            assert plc.gains == Gains(k=f32(0.3), ti=f32(1.7))
+    arun(main())
+
+
+def test_flags():
+    async def main():
+        async with rig() as (plc, node, link):
+            plc.flags = TuneFlags(tune=True, tbrk=False)
+            await settle()
+            assert await link.read_flags() == TuneFlags(tune=True)
+            await link.write_flags(TuneFlags(tune=False, tbrk=True, tbsy=True, te=False, ite=12.5))
+            await settle()
+            # TUNE and TBRK are the PLC's own inputs: the write leaves them alone
+            assert plc.flags == TuneFlags(tune=True, tbrk=False, tbsy=True, te=False, ite=12.5)
+            assert await link.read_flags() == plc.flags
+            plc.flags = TuneFlags(tbrk=True, te=True, ite=3.0)
+            await settle()
+            assert await link.read_flags() == TuneFlags(tbrk=True, te=True, ite=3.0)
+    arun(main())
+
+
+def test_nan_pv_is_a_link_error():
+    async def main():
+        async with rig() as (plc, node, link):
+            await link.read_pv()
+            plc.nan_pv = True
+            await settle()
+            with pytest.raises(LinkError, match="PV is not a number"):
+                await link.read_pv()
+            plc.nan_pv = False
+            await settle()
+            assert await link.read_pv() == f32(plc.pv)
+    arun(main())
+
+
+@pytest.mark.parametrize("stale_after", [None, 0.05])
+def test_silent_node_makes_the_pv_stale_within_the_bound(stale_after):
+    async def main():
+        timeout = 0.3
+        async with rig(timeout=timeout, stale_after=stale_after) as (plc, node, link):
+            await settle()
+            await link.read_pv()
+            node.silent = True
+            t0 = time.monotonic()
+            with pytest.raises(LinkError, match="stale PV"):
+                while True:  # reads succeed only while the last frame is fresh
+                    await link.read_pv()
+                    await asyncio.sleep(PERIOD)
+            limit = (stale_after if stale_after is not None else timeout) + timeout
+            assert time.monotonic() - t0 < limit + 0.1
+            t0 = time.monotonic()
+            with pytest.raises(LinkError, match="no fresh"):
+                await link.read_state()
+            assert time.monotonic() - t0 < timeout + 0.1
+            # the node still applies commands while silent (a failed transmitter), so a restore works
+            await link.write_mv(12.0)
+            await settle()
+            assert plc.hv == 12.0
+            node.silent = False
+            await settle()
+            assert await link.read_pv() == f32(plc.pv)
+    arun(main())
+
+
+def test_no_node_at_all():
+    async def main():
+        link = CanLink("virtual", f"test-can-{next(_channels)}", timeout=0.2)
+        await link.open()
+        try:
+            t0 = time.monotonic()
+            with pytest.raises(LinkError, match="never received"):
+                await link.read_pv()
+            with pytest.raises(LinkError):
+                await link.read_flags()
+            assert time.monotonic() - t0 < 0.6
+        finally:
+            await link.close()
+    arun(main())
+
+
+def test_deaf_node_ignores_commands_and_invalid_gains_are_rejected():
+    async def main():
+        async with rig() as (plc, node, link):
+            node.deaf = True
+            await link.write_mv(11.0)
+            await settle()
+            assert plc.hv != 11.0
+            node.deaf = False
+            before = plc.gains
+            # a negative Ti on the wire is not a gain: the node rejects the apply, the gains stay
+            await link._send(("AT_CmdGains1", {"K": 1.0, "Ti": -1.0}), ("AT_CmdGains2", {"Td": 0.0, "N": 10.0}),
+                             ("AT_CmdGains3", {"B": 1.0, "C": 0.0}), ("AT_CmdGainsApply", {"Apply": 1}))
+            await settle()
+            assert plc.gains == before and node.stats["rejected"] == 1
+    arun(main())
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_bus_failure_is_a_link_error():
+    async def main():
+        async with rig() as (plc, node, link):
+            await link.read_pv()
+            link._bus.shutdown()  # the interface goes away under the link
+            with pytest.raises(LinkError, match="CAN"):
+                await link.write_mv(1.0)
+            await settle()
+            with pytest.raises(LinkError, match="CAN bus error"):
+                await link.read_pv()
+    arun(main())
+
+
+def test_own_dbc_with_scaled_integer_signals(tmp_path):
+    """Another layout (ids, scaled 16-bit PV/MV, big-endian) works as long as the names are the same."""
+    text = default_dbc().read_text()
+    text = text.replace("BO_ 256 AT_Process: 8 Plc\n SG_ PV : 0|32@1- (1,0) [0|0] \"\" Tuner\n"
+                        " SG_ MV : 32|32@1- (1,0) [0|0] \"%\" Tuner",
+                        "BO_ 1280 AT_Process: 4 Plc\n SG_ PV : 7|16@0+ (0.01,0) [0|655.35] \"\" Tuner\n"
+                        " SG_ MV : 23|16@0+ (0.01,0) [0|655.35] \"%\" Tuner")
+    text = text.replace("SIG_VALTYPE_ 256 PV : 1;\nSIG_VALTYPE_ 256 MV : 1;\n", "")
+    text = text.replace("CM_ BO_ 256 ", "CM_ BO_ 1280 ")
+    own = tmp_path / "own.dbc"
+    own.write_text(text)
+    db = load_dbc(own)
+    assert db.get_message_by_name("AT_Process").frame_id == 0x500
+    assert db.encode_message("AT_Process", {"PV": 12.34, "MV": 1.0}) == struct.pack(">HH", 1234, 100)
+
+    async def main():
+        async with rig(dbc=own) as (plc, node, link):
+            plc.mode = Mode.MAN
+            plc.hv = 70.0
+            for _ in range(20):
+                plc.tick()
+            await settle()
+            assert await link.read_pv() == pytest.approx(plc.pv, abs=0.006)
+            await link.write_mv(55.5)
+            await settle()
+            assert plc.hv == 55.5
+    arun(main())
