@@ -10,9 +10,13 @@ Exit codes: 0 success, 1 the experiment or the design failed, 2 bad input.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import math
+import signal
 import time
+from collections.abc import Callable, Coroutine
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
@@ -22,12 +26,16 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from drivers.simplc import SimulatedPlc
+from drivers.simplc import run as run_plc
+
 from . import __version__
 from .bench import default_batch, format_table, load_batch, run_batch
 from .expr import parse_process
 from .gains import FormError, Gains, to_parallel, to_series
 from .process import Process
 from .relay import RelayConfig, Status
+from .remote import PLANT_TICKS_PER_SAMPLE, tune_url, tune_via
 from .simulate import PlantSim
 from .tuning import TuneResult, default_sample_time, phase_frequency, tune
 
@@ -36,6 +44,7 @@ DEMO_PLANT = "1.5*exp(-0.7*s)/(4*s+1)^2"
 # oscillation, or this many samples when the plant never reaches the phase.
 LIMIT_PERIODS = 200
 LIMIT_SAMPLES = 20000
+LINK_TIME_LIMIT = 7200.0
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 
@@ -54,6 +63,11 @@ app = typer.Typer(
 class Controller(str, Enum):
     PI = "PI"
     PID = "PID"
+
+
+class Transport(str, Enum):
+    MODBUS = "modbus"
+    CAN = "can"
 
 
 def _version_callback(value: bool) -> None:
@@ -91,8 +105,16 @@ def _time_limit(process: Process, phase: float, ts: float) -> float:
     return LIMIT_PERIODS * 2.0 * math.pi / w if w is not None else LIMIT_SAMPLES * ts
 
 
+def _config(amp: float, hysteresis: float | None, phase: float, time_limit: float) -> RelayConfig:
+    try:
+        return RelayConfig(amp=amp, phase_deg=phase, hysteresis=hysteresis, time_limit=time_limit)
+    except ValueError as exc:
+        _bad_input(str(exc))
+
+
 def _prepare(
-    plant: str, ts: float | None, amp: float, hysteresis: float | None, phase: float, noise: float, seed: int
+    plant: str, ts: float | None, amp: float, hysteresis: float | None, phase: float, noise: float, seed: int,
+    time_limit: float | None = None,
 ) -> tuple[PlantSim, RelayConfig]:
     """The simulated plant and the experiment settings; bad input exits with code 2."""
     try:
@@ -102,11 +124,9 @@ def _prepare(
     try:
         sample_time = default_sample_time(process, phase) if ts is None else ts
         sim = PlantSim(process, sample_time, noise_std=noise, seed=seed)
-        limit = _time_limit(process, phase, sim.ts)
-        config = RelayConfig(amp=amp, phase_deg=phase, hysteresis=hysteresis, time_limit=limit)
     except ValueError as exc:
         _bad_input(str(exc))
-    return sim, config
+    return sim, _config(amp, hysteresis, phase, time_limit or _time_limit(process, phase, sim.ts))
 
 
 def _describe(status: Status) -> str:
@@ -116,16 +136,31 @@ def _describe(status: Status) -> str:
     return text
 
 
-def _run_with_progress(sim: PlantSim, config: RelayConfig, controller: str, ms: float) -> TuneResult:
-    """Tune while showing a progress bar on stderr (stdout stays clean)."""
+def _run(
+    start: Callable[[Callable[[Status], None] | None], Coroutine[Any, Any, TuneResult]], show_progress: bool
+) -> TuneResult:
+    """Run a tuning coroutine; with a progress bar on stderr (stdout stays clean) unless ``show_progress`` is off.
+
+    SIGTERM cancels it like Ctrl-C does, so a field session restores its loop before the process exits.
+    """
+
+    async def main(on_status: Callable[[Status], None] | None) -> TuneResult:
+        task = asyncio.current_task()
+        loop = asyncio.get_running_loop()
+        with contextlib.suppress(NotImplementedError, RuntimeError):  # no signals outside the main thread
+            loop.add_signal_handler(signal.SIGTERM, task.cancel)
+        return await start(on_status)
+
+    if not show_progress:
+        return asyncio.run(main(None))
     columns = (TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(), TimeElapsedColumn())
     with Progress(*columns, console=stderr, transient=True) as progress:
-        task = progress.add_task("starting", total=1.0)
+        bar = progress.add_task("starting", total=1.0)
 
         def on_status(status: Status) -> None:
-            progress.update(task, completed=status.progress, description=_describe(status))
+            progress.update(bar, completed=status.progress, description=_describe(status))
 
-        return tune(sim, config, controller, ms, on_status=on_status)
+        return asyncio.run(main(on_status))
 
 
 def _fmt(x: float, unit: str = "") -> str:
@@ -205,21 +240,127 @@ def tune_command(
     noise: Annotated[float, typer.Option(help="Standard deviation of white measurement noise, PV units.")] = 0.0,
     seed: Annotated[int, typer.Option(help="Seed of the noise.")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object (docs/design.md) to stdout.")] = False,
+    link: Annotated[str | None, typer.Option(help="Tune a real loop in real time instead: modbus://HOST:PORT[/UNIT] "
+                                             "or can://INTERFACE/CHANNEL (needs --ts).")] = None,
+    map_file: Annotated[Path | None, typer.Option("--map", help="Modbus register map (YAML) for --link.")] = None,
+    dbc: Annotated[Path | None, typer.Option(help="CAN database (DBC) for --link.")] = None,
+    apply: Annotated[bool, typer.Option(help="Write the new gains to the controller on success.")] = False,
+    via: Annotated[Transport | None, typer.Option(case_sensitive=False, help="Serve the simulated --plant over a "
+                                                  "real Modbus TCP server or CAN virtual bus and tune it through "
+                                                  "that link (self-test).")] = None,
+    speed: Annotated[float, typer.Option(min=0.1, max=1000.0, help="With --via: plant seconds per wall second.")]
+    = 20.0,
+    time_limit: Annotated[float | None, typer.Option(help="Longest experiment, s. Default: 200 expected periods "
+                                                     "(simulation), 7200 s (--link).")] = None,
 ) -> None:
-    """Run a relay experiment on a simulated plant (faster than real time) and print the gains.
+    """Run a relay experiment and print the gains: on a simulated plant (default, faster than real time),
+    through a field link to a real loop (--link), or on a simulated plant behind a real protocol stack (--via).
 
     Exit codes: 0 success, 1 the experiment or design failed, 2 bad input.
     """
-    sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed)
-    if as_json:
-        result = tune(sim, config, controller.value, ms)
+    if link is not None:
+        if ts is None:
+            _bad_input("--link needs --ts, the loop's sample time in seconds")
+        config = _config(amp, hysteresis, phase, time_limit or LINK_TIME_LIMIT)
+        sample_time = ts
+
+        def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
+            return tune_url(link, config, ts, controller.value, ms, apply,
+                            None if map_file is None else str(map_file), None if dbc is None else str(dbc), on_status)
+    elif via is not None:
+        sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit)
+        sample_time = sim.ts
+
+        def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
+            return tune_via(sim.process, via.value, config, sim.ts, controller.value, ms, speed, noise, seed,
+                            on_status)
     else:
-        result = _run_with_progress(sim, config, controller.value, ms)
+        sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit)
+        sample_time = sim.ts
+
+        async def start(on_status: Callable[[Status], None] | None) -> TuneResult:
+            return tune(sim, config, controller.value, ms, on_status=on_status)
+    try:
+        result = _run(start, show_progress=not as_json)
+    except (ValueError, OSError) as exc:  # bad URL, map or DBC file, unreachable device
+        _bad_input(str(exc))
     if as_json:
         _print_json(result)
     else:
-        stdout.print(_result_table(result, sim.ts))
+        stdout.print(_result_table(result, sample_time))
     raise typer.Exit(EXIT_OK if result.ok else EXIT_FAILED)
+
+
+# -- sim --------------------------------------------------------------------
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        _bad_input(f"--modbus must be HOST:PORT, got {text!r}")
+    return host, int(port)
+
+
+@app.command("sim")
+def sim_command(
+    plant: Annotated[str, typer.Option(help="Process transfer function in s.")] = DEMO_PLANT,
+    modbus: Annotated[str | None, typer.Option(help="Serve over Modbus TCP at HOST:PORT (default map, docs/modbus.md).")]
+    = None,
+    can: Annotated[str | None, typer.Option(help="Serve over CAN on this channel (default DBC, docs/can.md).")] = None,
+    interface: Annotated[str, typer.Option(help="python-can interface for --can (socketcan, pcan, virtual, ...).")]
+    = "socketcan",
+    speed: Annotated[float, typer.Option(min=0.01, max=1000.0, help="Plant seconds per wall second.")] = 1.0,
+    ts: Annotated[float | None, typer.Option(help="Plant sample time, s. Default: ~500 per period at 135°.")] = None,
+    noise: Annotated[float, typer.Option(help="Standard deviation of measurement noise, PV units.")] = 0.0,
+    seed: Annotated[int, typer.Option(help="Seed of the noise.")] = 0,
+    duration: Annotated[float | None, typer.Option(help="Stop after this many wall seconds (default: run until "
+                                                   "Ctrl-C or SIGTERM).")] = None,
+) -> None:
+    """Serve a simulated plant under a PID unit (a simulated PLC) over Modbus TCP and/or CAN."""
+    if modbus is None and can is None:
+        _bad_input("give --modbus HOST:PORT and/or --can CHANNEL")
+    try:
+        process = parse_process(plant)
+    except ValueError as exc:
+        _bad_input(f"bad --plant expression\n{exc}")
+    address = None if modbus is None else _host_port(modbus)
+    try:
+        plc = SimulatedPlc(process, ts=(ts or default_sample_time(process) / PLANT_TICKS_PER_SAMPLE),
+                           noise_std=noise, seed=seed)
+    except ValueError as exc:
+        _bad_input(str(exc))
+
+    async def serve() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, stop.set)
+        if duration is not None:
+            loop.call_later(duration, stop.set)
+        servers = []
+        try:
+            if address is not None:
+                from drivers.modbus_server import serve_modbus
+
+                server = await serve_modbus(plc, address[0], address[1])
+                servers.append(server)
+                print(f"serving modbus://{address[0]}:{server.port}/1", flush=True)
+            if can is not None:
+                from drivers.can_node import serve_can
+
+                servers.append(await serve_can(plc, interface, can, period=plc.ts / speed))
+                print(f"serving can://{interface}/{can}", flush=True)
+            print(f"plant {plant}, ts {plc.ts:.4g} s, {speed:g}× real time; Ctrl-C stops", flush=True)
+            await run_plc(plc, speed, stop)
+        finally:
+            for server in servers:
+                await server.close()
+
+    try:
+        asyncio.run(serve())
+    except OSError as exc:  # port in use, no such CAN interface
+        _bad_input(str(exc))
 
 
 # -- bench ------------------------------------------------------------------

@@ -1,0 +1,126 @@
+"""Tuning through a field link: a device at a URL, or a simulated plant behind a real protocol stack.
+
+``modbus://HOST:PORT[/UNIT]`` and ``can://INTERFACE/CHANNEL`` name a loop;
+:func:`tune_url` tunes it in real time. :func:`tune_via` serves a simulated
+plant (a process under a PID unit) over a real in-process Modbus TCP server
+on an ephemeral localhost port or on a python-can virtual bus, and tunes it
+through the same link code — the self-test of an installation.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+from collections.abc import AsyncIterator, Callable
+from dataclasses import replace
+
+from drivers.link import Link
+from drivers.simplc import SimulatedPlc, run
+
+from .process import Process
+from .relay import RelayConfig, Status
+from .session import tune_link
+from .tuning import TuneResult
+
+# Sampling a PLC through a link scatters the per-period estimates by about
+# ±0.5° and ±0.4 % (the PLC's clock and the session's are independent):
+# acceptance tolerances for field experiments.
+FIELD_PHASE_TOL = 1.0
+FIELD_GAIN_TOL = 0.01
+# The simulated plant behind a link ticks this many times per session sample,
+# so its own sampling adds little delay to what the session sees.
+PLANT_TICKS_PER_SAMPLE = 5
+
+
+def field_config(config: RelayConfig) -> RelayConfig:
+    """``config`` with the field tolerances (unless it is already looser)."""
+    return replace(
+        config,
+        phase_tol_deg=max(config.phase_tol_deg, FIELD_PHASE_TOL),
+        gain_tol=max(config.gain_tol, FIELD_GAIN_TOL),
+    )
+
+
+def open_link(url: str, map_path: str | None = None, dbc_path: str | None = None) -> Link:
+    """The link for ``url`` (``modbus://…`` or ``can://…``); ValueError for anything else."""
+    if url.startswith("modbus://"):
+        from drivers.modbus_link import ModbusLink
+
+        return ModbusLink.from_url(url, map_path=map_path)
+    if url.startswith("can://"):
+        from drivers.can_link import CanLink
+
+        return CanLink.from_url(url, dbc=dbc_path)
+    raise ValueError(f"unknown link {url!r}: use modbus://HOST:PORT[/UNIT] or can://INTERFACE/CHANNEL")
+
+
+async def tune_url(
+    url: str,
+    config: RelayConfig,
+    ts: float,
+    controller: str = "PI",
+    ms: float = 1.4,
+    apply: bool = False,
+    map_path: str | None = None,
+    dbc_path: str | None = None,
+    on_status: Callable[[Status], None] | None = None,
+) -> TuneResult:
+    """Tune the loop at ``url`` in real time, sampling every ``ts`` seconds."""
+    link = open_link(url, map_path, dbc_path)
+    await link.open()
+    try:
+        return await tune_link(link, field_config(config), ts, controller, ms, apply, on_status=on_status)
+    finally:
+        await link.close()
+
+
+@contextlib.asynccontextmanager
+async def served(plc: SimulatedPlc, transport: str, speed: float) -> AsyncIterator[str]:
+    """Run ``plc`` (``speed`` × real time) behind a server; yields the URL of the link to it."""
+    halt = asyncio.Event()
+    plant = asyncio.create_task(run(plc, speed, halt))
+    try:
+        if transport == "modbus":
+            from drivers.modbus_server import serve_modbus
+
+            server = await serve_modbus(plc, "127.0.0.1", 0)
+            url = f"modbus://127.0.0.1:{server.port}/1"
+        elif transport == "can":
+            from drivers.can_node import serve_can
+
+            channel = f"autotuner-{os.getpid()}-{id(plc)}"
+            server = await serve_can(plc, "virtual", channel, period=plc.ts / speed)
+            url = f"can://virtual/{channel}"
+        else:
+            raise ValueError(f"unknown transport {transport!r}: modbus or can")
+        try:
+            yield url
+        finally:
+            await server.close()
+    finally:
+        halt.set()
+        await plant
+
+
+async def tune_via(
+    process: Process,
+    transport: str,
+    config: RelayConfig,
+    ts: float,
+    controller: str = "PI",
+    ms: float = 1.4,
+    speed: float = 20.0,
+    noise: float = 0.0,
+    seed: int = 0,
+    on_status: Callable[[Status], None] | None = None,
+) -> TuneResult:
+    """Serve ``process`` over ``transport`` ("modbus" or "can") and tune it through the real link."""
+    plc = SimulatedPlc(process, ts=ts / PLANT_TICKS_PER_SAMPLE, noise_std=noise, seed=seed)
+    async with served(plc, transport, speed) as url:
+        link = open_link(url)
+        await link.open()
+        try:
+            return await tune_link(link, field_config(config), ts, controller, ms, speed=speed, on_status=on_status)
+        finally:
+            await link.close()
