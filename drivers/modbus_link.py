@@ -1,0 +1,408 @@
+"""The :class:`~drivers.link.Link` over Modbus TCP or RTU (pymodbus 3.16 async clients).
+
+Every call is bounded: connecting and each request wait at most ``timeout``
+seconds, and a call makes at most ``1 + retries`` attempts, so a call returns
+or raises :class:`~drivers.link.LinkError` within about
+``(1 + retries) · 2 · timeout``. After a timeout or a lost connection the
+client is dropped and the next attempt (or the next call) connects anew —
+a PLC that restarts is picked up again without the caller doing anything.
+A Modbus exception response is the device's answer and is not retried.
+A NaN or infinite value is never returned as data: it raises LinkError
+naming the signal.
+
+Requests per call: signals of the same table whose addresses are adjacent
+(or separated only by other mapped signals) are read or written in one
+request, so with :data:`~drivers.modbus_map.DEFAULT_MAP` ``read_pv`` is one
+request (pv alone), ``read_state`` two, ``write_gains`` one, ``read_flags``
+and ``write_flags`` two each.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Awaitable, Callable, Iterable
+from contextlib import suppress
+from typing import Any
+from urllib.parse import parse_qs, unquote, urlsplit
+
+from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
+from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import ModbusException
+
+from autotuner.gains import Gains
+
+from .link import LinkError, LoopState, Mode, TuneFlags
+from .modbus_map import (
+    BIT_TABLES,
+    COIL,
+    DEFAULT_MAP,
+    DISCRETE,
+    HOLDING,
+    INPUT,
+    ModbusMap,
+    Register,
+    load_map,
+    ti_from_wire,
+    ti_to_wire,
+)
+
+__all__ = ["ModbusLink"]
+
+# Protocol limits per request (Modbus application protocol spec 1.1b3).
+_MAX_READ = {HOLDING: 125, INPUT: 125, COIL: 2000, DISCRETE: 2000}
+_MAX_WRITE = {HOLDING: 123, COIL: 1968}
+# Defaults of the optional signals when the map lacks them.
+_OPTIONAL_GAIN_DEFAULTS = {"td": 0.0, "nd": 10.0, "b": 1.0, "c": 0.0}
+
+DEFAULT_PORT = 502
+
+
+def _exc_name(code: int) -> str:
+    try:
+        return ExcCodes(code).name.lower().replace("_", " ")
+    except ValueError:
+        return "unknown"
+
+
+def _spans(items: list[tuple[str, Register]], table_regs: Iterable[Register], limit: int
+           ) -> list[tuple[int, int, list[tuple[str, Register]]]]:
+    """Group signals of one table into requests: (start, count, members).
+
+    Two signals share a request when every address between them belongs to a
+    mapped signal of the table (so no request touches an address the device
+    may not have) and the request stays within ``limit`` entries.
+    """
+    mapped: set[int] = set()
+    for r in table_regs:
+        mapped.update(range(r.address, r.end))
+    spans: list[tuple[int, int, list[tuple[str, Register]]]] = []
+    for name, reg in sorted(items, key=lambda e: e[1].address):
+        if spans:
+            start, count, members = spans[-1]
+            end = start + count
+            gap_ok = all(a in mapped for a in range(end, reg.address))
+            new_end = max(end, reg.end)
+            if gap_ok and new_end - start <= limit:
+                spans[-1] = (start, new_end - start, members + [(name, reg)])
+                continue
+        spans.append((reg.address, reg.size, [(name, reg)]))
+    return spans
+
+
+class ModbusLink:
+    """A loop in a Modbus device (TCP or RTU), addressed by ``unit``, laid out by ``map``."""
+
+    def __init__(self, make_client: Callable[[], Any], name: str, unit: int = 1,
+                 map: ModbusMap = DEFAULT_MAP, timeout: float = 1.0, retries: int = 2) -> None:
+        if not 0 <= unit <= 255:
+            raise ValueError(f"unit id must be 0..255, got {unit}")
+        if not timeout > 0:
+            raise ValueError(f"timeout must be > 0 seconds, got {timeout}")
+        if retries < 0:
+            raise ValueError(f"retries must be >= 0, got {retries}")
+        self._make_client = make_client
+        self.name = name
+        self.unit = unit
+        self.map = map
+        self.timeout = float(timeout)
+        self.retries = int(retries)
+        self._client: Any = None
+        self._lock = asyncio.Lock()
+        self.requests = 0  # requests sent (for tests and statistics)
+
+    def __repr__(self) -> str:
+        return f"ModbusLink({self.name}, unit {self.unit})"
+
+    # -- constructors ----------------------------------------------------------
+
+    @classmethod
+    def tcp(cls, host: str, port: int = DEFAULT_PORT, unit: int = 1, map: ModbusMap = DEFAULT_MAP,
+            timeout: float = 1.0, retries: int = 2) -> "ModbusLink":
+        """Modbus TCP to ``host:port``."""
+        def make() -> AsyncModbusTcpClient:
+            # reconnect_delay=0: no background reconnection, we reconnect on demand;
+            # retries=0: the link does its own retries (with a reconnect in between).
+            return AsyncModbusTcpClient(host, port=port, timeout=timeout, retries=0, reconnect_delay=0)
+        shown = f"[{host}]" if ":" in host else host
+        return cls(make, f"modbus tcp {shown}:{port}", unit, map, timeout, retries)
+
+    @classmethod
+    def rtu(cls, port: str, baudrate: int = 19200, unit: int = 1, map: ModbusMap = DEFAULT_MAP,
+            timeout: float = 1.0, retries: int = 2, parity: str = "N", stopbits: int = 1,
+            bytesize: int = 8) -> "ModbusLink":
+        """Modbus RTU on serial ``port`` (e.g. ``/dev/ttyUSB0``, ``COM3``)."""
+        if parity not in ("N", "E", "O"):
+            raise ValueError(f"parity must be N, E or O, got {parity!r}")
+        def make() -> AsyncModbusSerialClient:
+            return AsyncModbusSerialClient(port, baudrate=baudrate, parity=parity, stopbits=stopbits,
+                                           bytesize=bytesize, timeout=timeout, retries=0, reconnect_delay=0)
+        return cls(make, f"modbus rtu {port}@{baudrate}", unit, map, timeout, retries)
+
+    @classmethod
+    def from_url(cls, url: str, map_path: str | None = None) -> "ModbusLink":
+        """A link from a URL (``map_path``: a YAML register map, else DEFAULT_MAP).
+
+        * ``modbus://HOST[:PORT][/UNIT]`` — TCP, port 502 and unit 1 by default
+          (``modbus+tcp://`` also accepted; IPv6 as ``modbus://[::1]:5020/1``);
+        * ``modbus+rtu://DEVICE[?baudrate=19200&unit=1&parity=N&stopbits=1]`` —
+          serial RTU, e.g. ``modbus+rtu:///dev/ttyUSB0?baudrate=9600&unit=3``;
+        * query options for both: ``timeout`` (seconds), ``retries``.
+        """
+        try:
+            parts = urlsplit(url)
+        except ValueError as exc:
+            raise ValueError(f"bad Modbus URL {url!r}: {exc}") from None
+        scheme = parts.scheme.lower()
+        query = {k: v[-1] for k, v in parse_qs(parts.query, keep_blank_values=True).items()}
+
+        def take(key: str, conv: Callable[[str], Any], default: Any) -> Any:
+            if key not in query:
+                return default
+            raw = query.pop(key)
+            try:
+                return conv(raw)
+            except ValueError:
+                raise ValueError(f"bad Modbus URL {url!r}: {key}={raw!r} is not valid") from None
+
+        timeout = take("timeout", float, 1.0)
+        retries = take("retries", int, 2)
+        mp = load_map(map_path) if map_path else DEFAULT_MAP
+        if scheme in ("modbus", "modbus+tcp", "modbus-tcp"):
+            if not parts.hostname:
+                raise ValueError(f"bad Modbus URL {url!r}: no host (expected modbus://HOST[:PORT][/UNIT])")
+            try:
+                port = parts.port or DEFAULT_PORT
+            except ValueError:
+                raise ValueError(f"bad Modbus URL {url!r}: the port is not a number in 0..65535") from None
+            path = parts.path.strip("/")
+            unit = take("unit", int, 1)
+            if path:
+                if not path.isdigit():
+                    raise ValueError(f"bad Modbus URL {url!r}: the unit id {path!r} is not a number "
+                                     "(expected modbus://HOST[:PORT][/UNIT])")
+                unit = int(path)
+            if not 0 <= unit <= 255:
+                raise ValueError(f"bad Modbus URL {url!r}: unit id {unit} is outside 0..255")
+            if query:
+                raise ValueError(f"bad Modbus URL {url!r}: unknown option(s) {', '.join(sorted(query))}")
+            return cls.tcp(parts.hostname, port, unit, mp, timeout, retries)
+        if scheme in ("modbus+rtu", "modbus-rtu"):
+            device = unquote(parts.netloc + parts.path)
+            if not device:
+                raise ValueError(f"bad Modbus URL {url!r}: no serial device (expected modbus+rtu:///dev/ttyUSB0)")
+            baudrate = take("baudrate", int, 19200)
+            unit = take("unit", int, 1)
+            parity = take("parity", str, "N").upper()
+            stopbits = take("stopbits", int, 1)
+            if not 0 <= unit <= 255:
+                raise ValueError(f"bad Modbus URL {url!r}: unit id {unit} is outside 0..255")
+            if query:
+                raise ValueError(f"bad Modbus URL {url!r}: unknown option(s) {', '.join(sorted(query))}")
+            return cls.rtu(device, baudrate, unit, mp, timeout, retries, parity=parity, stopbits=stopbits)
+        raise ValueError(f"bad Modbus URL {url!r}: scheme must be modbus:// (TCP) or modbus+rtu:// (serial)")
+
+    # -- connection ---------------------------------------------------------------
+
+    async def open(self) -> None:
+        """Connect; LinkError if the device cannot be reached within the timeout."""
+        async with self._lock:
+            await self._connect("connecting")
+
+    async def close(self) -> None:
+        """Disconnect; never raises."""
+        self._drop()
+
+    async def __aenter__(self) -> "ModbusLink":
+        await self.open()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    def _drop(self) -> None:
+        client, self._client = self._client, None
+        if client is not None:
+            with suppress(Exception):
+                client.close()
+
+    async def _connect(self, what: str) -> Any:
+        if self._client is not None and self._client.connected:
+            return self._client
+        self._drop()
+        try:
+            client = self._make_client()
+        except Exception as exc:  # bad serial port name, pyserial missing, ...
+            raise LinkError(f"{self.name}: {what}: cannot create the client: {exc}") from exc
+        try:
+            ok = await asyncio.wait_for(client.connect(), self.timeout)
+        except (asyncio.TimeoutError, OSError, ModbusException) as exc:
+            ok = False
+            reason = f"{type(exc).__name__} {exc}".strip()
+        else:
+            reason = "connection refused or no answer"
+        if not ok or not client.connected:
+            with suppress(Exception):
+                client.close()
+            raise LinkError(f"{self.name}: {what}: cannot connect ({reason}) within {self.timeout:g} s")
+        self._client = client
+        return client
+
+    async def _request(self, what: str, call: Callable[[Any], Awaitable[Any]]) -> Any:
+        """One Modbus request with retries and reconnection; the response, or LinkError."""
+        async with self._lock:
+            last = ""
+            for _ in range(1 + self.retries):
+                try:
+                    client = await self._connect(what)
+                except LinkError as exc:
+                    last = str(exc)
+                    continue
+                try:
+                    self.requests += 1
+                    response = await asyncio.wait_for(call(client), self.timeout)
+                except asyncio.TimeoutError:
+                    last = f"{self.name}: {what}: no answer within {self.timeout:g} s"
+                    self._drop()  # a late answer must not be taken for the next one
+                    continue
+                except (ModbusException, OSError) as exc:
+                    last = f"{self.name}: {what}: {type(exc).__name__}: {exc}"
+                    self._drop()
+                    continue
+                if response.isError():
+                    code = getattr(response, "exception_code", None)
+                    if code is None:
+                        raise LinkError(f"{self.name}: {what}: error response {response}")
+                    raise LinkError(f"{self.name}: {what}: unit {self.unit} answered Modbus exception "
+                                    f"{code} ({_exc_name(code)})")
+                return response
+            attempts = 1 + self.retries
+            raise LinkError(f"{last} (gave up after {attempts} attempt{'s' if attempts > 1 else ''})")
+
+    # -- generic reads and writes -------------------------------------------------
+
+    async def _read(self, signals: Iterable[str]) -> dict[str, float]:
+        """Engineering values of ``signals`` (those in the map), in as few requests as the map allows."""
+        by_table: dict[str, list[tuple[str, Register]]] = {}
+        for s in signals:
+            reg = self.map.get(s)
+            if reg is not None:
+                by_table.setdefault(reg.table, []).append((s, reg))
+        out: dict[str, float] = {}
+        for table, items in by_table.items():
+            table_regs = [r for r in self.map.registers.values() if r.table == table]
+            for start, count, members in _spans(items, table_regs, _MAX_READ[table]):
+                names = ", ".join(n for n, _ in members)
+                where = f"reading {names} ({members[0][1].describe() if len(members) == 1 else f'{table} {start}..{start + count - 1}'})"
+                fn = {
+                    HOLDING: "read_holding_registers",
+                    INPUT: "read_input_registers",
+                    COIL: "read_coils",
+                    DISCRETE: "read_discrete_inputs",
+                }[table]
+                response = await self._request(
+                    where, lambda c, fn=fn, start=start, count=count:
+                    getattr(c, fn)(start, count=count, device_id=self.unit))
+                data = list(response.bits if table in BIT_TABLES else response.registers)
+                if len(data) < count:
+                    raise LinkError(f"{self.name}: {where}: short answer ({len(data)} of {count})")
+                for name, reg in members:
+                    i = reg.address - start
+                    try:
+                        value = reg.decode(data[i:i + reg.size])
+                    except ValueError as exc:
+                        raise LinkError(f"{self.name}: {name}: cannot decode: {exc}") from None
+                    if not math.isfinite(value):
+                        raise LinkError(f"{self.name}: {name} is not a number ({value}) "
+                                        f"in {reg.describe()}")
+                    out[name] = value
+        return out
+
+    async def _write(self, values: dict[str, float]) -> None:
+        """Write engineering values (signals in the map), adjacent ones of a table in one request."""
+        by_table: dict[str, list[tuple[str, Register]]] = {}
+        raw: dict[str, list[int]] = {}
+        for s, v in values.items():
+            reg = self.map[s]
+            if not reg.is_bit and not math.isfinite(v):
+                raise LinkError(f"{self.name}: refusing to write {s} = {v} (not a number)")
+            try:
+                raw[s] = reg.encode(v)
+            except ValueError as exc:
+                raise LinkError(f"{self.name}: cannot write {s} to {reg.describe()}: {exc}") from None
+            by_table.setdefault(reg.table, []).append((s, reg))
+        for table, items in by_table.items():
+            # Only the signals being written may share a request (no read-modify-write).
+            regs_written = [r for _, r in items]
+            for start, count, members in _spans(items, regs_written, _MAX_WRITE[table]):
+                names = ", ".join(n for n, _ in members)
+                where = f"writing {names} ({members[0][1].describe() if len(members) == 1 else f'{table} {start}..{start + count - 1}'})"
+                if table == COIL:
+                    bits = [bool(raw[n][0]) for n, _ in members]
+                    if len(bits) == 1:
+                        call = lambda c, b=bits[0], a=start: c.write_coil(a, b, device_id=self.unit)  # noqa: E731
+                    else:
+                        call = lambda c, b=bits, a=start: c.write_coils(a, b, device_id=self.unit)  # noqa: E731
+                else:
+                    words: list[int] = []
+                    for n, _ in members:
+                        words.extend(raw[n])
+                    if len(words) == 1:
+                        call = lambda c, w=words[0], a=start: c.write_register(a, w, device_id=self.unit)  # noqa: E731
+                    else:
+                        call = lambda c, w=words, a=start: c.write_registers(a, w, device_id=self.unit)  # noqa: E731
+                await self._request(where, call)
+
+    # -- the Link protocol ------------------------------------------------------
+
+    async def read_pv(self) -> float:
+        """The PV (one request); LinkError if unreadable or not a finite number."""
+        return (await self._read(("pv",)))["pv"]
+
+    async def write_mv(self, mv: float) -> None:
+        """Write the manual MV (``hv``)."""
+        await self._write({"hv": float(mv)})
+
+    async def read_state(self) -> LoopState:
+        """Mode, actual MV, SP and gains."""
+        v = await self._read(("mode", "mv", "sp", "k", "ti", "td", "nd", "b", "c"))
+        mode = self._mode(v["mode"])
+        g = {s: v.get(s, d) for s, d in _OPTIONAL_GAIN_DEFAULTS.items()}
+        try:
+            gains = Gains(k=v["k"], ti=ti_from_wire(v["ti"]), **g)
+        except ValueError as exc:
+            raise LinkError(f"{self.name}: the controller's gains are not usable: {exc}") from None
+        return LoopState(mode=mode, mv=v["mv"], sp=v["sp"], gains=gains)
+
+    def _mode(self, raw: float) -> Mode:
+        try:
+            return Mode(int(raw)) if raw == int(raw) else Mode(-1)
+        except ValueError:
+            raise LinkError(f"{self.name}: mode reads {raw:g}, neither {Mode.MAN.value} (MAN) "
+                            f"nor {Mode.AUTO.value} (AUTO)") from None
+
+    async def write_mode(self, mode: Mode) -> None:
+        await self._write({"mode": float(int(Mode(mode)))})
+
+    async def write_gains(self, gains: Gains) -> None:
+        """Write k, ti (inf as 0), td, nd, b, c; a non-default value for a signal the map lacks is a LinkError."""
+        values = {"k": gains.k, "ti": ti_to_wire(gains.ti), "td": gains.td,
+                  "nd": gains.nd, "b": gains.b, "c": gains.c}
+        for s, default in _OPTIONAL_GAIN_DEFAULTS.items():
+            if s not in self.map:
+                if values[s] != default:
+                    raise LinkError(f"{self.name}: the map has no {s}, cannot write {s} = {values[s]:g}")
+                del values[s]
+        await self._write(values)
+
+    async def read_flags(self) -> TuneFlags:
+        """TUNE, TBRK, TBSY, TE and ite (False/0 for those the map lacks)."""
+        v = await self._read(("tune", "tbrk", "tbsy", "te", "ite"))
+        return TuneFlags(tune=bool(v.get("tune", 0.0)), tbrk=bool(v.get("tbrk", 0.0)),
+                         tbsy=bool(v.get("tbsy", 0.0)), te=bool(v.get("te", 0.0)),
+                         ite=v.get("ite", 0.0))
+
+    async def write_flags(self, flags: TuneFlags) -> None:
+        """TBSY, TE and ite (those the map has; the handshake is optional)."""
+        values = {"tbsy": float(flags.tbsy), "te": float(flags.te), "ite": float(flags.ite)}
+        await self._write({s: v for s, v in values.items() if s in self.map})

@@ -1,0 +1,279 @@
+"""A :class:`~drivers.simplc.SimulatedPlc` served over Modbus TCP (pymodbus 3.16).
+
+The datastore is *live*: pymodbus 3.16 stores registers in a
+:class:`pymodbus.simulator.SimDevice`, whose ``action`` coroutine is called on
+every request before it is served, with the table's register list to modify
+in place. The action here
+
+* on every request rewrites the whole table being accessed from the PLC
+  (``plc.read_pv()``, ``plc.mv``, ``plc.sp``, ``plc.hv``, ``plc.mode``,
+  ``plc.gains``, ``plc.flags``), so a read returns the PLC's values at the
+  moment it is answered; the PLC ticks in the same event loop, so one
+  request is a consistent snapshot (all its registers from the same sample);
+* on a write, decodes the written signals (any signal the written range
+  touches, completed from the current values) and applies them to the PLC:
+  ``sp``, ``hv`` (manual MV), ``mode``, the gains (through ``set_gains``,
+  bumpless), ``tune``, ``tbrk``, ``tbsy``, ``te``, ``ite``. ``pv`` and ``mv``
+  are the PLC's own and writes to them (if a map puts them in a holding
+  register) are ignored. A mode other than 0/1 or gains that
+  :class:`~autotuner.gains.Gains` rejects are refused with exception 3
+  (illegal data value), like a PLC refusing a bad parameter.
+
+Addresses outside the map answer exception 2 (illegal data address).
+There is no separate sync step after ``plc.tick()``: nothing is cached, so
+nothing can be stale.
+
+Fault hooks for tests: :meth:`ModbusPlcServer.fail_with_exception` (requests
+answer a Modbus exception), :meth:`ModbusPlcServer.hang` (requests get no
+answer) and :meth:`ModbusPlcServer.close` (the server stops; its clients are
+disconnected). NaN PV is the PLC's own fault (``plc.nan_pv = True``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+from contextlib import suppress
+
+from pymodbus import FramerType
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from autotuner.gains import Gains
+
+from .link import Mode
+from .modbus_map import (
+    BIT_TABLES,
+    COIL,
+    DEFAULT_MAP,
+    DISCRETE,
+    HOLDING,
+    INPUT,
+    ModbusMap,
+    Register,
+    ti_from_wire,
+    ti_to_wire,
+)
+from .simplc import SimulatedPlc
+
+__all__ = ["ModbusPlcServer", "serve_modbus"]
+
+# Function code → table (pymodbus calls the action with the request's function code).
+_FC_TABLE = {1: COIL, 5: COIL, 15: COIL, 2: DISCRETE, 4: INPUT, 3: HOLDING, 6: HOLDING, 16: HOLDING,
+             22: HOLDING, 23: HOLDING}
+# Order of the four blocks of a non-shared SimDevice.
+_BLOCK_ORDER = (COIL, DISCRETE, HOLDING, INPUT)
+# An unused bit at the top of the address space keeps an empty bit table valid for pymodbus.
+_FILLER_BIT = 65535
+
+
+def _plc_value(plc: SimulatedPlc, signal: str) -> float:
+    """The engineering value the PLC serves for ``signal`` (on the wire convention: ti inf → 0)."""
+    if signal == "pv":
+        return plc.read_pv()
+    if signal in ("mv", "hv", "sp"):
+        return float(getattr(plc, signal))
+    if signal == "mode":
+        return float(int(plc.mode))
+    if signal == "ti":
+        return ti_to_wire(plc.gains.ti)
+    if signal in ("k", "td", "nd", "b", "c"):
+        return float(getattr(plc.gains, signal))
+    flag = getattr(plc.flags, signal)
+    return float(flag)
+
+
+def _raw(reg: Register, value: float) -> list[int]:
+    """``reg.encode`` that never fails: a value the type cannot hold is served as NaN / 0."""
+    try:
+        return reg.encode(value, strict=False)
+    except ValueError:
+        return reg.encode(math.nan, strict=False) if reg.type.startswith("float") else [0] * reg.size
+
+
+class ModbusPlcServer:
+    """A running Modbus TCP server in front of ``plc``; use :func:`serve_modbus` to start one."""
+
+    def __init__(self, plc: SimulatedPlc, host: str, port: int, map: ModbusMap, unit: int = 0,
+                 rtu_framing: bool = False) -> None:
+        self.plc = plc
+        self.rtu_framing = rtu_framing
+        self.map = map
+        self.host = host
+        self.unit = unit
+        self._requested_port = port
+        self.port = 0
+        self._fail: ExcCodes | None = None
+        self._fail_writes = False
+        self._hang = False
+        self._release = asyncio.Event()
+        self._server: ModbusTcpServer | None = None
+        self._by_table: dict[str, list[tuple[str, Register]]] = {t: [] for t in _BLOCK_ORDER}
+        for name, reg in map.registers.items():
+            self._by_table[reg.table].append((name, reg))
+
+    # -- lifecycle -----------------------------------------------------------
+
+    def _device(self) -> SimDevice:
+        blocks: list[list[SimData]] = []
+        for table in _BLOCK_ORDER:
+            entries = self._by_table[table]
+            if table in BIT_TABLES:
+                data = [SimData(r.address, values=False, datatype=DataType.BITS) for _, r in entries]
+                if not data:
+                    data = [SimData(_FILLER_BIT, values=False, datatype=DataType.BITS)]
+            else:
+                data = [SimData(r.address, values=[0] * r.size, datatype=DataType.REGISTERS) for _, r in entries]
+                if not data:
+                    data = [SimData(0, datatype=DataType.INVALID)]
+            blocks.append(data)
+        return SimDevice(self.unit, simdata=tuple(blocks), action=self._action)  # type: ignore[arg-type]
+
+    async def start(self) -> None:
+        framer = FramerType.RTU if self.rtu_framing else FramerType.SOCKET
+        server = ModbusTcpServer(self._device(), framer=framer, address=(self.host, self._requested_port))
+        await server.serve_forever(background=True)
+        self._server = server
+        sockets = getattr(server.transport, "sockets", None) or []
+        self.port = sockets[0].getsockname()[1] if sockets else self._requested_port
+
+    async def close(self) -> None:
+        """Stop serving and drop every client connection (idempotent)."""
+        self._release.set()
+        server, self._server = self._server, None
+        if server is not None:
+            with suppress(Exception):
+                await server.shutdown()
+            await asyncio.sleep(0)  # let the handlers see their connections closed
+
+    @property
+    def serving(self) -> bool:
+        return self._server is not None
+
+    async def __aenter__(self) -> "ModbusPlcServer":
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # -- fault hooks -----------------------------------------------------------
+
+    def fail_with_exception(self, on: bool = True, code: ExcCodes = ExcCodes.DEVICE_FAILURE,
+                            writes: bool = False) -> None:
+        """While ``on``, reads (and writes too if ``writes``) answer Modbus exception ``code``."""
+        self._fail = code if on else None
+        self._fail_writes = writes
+
+    def hang(self, on: bool = True) -> None:
+        """While ``on``, requests get no answer (the client times out)."""
+        self._hang = on
+        if on:
+            self._release.clear()
+        else:
+            self._release.set()
+
+    # -- the live datastore ------------------------------------------------------
+
+    async def _action(self, func_code: int, start: int, address: int, count: int,
+                      registers: list[int], values: list[int] | list[bool] | None) -> ExcCodes | None:
+        if self._hang:
+            await self._release.wait()
+        table = _FC_TABLE.get(func_code)
+        if table is None:
+            return ExcCodes.ILLEGAL_FUNCTION
+        writing = values is not None
+        if self._fail is not None and (not writing or self._fail_writes):
+            return self._fail
+        self._refresh(table, start, registers)
+        if writing:
+            return self._apply(table, start, address, registers, list(values))  # type: ignore[arg-type]
+        return None
+
+    def _refresh(self, table: str, start: int, registers: list[int]) -> None:
+        """Rewrite the table's registers from the PLC."""
+        if table in BIT_TABLES:
+            for name, reg in self._by_table[table]:
+                _set_bit(registers, start, reg.address, bool(_plc_value(self.plc, name)))
+        else:
+            for name, reg in self._by_table[table]:
+                i = reg.address - start
+                registers[i:i + reg.size] = _raw(reg, _plc_value(self.plc, name))
+
+    def _apply(self, table: str, start: int, address: int, registers: list[int],
+               values: list[int] | list[bool]) -> ExcCodes | None:
+        """Decode what a write changes and apply it to the PLC."""
+        end = address + len(values)
+        written: dict[str, float] = {}
+        for name, reg in self._by_table[table]:
+            if reg.end <= address or reg.address >= end:
+                continue
+            if table in BIT_TABLES:
+                written[name] = float(bool(values[reg.address - address]))
+            else:
+                words = list(registers[reg.address - start:reg.end - start])
+                for a in range(max(reg.address, address), min(reg.end, end)):
+                    words[a - reg.address] = int(values[a - address])
+                written[name] = reg.decode(words)
+        return self._set_plc(written)
+
+    def _set_plc(self, written: dict[str, float]) -> ExcCodes | None:
+        plc = self.plc
+        if any(not math.isfinite(v) for v in written.values()):
+            return ExcCodes.ILLEGAL_VALUE
+        if "mode" in written:
+            if written["mode"] not in (0.0, 1.0):
+                return ExcCodes.ILLEGAL_VALUE
+        gains = {s: written[s] for s in ("k", "ti", "td", "nd", "b", "c") if s in written}
+        new_gains = None
+        if gains:
+            if "ti" in gains:
+                gains["ti"] = ti_from_wire(gains["ti"])
+            try:
+                new_gains = dataclasses.replace(plc.gains, **gains)
+            except (TypeError, ValueError):
+                return ExcCodes.ILLEGAL_VALUE
+        # Everything checked: apply.
+        if "mode" in written:
+            plc.mode = Mode(int(written["mode"]))
+        if "sp" in written:
+            plc.sp = written["sp"]
+        if "hv" in written:
+            plc.hv = written["hv"]
+        if new_gains is not None and new_gains != plc.gains:
+            plc.set_gains(new_gains)
+        flags = {s: written[s] for s in ("tune", "tbrk", "tbsy", "te") if s in written}
+        update: dict[str, object] = {s: bool(v) for s, v in flags.items()}
+        if "ite" in written:
+            update["ite"] = written["ite"]
+        if update:
+            plc.flags = dataclasses.replace(plc.flags, **update)
+        return None
+
+
+def _set_bit(registers: list[int], start: int, bit_address: int, value: bool) -> None:
+    """Set one bit of a pymodbus bit block (16 bits per word, bit 0 first; ``start`` in words)."""
+    i, b = divmod(bit_address, 16)
+    i -= start
+    if value:
+        registers[i] |= 1 << b
+    else:
+        registers[i] &= ~(1 << b) & 0xFFFF
+
+
+async def serve_modbus(plc: SimulatedPlc, host: str = "127.0.0.1", port: int = 0,
+                       map: ModbusMap = DEFAULT_MAP, unit: int = 0,
+                       rtu_framing: bool = False) -> ModbusPlcServer:
+    """Serve ``plc`` over Modbus TCP at ``host:port`` (port 0: an ephemeral port, see ``.port``).
+
+    ``unit`` 0 (the default) answers every unit id; another value answers only
+    that unit (requests to other ids get an exception response).
+    ``rtu_framing`` serves RTU frames over the TCP socket ("RTU over TCP"),
+    which an RTU client reaches with the pyserial URL ``socket://HOST:PORT``
+    (how the RTU link is tested without a serial port).
+    Close with ``await server.close()``.
+    """
+    server = ModbusPlcServer(plc, host, port, map, unit, rtu_framing)
+    await server.start()
+    return server
