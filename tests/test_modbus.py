@@ -602,3 +602,28 @@ def test_bad_urls_are_clear_value_errors(url, needle):
 
 def test_required_signals_are_documented_subset():
     assert REQUIRED <= set(SIGNALS)
+
+
+# -- the documentation matches the code ---------------------------------------------------------
+
+def _docs() -> str:
+    from pathlib import Path
+    return (Path(__file__).resolve().parents[1] / "docs" / "modbus.md").read_text(encoding="utf-8")
+
+
+def test_documented_default_map_is_the_default_map():
+    import re
+    tables = {"input register": "input", "holding register": "holding", "coil": "coil",
+              "discrete input": "discrete_input"}
+    rows = re.findall(r"^\| `(\w+)` \| ([a-z ]+) \| (\d+)(?:–\d+)? \| (\w+) \|", _docs(), re.M)
+    documented = {name: (tables[table], int(addr), type_) for name, table, addr, type_ in rows}
+    actual = {n: (r.table, r.address, r.type) for n, r in DEFAULT_MAP.registers.items()}
+    assert documented == actual
+
+
+def test_documented_yaml_example_loads():
+    import re
+    import yaml
+    block = re.findall(r"```yaml\n(.*?)```", _docs(), re.S)[0]
+    m = map_from_dict(yaml.safe_load(block), "docs/modbus.md")
+    assert m["pv"].scale == 0.1 and m["k"].word_order == "little"
