@@ -261,6 +261,9 @@ class ModbusLink:
                 try:
                     self.requests += 1
                     response = await asyncio.wait_for(call(client), self.timeout)
+                except asyncio.CancelledError:
+                    self._drop()  # the caller gave up (Ctrl-C): the answer must not meet the next request
+                    raise
                 except asyncio.TimeoutError:
                     last = f"{self.name}: {what}: no answer within {self.timeout:g} s"
                     self._drop()  # a late answer must not be taken for the next one

@@ -446,6 +446,27 @@ def test_no_answer_is_a_link_error_not_a_hang():
     arun(main())
 
 
+def test_a_cancelled_call_leaves_the_link_usable():
+    async def main():
+        plc, server = await started()
+        link = ModbusLink.tcp("127.0.0.1", server.port, timeout=1.0, retries=0)
+        try:
+            server.hang(True)
+            task = asyncio.create_task(link.read_pv())
+            await asyncio.sleep(0.1)
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+            server.hang(False)
+            assert await link.read_pv() == pytest.approx(plc.pv, rel=1e-6)
+            await link.write_mv(5.0)
+            assert plc.hv == 5.0
+        finally:
+            await link.close()
+            await server.close()
+    arun(main())
+
+
 def test_reconnects_when_the_server_comes_back_on_the_same_port():
     async def main():
         plc, server = await started()
