@@ -1,4 +1,4 @@
-"""Command line interface: ``autotuner tune``, ``autotuner bench``, ``autotuner version``.
+"""Command line interface: ``autotuner tune``, ``autotuner design``, ``autotuner bench``, ``autotuner version``.
 
 The contract (options, JSON shape, exit codes) is in docs/design.md. This
 module only parses options, builds the engine's objects, shows progress and
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import cmath
 import json
 import math
 import signal
@@ -31,10 +32,13 @@ from drivers.simplc import run as run_plc
 
 from . import __version__
 from .bench import default_batch, format_table, load_batch, run_batch
+from .compare import METHOD_NOTE, Row, compare
 from .expr import parse_process
+from .identify import ProcessData, from_fopdt, from_plant, from_point
 from .gains import FormError, Gains, to_parallel, to_series
 from .process import Process
-from .relay import RelayConfig, Status
+from .relay import Point, RelayConfig, Status
+from .rules import RULES, Options, RuleError, Tuning, tune as tune_rule
 from .remote import PLANT_TICKS_PER_SAMPLE, tune_url, tune_via
 from .simulate import PlantSim
 from .tuning import TuneResult, default_sample_time, phase_frequency, tune
@@ -390,6 +394,186 @@ def bench(
     if output is not None:
         output.write_text(table + "\n")
     stderr.print(f"{len(rows)} processes in {time.perf_counter() - start:.1f} s wall time", highlight=False)
+
+
+# -- design -----------------------------------------------------------------
+
+
+class RuleController(str, Enum):
+    P = "P"
+    PI = "PI"
+    PID = "PID"
+
+
+class StepKind(str, Enum):
+    LOAD = "load"
+    SETPOINT = "setpoint"
+
+
+def _key_values(text: str, option: str, keys: tuple[str, ...]) -> dict[str, float]:
+    """Parse ``k1=v1,k2=v2`` with exactly the given keys; bad input exits with code 2."""
+    values: dict[str, float] = {}
+    for part in text.split(","):
+        key, sep, value = part.partition("=")
+        key = key.strip()
+        if not sep or key not in keys or key in values:
+            _bad_input(f"bad {option} {text!r}: expected {','.join(k + '=..' for k in keys)}")
+        try:
+            values[key] = float(value)
+        except ValueError:
+            _bad_input(f"bad {option} {text!r}: {value.strip()!r} is not a number")
+    if set(values) != set(keys):
+        _bad_input(f"bad {option} {text!r}: expected {','.join(k + '=..' for k in keys)}")
+    return values
+
+
+def _design_data(fopdt: str | None, plant: str | None, point: str | None, static_gain: float | None) -> ProcessData:
+    """The process data from exactly one of --fopdt, --plant, --point; bad input exits with code 2."""
+    if sum(x is not None for x in (fopdt, plant, point)) != 1:
+        _bad_input("give exactly one of --fopdt K=..,T=..,L=.., --plant EXPR, --point omega=..,gain=..,phase=..")
+    if static_gain is not None and point is None:
+        _bad_input("--static-gain goes with --point only (a model or plant has its own)")
+    try:
+        if fopdt is not None:
+            v = _key_values(fopdt, "--fopdt", ("K", "T", "L"))
+            return from_fopdt(v["K"], v["T"], v["L"])
+        if plant is not None:
+            return from_plant(parse_process(plant))
+        v = _key_values(point, "--point", ("omega", "gain", "phase"))
+        if not (v["omega"] > 0 and v["gain"] > 0 and -360.0 < v["phase"] <= 0.0):
+            _bad_input("--point needs omega > 0 rad/s, gain > 0 and phase = arg F in degrees, "
+                       "negative for lag (e.g. phase=-135)")
+        value = v["gain"] * cmath.exp(1j * math.radians(v["phase"]))
+        return from_point(Point(v["omega"], value), static_gain)
+    except ValueError as exc:  # DataError, ExpressionError (names the token and its position)
+        _bad_input(str(exc))
+
+
+def _number(x: float | None) -> float | None:
+    """JSON number, None for absent or infinite values."""
+    return None if x is None or math.isinf(x) else float(x)
+
+
+def _forms_json(gains: Gains) -> dict[str, Any]:
+    """Series and parallel forms; the series form is null with the reason when Ti < 4·Td."""
+    p = to_parallel(gains)
+    out: dict[str, Any] = {"parallel": {"kp": p.kp, "ki": p.ki, "kd": p.kd}}
+    try:
+        ser = to_series(gains)
+        out["series"] = {"k": ser.k, "ti": _number(ser.ti), "td": ser.td}
+    except FormError as exc:
+        out["series"] = None
+        out["series_reason"] = str(exc)
+    return out
+
+
+def _tuning_json(tuning: Tuning) -> dict[str, Any]:
+    return {"rule": tuning.rule, "controller": tuning.controller, "gains": tuning.gains.as_json(),
+            **_forms_json(tuning.gains), **tuning.extra}
+
+
+def _extra_rows(tuning: Tuning) -> list[tuple[str, str]]:
+    rows = []
+    for key, value in tuning.extra.items():
+        if key == "two_controller":
+            rows += [(name.replace("_", " "), json.dumps(value)) for name, value in value.items()]
+        else:
+            rows.append((key, ", ".join(f"{k} = {_fmt(v) if isinstance(v, float) else v}" for k, v in value.items())))
+    return rows
+
+
+def _tuning_table(tuning: Tuning) -> Table:
+    table = Table(title=f"{tuning.rule}: {tuning.controller}", show_header=False, title_justify="left")
+    table.add_column(style="bold")
+    table.add_column()
+    for name, text in _gains_rows(tuning.gains) + _extra_rows(tuning):
+        table.add_row(name, text)
+    return table
+
+
+def _compare_table(rows: list[Row], controller: str) -> Table:
+    table = Table(title=f"{controller} rules compared on the plant", title_justify="left", caption=METHOD_NOTE,
+                  caption_justify="left")
+    table.add_column("rule", no_wrap=True)
+    for col in ("k", "ti", "td", "b", "Ms", "GM", "PM °", "IAE load"):
+        table.add_column(col, justify="right")
+    for r in rows:
+        g = r.tuning.gains
+        metrics = ((_fmt(r.ms), _fmt(r.gain_margin), _fmt(r.phase_margin_deg), _fmt(r.iae)) if r.stable
+                   else ("unstable", "—", "—", "—"))
+        table.add_row(r.tuning.rule, _fmt(g.k), _fmt(g.ti), _fmt(g.td), _fmt(g.b), *metrics)
+    return table
+
+
+def _skipped_text(skipped: dict[str, str]) -> str:
+    return "\n".join(f"not applicable: {name}: {reason}" for name, reason in skipped.items())
+
+
+def _compare_json(rows: list[Row], skipped: dict[str, str], controller: str) -> dict[str, Any]:
+    return {"controller": controller, "method": METHOD_NOTE, "skipped": skipped, "rules": [
+        {**_tuning_json(r.tuning), "stable": r.stable, "ms": _number(r.ms), "gain_margin": _number(r.gain_margin),
+         "phase_margin_deg": _number(r.phase_margin_deg), "iae_load": _number(r.iae)} for r in rows]}
+
+
+def _rule_list() -> Table:
+    table = Table(title="tuning rules (autotuner design --rule NAME)", title_justify="left")
+    for col in ("rule", "controllers", "when to use it", "source"):
+        table.add_column(col)
+    for rule in RULES.values():
+        table.add_row(rule.name, "/".join(rule.controllers), rule.when, rule.source)
+    return table
+
+
+@app.command("design")
+def design_command(
+    rule: Annotated[str | None, typer.Option(help="Rule name (see --list).")] = None,
+    list_rules: Annotated[bool, typer.Option("--list", help="List the rules with when to use each.")] = False,
+    compare_rules: Annotated[bool, typer.Option("--compare", help="All applicable rules in one table with Ms, "
+                                                "margins and load-step IAE on the plant.")] = False,
+    fopdt: Annotated[str | None, typer.Option(help="FOPDT model K·e^(−Ls)/(Ts+1): K=..,T=..,L=.. (s).")] = None,
+    plant: Annotated[str | None, typer.Option(help="Process transfer function in s with optional dead time.")] = None,
+    point: Annotated[str | None, typer.Option(help="Measured point F(jω): omega=..(rad/s),gain=..,phase=..(deg, "
+                                              "negative for lag).")] = None,
+    static_gain: Annotated[float | None, typer.Option(help="Static gain with --point (inf: integrating).")] = None,
+    controller: Annotated[RuleController | None, typer.Option(case_sensitive=False, help="Controller type. "
+                                                              "Default: PI (PID for direct-synthesis-unstable).")] = None,
+    ts: Annotated[float | None, typer.Option(help="Sample time, s (takahashi).")] = None,
+    ms: Annotated[float | None, typer.Option(min=1.05, max=10.0, help="Ms target: robust and itae-optimal "
+                                             "(default 1.4), direct-synthesis-unstable (default 3).")] = None,
+    rb: Annotated[float, typer.Option(help="astrom-hagglund: radius r_b of the target point (0–1).")] = 0.5,
+    phib: Annotated[float, typer.Option(help="astrom-hagglund: angle φ_b of the target point, degrees.")] = 45.0,
+    step: Annotated[StepKind, typer.Option(help="itae-optimal: the step whose ITAE is minimised.")] = StepKind.LOAD,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object to stdout.")] = False,
+) -> None:
+    """Classical tuning rules from a model, a plant or a measured point (methods.md §4).
+
+    Exit codes: 0 success, 2 bad input or a rule that does not apply.
+    """
+    if list_rules:
+        stdout.print(_rule_list())
+        return
+    if (rule is None) == (not compare_rules):
+        _bad_input("give --rule NAME or --compare (or --list)")
+    data = _design_data(fopdt, plant, point, static_gain)
+    options = Options(ts=ts, ms=ms, rb=rb, phib_deg=phib, step=step.value)
+    kind = controller.value if controller else None
+    try:
+        if compare_rules:
+            rows, skipped = compare(data, kind or "PI", options)
+        else:
+            tuning = tune_rule(rule, data, kind, options)
+    except RuleError as exc:
+        _bad_input(str(exc))
+    if compare_rules:
+        if as_json:
+            print(json.dumps(_compare_json(rows, skipped, kind or "PI"), allow_nan=False))
+        else:
+            stdout.print(_compare_table(rows, kind or "PI"))
+            stdout.print(_skipped_text(skipped), highlight=False, markup=False)
+    elif as_json:
+        print(json.dumps(_tuning_json(tuning), allow_nan=False))
+    else:
+        stdout.print(_tuning_table(tuning))
 
 
 def main() -> Any:

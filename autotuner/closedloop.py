@@ -1,0 +1,116 @@
+"""Closed-loop figures of a controller on a plant: Ms, margins, and simulated IAE/ITAE.
+
+The time responses are simulated with the exact ZOH plant simulator
+(:class:`autotuner.simulate.PlantSim`) in feedback with the engine's PID unit
+(:class:`autotuner.pid.PidUnit`, the same discrete law the tuner runs:
+Tustin integral, filtered backward-difference derivative). The sample time is
+``T135/SAMPLES_PER_PERIOD`` (``T135 = 2π/ω135``, the period of the 135° point),
+and the integrals are rectangle sums over the samples:
+``IAE = Σ|e|·ts``, ``ITAE = Σ t·|e|·ts`` with ``e = sp − pv``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .gains import Gains
+from .identify import exact_point
+from .pid import PidUnit
+from .process import Process
+from .robustness import check_loop, log_grid, pid_frequency_response
+from .simulate import PlantSim
+
+SAMPLES_PER_PERIOD = 50
+HORIZON_PERIODS = 30.0
+# An error this large means the loop has diverged; the simulation stops.
+DIVERGED = 1e6
+
+
+def reference_period(process: Process) -> float:
+    """Period ``2π/ω135`` (s) of the 135° point; for a plant that never lags 135°, 2π·slowest time scale."""
+    point = exact_point(process, 135.0)
+    if point is not None:
+        return 2.0 * math.pi / point.omega
+    scales = [1.0 / abs(p.real) for p in process.poles if abs(p.real) > 1e-12] + [process.delay, 1e-6]
+    return 2.0 * math.pi * max(scales)
+
+
+def rhp_poles(process: Process) -> int:
+    """Number of open right-half-plane poles of the process (origin excluded)."""
+    poles = process.poles
+    return int(np.sum(poles.real > 1e-7 * np.abs(poles)))
+
+
+@dataclass(frozen=True)
+class Margins:
+    """Robustness of a loop: ``ms`` (inf if unstable), gain margin (factor), phase margin (degrees)."""
+
+    stable: bool
+    ms: float
+    gain_margin: float
+    phase_margin_deg: float
+
+
+def _crossings(x: np.ndarray) -> np.ndarray:
+    """Indices i where x changes sign between i and i+1."""
+    return np.nonzero(np.signbit(x[:-1]) != np.signbit(x[1:]))[0]
+
+
+def margins(process: Process, gains: Gains, w_ref: float) -> Margins:
+    """Ms, gain margin and phase margin of ``C·F`` on a log grid around ``w_ref`` (rad/s).
+
+    Gain margin: the smallest ``1/|L|`` where the Nyquist curve crosses the
+    negative real axis inside the unit circle (inf if it never does).
+    Phase margin: the smallest ``180° + arg L`` where ``|L| = 1`` (inf if never).
+    """
+    w = log_grid(w_ref, 1e-5, 1e3, 6000)
+
+    def controller(x: np.ndarray) -> np.ndarray:
+        return pid_frequency_response(x, gains.k, gains.ti, gains.td, gains.nd)
+
+    integrators = process.integrator_count + (1 if gains.has_integral else 0)
+    check = check_loop(process.freqresp, controller, w, integrators, rhp_poles(process))
+    loop = controller(w) * process.freqresp(w)
+    gm = [1.0 / abs(loop[i]) for i in _crossings(loop.imag) if loop[i].real < 0 and abs(loop[i]) < 1.0]
+    pm = [math.degrees(np.angle(-loop[i])) for i in _crossings(np.abs(loop) - 1.0)]
+    return Margins(check.stable, check.ms, min(gm, default=math.inf), min(pm, default=math.inf))
+
+
+def simulate_errors(process: Process, gains: Gains, step: str, ts: float, samples: int) -> np.ndarray:
+    """Control errors ``sp − pv`` at the samples after a unit step at t = 0.
+
+    ``step`` is "load" (unit load step at the process input, set point 0)
+    or "setpoint" (unit set-point step). The controller kind follows the gains
+    (P, PI, PD, PID). The array is cut short if the loop diverges.
+    """
+    sim = PlantSim(process, ts, loads=[(0.0, 1.0)] if step == "load" else ())
+    pid = PidUnit(gains, kind=gains.controller_type)
+    sp = 1.0 if step == "setpoint" else 0.0
+    errors = np.empty(samples)
+    for k in range(samples):
+        pv = sim.true_pv()
+        errors[k] = sp - pv
+        if abs(errors[k]) > DIVERGED:
+            return errors[: k + 1]
+        sim.advance(pid.step(k * ts, sp, pv))
+    return errors
+
+
+def integrated_error(process: Process, gains: Gains, step: str, period: float,
+                     samples_per_period: int = SAMPLES_PER_PERIOD,
+                     horizon_periods: float = HORIZON_PERIODS) -> tuple[float, float]:
+    """(IAE, ITAE) of the unit step response over ``horizon_periods·period`` seconds.
+
+    inf when the loop diverges or, for a controller without integral action,
+    when a load step leaves an offset.
+    """
+    ts = period / samples_per_period
+    samples = int(round(horizon_periods * samples_per_period))
+    errors = simulate_errors(process, gains, step, ts, samples)
+    if len(errors) < samples:
+        return math.inf, math.inf
+    t = ts * np.arange(samples)
+    return float(np.sum(np.abs(errors)) * ts), float(np.sum(t * np.abs(errors)) * ts)
