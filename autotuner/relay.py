@@ -20,7 +20,8 @@ The point ``F(jω)`` is the ratio of the Fourier coefficients of PV and MV over
 the last two whole periods (Hann window; the MV integrated exactly as a held
 signal), and the static gain the ratio of their mean deviations from the
 operating point. The experiment stops when the phase is within tolerance and
-consecutive estimates agree.
+consecutive estimates agree (or, when noise makes them scatter, when the
+mean of more of them is settled).
 """
 
 from __future__ import annotations
@@ -86,6 +87,9 @@ class RelayConfig:
     max_periods: give up after this many oscillation periods.
     phase_tol_deg: accepted error of the phase, degrees.
     gain_tol: accepted relative change of the point between consecutive estimates.
+    static_tol: accepted change of ``|F(jω)|/K0`` between consecutive estimates
+        (measured this way, the tolerance on the static gain stays meaningful as
+        ``K0`` grows towards an integrator).
     """
 
     amp: float
@@ -100,6 +104,7 @@ class RelayConfig:
     max_periods: int = 25
     phase_tol_deg: float = 0.5
     gain_tol: float = 0.003
+    static_tol: float = 0.02
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.amp) and self.amp > 0.0):
@@ -402,11 +407,23 @@ class RelayExperiment:
         periods = len(self._rising) - 1
         if periods < _MIN_PERIODS or len(self._estimates) < 2:
             return
-        (prev, prev_inv), (cur, cur_inv) = self._estimates[-2], self._estimates[-1]
-        phase_ok = abs(-cur.phase_deg - self.config.phase_deg) <= self.config.phase_tol_deg
-        change = abs(cur.value - prev.value) / abs(cur.value)
-        if phase_ok and change <= self.config.gain_tol and abs(cur_inv - prev_inv) <= 0.02:
-            self._succeed(cur, cur_inv)
+        # Estimates scatter with noise and sampling jitter. The longer the
+        # experiment runs, the more of the latest are averaged; it stops when
+        # the standard error of their mean is within half the tolerances (with
+        # k = 2: consecutive estimates agree within about the tolerance).
+        k = min(len(self._estimates), 2 + (periods - _MIN_PERIODS) // 2)
+        recent = self._estimates[-k:]
+        mean = Point(sum(p.omega for p, _ in recent) / k, sum(p.value for p, _ in recent) / k)
+        inverse = sum(i for _, i in recent) / k
+        gain_error = math.sqrt(sum(abs(p.value - mean.value) ** 2 for p, _ in recent) / k) / mean.gain
+        inverse_error = math.sqrt(sum((i - inverse) ** 2 for _, i in recent) / k)
+        config = self.config
+        if (
+            min(abs(-p.phase_deg - config.phase_deg) for p in (mean, recent[-1][0])) <= config.phase_tol_deg
+            and gain_error / math.sqrt(k) <= 0.5 * config.gain_tol
+            and inverse_error / math.sqrt(k) <= 0.5 * config.static_tol
+        ):
+            self._succeed(mean, inverse)
 
     def _succeed(self, point: Point, inverse_gain: float) -> None:
         # Within the resolution of the mean MV shift, a vanishing |F|/K0 is an

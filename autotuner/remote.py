@@ -24,10 +24,11 @@ from .session import tune_link
 from .tuning import TuneResult
 
 # Sampling a PLC through a link scatters the per-period estimates by about
-# ±0.5° and ±0.4 % (the PLC's clock and the session's are independent):
-# acceptance tolerances for field experiments.
+# ±0.5°, ±0.4 % and ±0.03 in |F|/K0 (the PLC's clock and the session's are
+# independent): acceptance tolerances for field experiments.
 FIELD_PHASE_TOL = 1.0
 FIELD_GAIN_TOL = 0.01
+FIELD_STATIC_TOL = 0.05
 # The simulated plant behind a link ticks this many times per session sample,
 # so its own sampling adds little delay to what the session sees.
 PLANT_TICKS_PER_SAMPLE = 5
@@ -39,6 +40,7 @@ def field_config(config: RelayConfig) -> RelayConfig:
         config,
         phase_tol_deg=max(config.phase_tol_deg, FIELD_PHASE_TOL),
         gain_tol=max(config.gain_tol, FIELD_GAIN_TOL),
+        static_tol=max(config.static_tol, FIELD_STATIC_TOL),
     )
 
 

@@ -94,13 +94,18 @@ class SimulatedPlc:
 
 
 async def run(plc: SimulatedPlc, speed: float = 1.0, stop: asyncio.Event | None = None) -> None:
-    """Tick ``plc`` every ``ts/speed`` wall seconds until ``stop`` is set (or forever)."""
+    """Tick ``plc`` so its clock follows the wall clock ``speed`` times faster, until ``stop`` is set.
+
+    After a stall (a busy machine) the due ticks are made at once, before any
+    other task runs: whoever reads the PLC then sees the state of the present
+    moment, never a plant lagging behind the wall clock.
+    """
     period = plc.ts / speed
     start = time.monotonic()
-    k = 0
+    done = 0
     while stop is None or not stop.is_set():
-        k += 1
-        # Always yield, even when late: a plant that catches up must not starve
-        # the other tasks of the loop (the servers, the session).
-        await asyncio.sleep(max(start + k * period - time.monotonic(), 0.0))
-        plc.tick()
+        due = int((time.monotonic() - start) / period)
+        while done < due:
+            plc.tick()
+            done += 1
+        await asyncio.sleep(max(start + (done + 1) * period - time.monotonic(), 0.0))
