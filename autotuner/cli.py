@@ -39,7 +39,7 @@ from .gains import FormError, Gains, to_parallel, to_series
 from .process import Process
 from .relay import Point, RelayConfig, Status
 from .rules import RULES, Options, RuleError, Tuning, tune as tune_rule
-from .remote import PLANT_TICKS_PER_SAMPLE, tune_url, tune_via
+from .remote import PLANT_TICKS_PER_SAMPLE, measure_jitter, tune_url, tune_via
 from .simulate import PlantSim
 from .tuning import TuneResult, default_sample_time, phase_frequency, tune
 
@@ -365,6 +365,27 @@ def sim_command(
         asyncio.run(serve())
     except OSError as exc:  # port in use, no such CAN interface
         _bad_input(str(exc))
+
+
+@app.command("jitter")
+def jitter_command(
+    via: Annotated[Transport, typer.Option(case_sensitive=False, help="Transport to the simulated plant.")]
+    = Transport.MODBUS,
+    rate: Annotated[float, typer.Option(min=1.0, max=1000.0, help="Sample rate, Hz.")] = 50.0,
+    seconds: Annotated[float, typer.Option(min=1.0, max=3600.0, help="Length of the measurement, s.")] = 10.0,
+    plant: Annotated[str, typer.Option(help="Process transfer function in s.")] = DEMO_PLANT,
+) -> None:
+    """Benchmark: sample a simulated plant over a real link as a tuning session does; print the timing."""
+    try:
+        process = parse_process(plant)
+    except ValueError as exc:
+        _bad_input(f"bad --plant expression\n{exc}")
+    j = asyncio.run(measure_jitter(process, via.value, rate, seconds))
+    table = Table(title=f"{j.samples} samples at {rate:g} Hz over {via.value} (localhost)", title_justify="left")
+    for name in ("PV read done after due, p50", "p99", "max", "sample interval, p1", "p99"):
+        table.add_column(name, justify="right")
+    table.add_row(*(f"{x:.2f} ms" for x in (j.late_p50, j.late_p99, j.late_max, j.interval_p1, j.interval_p99)))
+    stdout.print(table)
 
 
 # -- bench ------------------------------------------------------------------

@@ -12,15 +12,19 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import time
 from collections.abc import AsyncIterator, Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
 
 from drivers.link import Link
 from drivers.simplc import SimulatedPlc, run
 
 from .process import Process
 from .relay import RelayConfig, Status
-from .session import tune_link
+from .session import deadlines, tune_link
 from .tuning import TuneResult
 
 # Sampling a PLC through a link scatters the per-period estimates by about
@@ -46,7 +50,7 @@ def field_config(config: RelayConfig) -> RelayConfig:
 
 def open_link(url: str, map_path: str | None = None, dbc_path: str | None = None) -> Link:
     """The link for ``url`` (``modbus://…`` or ``can://…``); ValueError for anything else."""
-    if url.startswith("modbus://"):
+    if url.startswith(("modbus://", "modbus+tcp://", "modbus+rtu://")):
         from drivers.modbus_link import ModbusLink
 
         return ModbusLink.from_url(url, map_path=map_path)
@@ -54,7 +58,10 @@ def open_link(url: str, map_path: str | None = None, dbc_path: str | None = None
         from drivers.can_link import CanLink
 
         return CanLink.from_url(url, dbc=dbc_path)
-    raise ValueError(f"unknown link {url!r}: use modbus://HOST:PORT[/UNIT] or can://INTERFACE/CHANNEL")
+    raise ValueError(
+        f"unknown link {url!r}: use modbus://HOST:PORT[/UNIT], modbus+rtu:///dev/ttyUSB0?baudrate=… "
+        "or can://INTERFACE/CHANNEL"
+    )
 
 
 async def tune_url(
@@ -78,8 +85,8 @@ async def tune_url(
 
 
 @contextlib.asynccontextmanager
-async def served(plc: SimulatedPlc, transport: str, speed: float) -> AsyncIterator[str]:
-    """Run ``plc`` (``speed`` × real time) behind a server; yields the URL of the link to it."""
+async def served(plc: SimulatedPlc, transport: str, speed: float) -> AsyncIterator[tuple[str, Any]]:
+    """Run ``plc`` (``speed`` × real time) behind a server; yields the URL of the link to it and the server."""
     halt = asyncio.Event()
     plant = asyncio.create_task(run(plc, speed, halt))
     try:
@@ -97,7 +104,7 @@ async def served(plc: SimulatedPlc, transport: str, speed: float) -> AsyncIterat
         else:
             raise ValueError(f"unknown transport {transport!r}: modbus or can")
         try:
-            yield url
+            yield url, server
         finally:
             await server.close()
     finally:
@@ -119,10 +126,51 @@ async def tune_via(
 ) -> TuneResult:
     """Serve ``process`` over ``transport`` ("modbus" or "can") and tune it through the real link."""
     plc = SimulatedPlc(process, ts=ts / PLANT_TICKS_PER_SAMPLE, noise_std=noise, seed=seed)
-    async with served(plc, transport, speed) as url:
+    async with served(plc, transport, speed) as (url, _):
         link = open_link(url)
         await link.open()
         try:
             return await tune_link(link, field_config(config), ts, controller, ms, speed=speed, on_status=on_status)
         finally:
             await link.close()
+
+
+@dataclass(frozen=True)
+class Jitter:
+    """Lateness of the samples behind their due times, and the sample intervals, in milliseconds."""
+
+    samples: int
+    late_p50: float
+    late_p99: float
+    late_max: float
+    interval_p1: float
+    interval_p99: float
+
+
+async def measure_jitter(process: Process, transport: str, rate: float = 50.0, seconds: float = 10.0) -> Jitter:
+    """Sample a simulated plant over ``transport`` at ``rate`` Hz as a tuning session does (read PV, write MV).
+
+    The plant runs in real time behind a real server in this process; what is
+    measured is when each PV read completed against its due time.
+    """
+    plc = SimulatedPlc(process, ts=1.0 / rate / PLANT_TICKS_PER_SAMPLE)
+    done: list[float] = []
+    late: list[float] = []
+    async with served(plc, transport, 1.0) as (url, _):
+        link = open_link(url)
+        await link.open()
+        try:
+            async for due in deadlines(1.0 / rate):
+                pv = await link.read_pv()
+                now = time.monotonic()
+                await link.write_mv(plc.mv0)
+                late.append(now - due)
+                done.append(now)
+                if len(done) >= rate * seconds:
+                    break
+        finally:
+            await link.close()
+    lateness = 1e3 * np.asarray(late)
+    intervals = 1e3 * np.diff(done)
+    return Jitter(len(done), *np.percentile(lateness, [50, 99]), float(lateness.max()),
+                  *np.percentile(intervals, [1, 99]))

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 
 import numpy as np
 
@@ -27,23 +27,47 @@ from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags
 from .relay import MESSAGES, Code, RelayConfig, RelayExperiment, Status
 from .tuning import Trace, TuneResult, result_of
 
-RESTORE_ATTEMPTS = 3
+# How long a failing link is retried to put the loop back, wall seconds.
+RESTORE_WINDOW = 30.0
 # Handshake bits (TBSY, ite) are refreshed this often, wall seconds.
 FLAGS_PERIOD = 0.5
 
 
+async def deadlines(period: float) -> AsyncIterator[float]:
+    """Sleep until each sample is due, every ``period`` wall seconds from now; yields the due time.
+
+    Due times are ``start + k·period``: a late sample does not delay the next
+    ones (no drift); several overdue samples are taken back to back.
+    """
+    start = time.monotonic()
+    k = 0
+    while True:
+        due = start + k * period
+        delay = due - time.monotonic()
+        if delay > 0.0:
+            await asyncio.sleep(delay)
+        yield due
+        k += 1
+
+
 async def _restore(link: Link, saved: LoopState) -> str:
-    """Saved MV, then saved mode; '' on success, else why the loop is not restored."""
-    error = ""
-    for attempt in range(RESTORE_ATTEMPTS):
+    """Saved MV, then saved mode; '' on success, else why the loop is not restored.
+
+    A loop left in MAN at a relay level is the worst outcome, so the restore
+    keeps trying, with growing pauses, for ``RESTORE_WINDOW`` seconds.
+    """
+    deadline = time.monotonic() + RESTORE_WINDOW
+    pause = 0.1
+    while True:
         try:
             await link.write_mv(saved.mv)
             await link.write_mode(Mode(saved.mode))
             return ""
         except LinkError as exc:
-            error = str(exc)
-            await asyncio.sleep(0.1 * (attempt + 1))
-    return f"LOOP NOT RESTORED ({error}): set mode {Mode(saved.mode).name} and MV {saved.mv:g} by hand"
+            if time.monotonic() + pause > deadline:
+                return f"LOOP NOT RESTORED ({exc}): set mode {Mode(saved.mode).name} and MV {saved.mv:g} by hand"
+            await asyncio.sleep(pause)
+            pause = min(2.0 * pause, 2.0)
 
 
 async def _publish(link: Link, flags: TuneFlags) -> None:
@@ -81,15 +105,9 @@ async def tune_link(
         await _publish(link, TuneFlags(tbsy=True, te=False, ite=0.0))
         await link.write_mv(saved.mv)
         await link.write_mode(Mode.MAN)
-        period = ts / speed
         start = time.monotonic()
         flags_due = start
-        k = 0
-        while not experiment.done:
-            delay = start + k * period - time.monotonic()
-            if delay > 0.0:
-                await asyncio.sleep(delay)
-            k += 1
+        async for _ in deadlines(ts / speed):
             if stop is not None and stop.is_set():
                 experiment.abort()
                 break
