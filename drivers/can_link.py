@@ -275,6 +275,8 @@ class CanLink:
     def _check(self) -> None:
         if self._bus is None:
             raise LinkError(f"{self!r} is not open")
+        if self._error is None and self._notifier is not None and self._notifier.exception is not None:
+            self._error = self._notifier.exception  # the receive thread failed; its report may be on the way
         if self._error is not None:
             raise LinkError(f"CAN bus error on {self.interface}/{self.channel}: {self._error}")
 
@@ -292,6 +294,7 @@ class CanLink:
             try:
                 await asyncio.wait_for(changed.wait(), max(0.0, deadline - time.monotonic()))
             except TimeoutError:
+                self._check()  # a bus error explains the silence better than staleness
                 late = [n for n in names if n not in self._latest or self._latest[n][1] <= after]
                 seen = [f"{n} {time.monotonic() - self._latest[n][1]:.3g} s ago" for n in late if n in self._latest]
                 raise LinkError(f"no fresh {', '.join(late)} from the CAN node within {self.timeout:g} s"
@@ -313,12 +316,26 @@ class CanLink:
         bus = self._bus
         assert bus is not None
 
-        def send_all() -> None:
-            for m in messages:
+        # Fast path: send without blocking, from the event loop (a thread hop per write
+        # costs latency, i.e. phase, in a fast experiment). If the interface cannot
+        # take a frame at once (transmit buffer full, or any error), the rest is sent
+        # from a worker thread with the full timeout, and its error is the one reported.
+        pending = list(messages)
+        while pending:
+            try:
+                bus.send(pending[0], timeout=0.0)
+            except (can.CanError, OSError, ValueError):
+                break
+            pending.pop(0)
+        if not pending:
+            return
+
+        def send_rest() -> None:
+            for m in pending:
                 bus.send(m, timeout=self.timeout)
 
         try:
-            await asyncio.wait_for(asyncio.to_thread(send_all), self.timeout + 0.5)
+            await asyncio.wait_for(asyncio.to_thread(send_rest), self.timeout + 0.5)
         except TimeoutError:
             raise LinkError(f"CAN send did not complete within {self.timeout:g} s") from None
         except (can.CanError, OSError, ValueError) as exc:
@@ -372,11 +389,15 @@ class CanLink:
             return self.timeout
         return min(self.timeout, 3.0 * self._pv_interval)
 
+    def age(self, message: str = PROCESS) -> float:
+        """Seconds since the DBC message ``message`` was last received (inf if never)."""
+        last = self._latest.get(message)
+        return math.inf if last is None else time.monotonic() - last[1]
+
     @property
     def pv_age(self) -> float:
         """Seconds since the last PV frame (inf if none yet)."""
-        last = self._latest.get(PROCESS)
-        return math.inf if last is None else time.monotonic() - last[1]
+        return self.age(PROCESS)
 
     async def read_pv(self) -> float:
         """The latest PV; waits up to ``timeout`` for one if it is older than the stale limit."""

@@ -60,8 +60,8 @@ class CanPlcNode:
         self.silent = False
         #: Fault injection: received commands are ignored while True.
         self.deaf = False
-        #: Frames sent, commands applied, commands rejected (undecodable or invalid values).
-        self.stats = {"sent": 0, "applied": 0, "rejected": 0, "send_errors": 0}
+        #: Frames sent, commands applied, rejected (undecodable or invalid values), ignored (while deaf).
+        self.stats = {"sent": 0, "applied": 0, "rejected": 0, "ignored": 0, "send_errors": 0}
         self._counter = 0
         self._staged: dict[str, dict[str, Any]] = {}
         self._cmds = {self.db.get_message_by_name(n).frame_id: self.db.get_message_by_name(n)
@@ -141,10 +141,13 @@ class CanPlcNode:
     # ----------------------------------------------------------------- receive
 
     def _on_message(self, msg: can.Message) -> None:
-        if self.deaf or msg.is_error_frame or msg.is_remote_frame:
+        if msg.is_error_frame or msg.is_remote_frame:
             return
         spec = self._cmds.get(msg.arbitration_id)
         if spec is None or bool(msg.is_extended_id) != bool(spec.is_extended_frame):
+            return
+        if self.deaf:
+            self.stats["ignored"] += 1
             return
         try:
             values = spec.decode(bytes(msg.data), decode_choices=False, scaling=True)
