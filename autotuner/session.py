@@ -113,7 +113,9 @@ async def tune_link(
                 break
             before = time.monotonic()
             pv = await link.read_pv()
-            t = (0.5 * (before + time.monotonic()) - start) * speed
+            after = time.monotonic()
+            age = link.pv_age
+            t = ((0.5 * (before + after) if age is None else after - age) - start) * speed
             mv = experiment.step(t, pv)
             if experiment.done:
                 break

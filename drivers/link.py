@@ -56,7 +56,16 @@ def checked(name: str, value: float) -> float:
 
 
 class Link(Protocol):
-    """A loop reachable through some transport."""
+    """A loop reachable through some transport.
+
+    ``pv_age``: seconds since the value last returned by :meth:`read_pv` was
+    acquired, when the transport time-stamps it (a cyclic CAN frame); None
+    for request/response transports, whose value is taken while the request
+    is served. The session dates its samples with it.
+    """
+
+    @property
+    def pv_age(self) -> float | None: ...
 
     async def open(self) -> None:
         """Connect; raises LinkError if the device cannot be reached."""

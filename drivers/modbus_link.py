@@ -93,6 +93,9 @@ def _spans(items: list[tuple[str, Register]], table_regs: Iterable[Register], li
 class ModbusLink:
     """A loop in a Modbus device (TCP or RTU), addressed by ``unit``, laid out by ``map``."""
 
+    #: A Modbus value is taken while the request is served: no timestamp of its own.
+    pv_age: float | None = None
+
     def __init__(self, make_client: Callable[[], Any], name: str, unit: int = 1,
                  map: ModbusMap = DEFAULT_MAP, timeout: float = 1.0, retries: int = 2) -> None:
         if not 0 <= unit <= 255:

@@ -23,6 +23,7 @@ class SimLink:
     plc: SimulatedPlc
     outage: tuple[int, int] | None = None
     calls: int = 0
+    pv_age: float | None = None  # the value is read at the moment of the call
 
     def _call(self) -> None:
         self.calls += 1
