@@ -116,6 +116,8 @@ async def tune_link(
             after = time.monotonic()
             age = link.pv_age
             t = ((0.5 * (before + after) if age is None else after - age) - start) * speed
+            if times and t <= times[-1]:
+                continue  # the same time-stamped value again: nothing new to act on
             mv = experiment.step(t, pv)
             if experiment.done:
                 break
