@@ -394,6 +394,11 @@ class CanLink:
         last = self._latest.get(message)
         return math.inf if last is None else time.monotonic() - last[1]
 
+    def health(self) -> dict[str, Any]:
+        """Bus state, frame counters and the age of the PV, seconds."""
+        return {"transport": "can", "device": f"{self.interface}/{self.channel}", "connected": self._bus is not None,
+                "pv_age": self.pv_age, **self.stats}
+
     @property
     def pv_age(self) -> float:
         """Seconds since the last PV frame (inf if none yet)."""

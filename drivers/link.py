@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Protocol
+from typing import Any, Protocol
 
 from autotuner.gains import Gains
 
@@ -66,6 +66,9 @@ class Link(Protocol):
 
     @property
     def pv_age(self) -> float | None: ...
+
+    def health(self) -> dict[str, Any]:
+        """Transport, device, whether it is connected, and the transport's counters (never raises)."""
 
     async def open(self) -> None:
         """Connect; raises LinkError if the device cannot be reached."""

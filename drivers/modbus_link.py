@@ -113,6 +113,8 @@ class ModbusLink:
         self._client: Any = None
         self._lock = asyncio.Lock()
         self.requests = 0  # requests sent (for tests and statistics)
+        self.failures = 0  # attempts that failed (timeout, lost connection, exception response)
+        self.last_error = ""
 
     def __repr__(self) -> str:
         return f"ModbusLink({self.name}, unit {self.unit})"
@@ -229,6 +231,16 @@ class ModbusLink:
             with suppress(Exception):
                 client.close()
 
+    def _failed(self, text: str) -> None:
+        self.failures += 1
+        self.last_error = text
+
+    def health(self) -> dict[str, Any]:
+        """Connection state and request counters of the link."""
+        connected = self._client is not None and bool(self._client.connected)
+        return {"transport": "modbus", "device": self.name, "connected": connected, "requests": self.requests,
+                "failures": self.failures, "last_error": self.last_error}
+
     async def _connect(self, what: str) -> Any:
         if self._client is not None and self._client.connected:
             return self._client
@@ -277,12 +289,14 @@ class ModbusLink:
                     continue
                 if response.isError():
                     code = getattr(response, "exception_code", None)
-                    if code is None:
-                        raise LinkError(f"{self.name}: {what}: error response {response}")
-                    raise LinkError(f"{self.name}: {what}: unit {self.unit} answered Modbus exception "
-                                    f"{code} ({_exc_name(code)})")
+                    text = (f"{self.name}: {what}: error response {response}" if code is None else
+                            f"{self.name}: {what}: unit {self.unit} answered Modbus exception {code} "
+                            f"({_exc_name(code)})")
+                    self._failed(text)
+                    raise LinkError(text)
                 return response
             attempts = 1 + self.retries
+            self._failed(last)
             raise LinkError(f"{last} (gave up after {attempts} attempt{'s' if attempts > 1 else ''})")
 
     # -- generic reads and writes -------------------------------------------------

@@ -9,6 +9,7 @@ connection would; later calls work again.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from autotuner.gains import Gains
 
@@ -29,6 +30,11 @@ class SimLink:
         self.calls += 1
         if self.outage is not None and self.outage[0] <= self.calls < self.outage[1]:
             raise LinkError("simulated link lost")
+
+    def health(self) -> dict[str, Any]:
+        """Call counter, and whether the simulated outage is on."""
+        down = self.outage is not None and self.outage[0] <= self.calls < self.outage[1]
+        return {"transport": "simulation", "connected": not down, "calls": self.calls}
 
     async def open(self) -> None:
         self._call()

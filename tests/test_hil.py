@@ -144,3 +144,26 @@ def test_can_node_that_goes_silent():
     result, state, _, plc = asyncio.run(_faulted("can", inject, heal, outage=2.0))
     assert result.code is Code.LINK_FAULT
     _restored(state, plc)
+
+
+@pytest.mark.parametrize("transport", ["modbus", "can"])
+def test_health_reports_the_link_and_its_failures(transport):
+    async def scenario():
+        plc = SimulatedPlc(PLANT, ts=TS / 5)
+        async with served(plc, transport, SPEED) as (url, server):
+            link = open_link(url)
+            await link.open()
+            try:
+                await link.read_pv()
+                healthy = link.health()
+                plc.nan_pv = True
+                await asyncio.sleep(0.05)
+                with pytest.raises(Exception):
+                    await link.read_pv()
+                return healthy, link.health()
+            finally:
+                await link.close()
+
+    healthy, after = asyncio.run(scenario())
+    assert healthy["transport"] == transport and healthy["connected"] is True
+    assert after["connected"] is True  # a NaN is refused as data; the link itself is fine
