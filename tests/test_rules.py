@@ -8,9 +8,11 @@ import math
 
 import pytest
 
+from autotuner.bench import default_batch, load_batch
 from autotuner.expr import parse_process
 from autotuner.identify import from_fopdt, from_plant, from_point
 from autotuner.relay import Point
+from autotuner.robustness import check_loop, log_grid, pid_frequency_response
 from autotuner.rules import RULES, Options, RuleError, tune
 
 REL = 1e-9
@@ -154,3 +156,24 @@ def test_registry_lists_every_rule_of_the_issue():
     assert set(RULES) == {"zn-step", "kappa-tau", "zn-frequency", "astrom-hagglund", "chr-regulation",
                           "chr-servo", "cohen-coon", "takahashi", "amigo", "itae-integral", "itae-optimal",
                           "direct-synthesis-unstable", "robust"}
+
+
+# -- against the batch's independent reference figures ----------------------------
+
+BATCH_ROWS = load_batch(default_batch())[::9]
+
+
+@pytest.mark.parametrize("row", BATCH_ROWS, ids=[r["id"] for r in BATCH_ROWS])
+def test_zn_frequency_pi_matches_the_batch_reference_ms(row):
+    # The batch file (Åström–Hägglund's test batch) gives, for every process, the Ms of
+    # Ziegler–Nichols frequency-response PI (0.45 Ku, Tu/1.2) on the exact ultimate point,
+    # computed independently of this project.
+    process = parse_process(row["expr"])
+    gains = tune("zn-frequency", from_plant(process), "PI").gains
+    w = log_grid(float(row["w135"]))
+    ms = check_loop(process.freqresp, lambda x: pid_frequency_response(x, gains.k, gains.ti), w,
+                    integrators=process.integrator_count + 1).ms
+    if row["zn_pi_ms"] == "unstable":
+        assert math.isinf(ms)
+    else:
+        assert ms == pytest.approx(float(row["zn_pi_ms"]), rel=0.005)
