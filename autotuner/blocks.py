@@ -31,6 +31,8 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from .checks import finite, real
+
 __all__ = [
     "ManualControlUnit",
     "SaturationUnit",
@@ -44,15 +46,6 @@ __all__ = [
 # -- validation helpers ---------------------------------------------------
 
 
-def _finite_input(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{name} must be a real number, got {value!r}")
-    x = float(value)
-    if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite, got {x}")
-    return x
-
-
 def _flag(name: str, value: Any) -> bool:
     """A binary input: bool, or the integers 0 / 1."""
     if isinstance(value, bool):
@@ -62,21 +55,8 @@ def _flag(name: str, value: Any) -> bool:
     raise ValueError(f"{name} must be a bool (or 0/1), got {value!r}")
 
 
-def _number(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    return float(value)
-
-
-def _finite_param(name: str, value: Any) -> float:
-    x = _number(name, value)
-    if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return x
-
-
 def _time_param(name: str, value: Any, *, positive: bool) -> float:
-    x = _finite_param(name, value)
+    x = finite(name, value)
     if positive and x <= 0.0:
         raise ValueError(f"{name} must be a finite time > 0 seconds, got {value!r}")
     if not positive and x < 0.0:
@@ -85,8 +65,8 @@ def _time_param(name: str, value: Any, *, positive: bool) -> float:
 
 
 def _limits(lolim: Any, hilim: Any, lo_name: str = "lolim", hi_name: str = "hilim") -> None:
-    lo = _number(lo_name, lolim)
-    hi = _number(hi_name, hilim)
+    lo = real(lo_name, lolim)
+    hi = real(hi_name, hilim)
     if lo > hi:
         raise ValueError(f"{lo_name} must be <= {hi_name}, got {lo_name} = {lo}, {hi_name} = {hi}")
 
@@ -116,7 +96,7 @@ class _TimeBase:
 
     def advance(self, t: Any) -> tuple[float, float | None]:
         """(t, h) with h = t − t_prev, or None on the first sample."""
-        t = _finite_input("t", t)
+        t = finite("t", t)
         if self.t_prev is None:
             return t, None
         h = t - self.t_prev
@@ -182,13 +162,13 @@ class ManualControlUnit(_Validated):
 
     def _check(self, cfg: dict[str, Any]) -> None:
         _time_param("tm", cfg["tm"], positive=True)
-        q = _finite_param("q", cfg["q"])
+        q = finite("q", cfg["q"])
         if q <= 0.0:
             raise ValueError(f"q must be > 0, got {cfg['q']!r}")
         _time_param("ta", cfg["ta"], positive=True)
         _time_param("tf", cfg["tf"], positive=False)
         _time_param("tt", cfg["tt"], positive=False)
-        _finite_param("y0", cfg["y0"])
+        finite("y0", cfg["y0"])
         _limits(cfg["lolim"], cfg["hilim"])
 
     def __post_init__(self) -> None:
@@ -240,13 +220,13 @@ class ManualControlUnit(_Validated):
         dn = _flag("dn", dn)
         rem = _flag("rem", rem)
         if tv is not None:
-            tv = _finite_input("tv", tv)
+            tv = finite("tv", tv)
         if rem:
             if rv is None:
                 raise ValueError("rv (remote value) is required when rem=True")
-            rv = _finite_input("rv", rv)
+            rv = finite("rv", rv)
         elif rv is not None:
-            rv = _finite_input("rv", rv)
+            rv = finite("rv", rv)
         t, h = self._clock.advance(t)
         direction = int(up) - int(dn)
 
@@ -345,9 +325,9 @@ class SaturationUnit(_Validated):
 
         lo, hi: input-driven limit targets (None → lolim / hilim).
         """
-        u = _finite_input("u", u)
-        lo_t = self.lolim if lo is None else _number("lo", lo)
-        hi_t = self.hilim if hi is None else _number("hi", hi)
+        u = finite("u", u)
+        lo_t = self.lolim if lo is None else real("lo", lo)
+        hi_t = self.hilim if hi is None else real("hi", hi)
         if lo_t > hi_t:
             lo_name = "lolim" if lo is None else "lo"
             hi_name = "hilim" if hi is None else "hi"
@@ -393,9 +373,9 @@ class SwitchUnit:
         or4: bool = False,
     ) -> float:
         """Return uo if any OR input is set, else uc."""
-        _finite_input("t", t)
-        uc = _finite_input("uc", uc)
-        uo = _finite_input("uo", uo)
+        finite("t", t)
+        uc = finite("uc", uc)
+        uo = finite("uo", uo)
         flags = [_flag(f"or{i}", v) for i, v in enumerate((or1, or2, or3, or4), start=1)]
         self.sw = any(flags)
         self.y = uo if self.sw else uc
@@ -493,12 +473,12 @@ class SelectorUnit(_Validated):
         sl2: bool = False,
     ) -> SeluOutput:
         """Select one of u1..u4 and tell the others to track it."""
-        _finite_input("t", t)
+        finite("t", t)
         n = self.select(isel=isel, sl1=sl1, sl2=sl2)
         inputs = (u1, u2, u3, u4)
         for i, u in enumerate(inputs, start=1):
             if u is not None:
-                _finite_input(f"u{i}", u)
+                finite(f"u{i}", u)
         chosen = inputs[n - 1]
         if chosen is None:
             raise ValueError(f"u{n} is selected (isel = {n}) but not connected (None)")

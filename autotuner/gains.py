@@ -29,6 +29,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from .checks import finite, real
+
 __all__ = [
     "FormError",
     "Gains",
@@ -49,29 +51,15 @@ class FormError(ValueError):
     """A controller cannot be expressed in the requested form."""
 
 
-def _real(name: str, value: Any) -> float:
-    # bool is an int subclass; a True gain is almost certainly a wiring mistake.
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{name} must be a real number, got {value!r}")
-    return float(value)
-
-
-def _finite(name: str, value: Any) -> float:
-    x = _real(name, value)
-    if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite, got {x}")
-    return x
-
-
 def _nonzero(name: str, value: Any) -> float:
-    x = _finite(name, value)
+    x = finite(name, value)
     if x == 0.0:
         raise ValueError(f"{name} must be non-zero")
     return x
 
 
 def _integral_time(name: str, value: Any) -> float:
-    x = _real(name, value)
+    x = real(name, value)
     if math.isnan(x) or x <= 0.0:
         raise ValueError(
             f"{name} must be > 0 seconds (use math.inf for no integral action), got {x}"
@@ -80,14 +68,14 @@ def _integral_time(name: str, value: Any) -> float:
 
 
 def _nonneg_finite(name: str, value: Any) -> float:
-    x = _finite(name, value)
+    x = finite(name, value)
     if x < 0.0:
         raise ValueError(f"{name} must be >= 0, got {x}")
     return x
 
 
 def _positive_finite(name: str, value: Any) -> float:
-    x = _finite(name, value)
+    x = finite(name, value)
     if x <= 0.0:
         raise ValueError(f"{name} must be > 0, got {x}")
     return x
@@ -119,8 +107,8 @@ class Gains:
         object.__setattr__(self, "ti", _integral_time("ti", self.ti))
         object.__setattr__(self, "td", _nonneg_finite("td", self.td))
         object.__setattr__(self, "nd", _positive_finite("nd", self.nd))
-        object.__setattr__(self, "b", _finite("b", self.b))
-        object.__setattr__(self, "c", _finite("c", self.c))
+        object.__setattr__(self, "b", finite("b", self.b))
+        object.__setattr__(self, "c", finite("c", self.c))
 
     @property
     def has_integral(self) -> bool:
@@ -216,8 +204,8 @@ class ParallelGains:
 
     def __post_init__(self) -> None:
         kp = _nonzero("kp", self.kp)
-        ki = _finite("ki", self.ki)
-        kd = _finite("kd", self.kd)
+        ki = finite("ki", self.ki)
+        kd = finite("kd", self.kd)
         if ki * kp < 0.0:
             raise ValueError(f"ki must have the sign of kp (kp = {kp}, ki = {ki})")
         if kd * kp < 0.0:

@@ -32,7 +32,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from autotuner.gains import Gains
+from .checks import finite
+from .gains import Gains
 
 __all__ = ["PidUnit", "KINDS"]
 
@@ -42,15 +43,6 @@ KINDS = ("P", "I", "PI", "PD", "PID")
 # adjusted to keep the output continuous.
 _LAW_FIELDS = frozenset({"gains", "kind", "reverse"})
 _CONFIG_FIELDS = _LAW_FIELDS | {"lolim", "hilim", "tt"}
-
-
-def _finite_input(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{name} must be a real number, got {value!r}")
-    x = float(value)
-    if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite, got {x}")
-    return x
 
 
 def _check_config(gains: Any, kind: Any, reverse: Any, lolim: Any, hilim: Any, tt: Any) -> None:
@@ -219,16 +211,16 @@ class PidUnit:
         follows so that returning to automatic is bumpless. The first call
         after construction or :meth:`reset` only initialises the time base.
         """
-        t = _finite_input("t", t)
-        sp = _finite_input("sp", sp)
-        pv = _finite_input("pv", pv)
-        dv = _finite_input("dv", dv)
+        t = finite("t", t)
+        sp = finite("sp", sp)
+        pv = finite("pv", pv)
+        dv = finite("dv", dv)
         if tv is not None:
-            tv = _finite_input("tv", tv)
+            tv = finite("tv", tv)
         if man:
             if hv is None:
                 raise ValueError("hv (manual value) is required when man=True")
-            hv = _finite_input("hv", hv)
+            hv = finite("hv", hv)
 
         first = self._t_prev is None
         h = 0.0
@@ -285,10 +277,10 @@ class PidUnit:
         integration over the gap), and with the same sp, pv, dv it returns
         exactly the limited ``mv``.
         """
-        mv = _finite_input("mv", mv)
-        sp = _finite_input("sp", sp)
-        pv = _finite_input("pv", pv)
-        dv = _finite_input("dv", dv)
+        mv = finite("mv", mv)
+        sp = finite("sp", sp)
+        pv = finite("pv", pv)
+        dv = finite("dv", dv)
         self._dfilt = 0.0
         mv = self._clip(mv)
         self._integral = mv - (self._static_terms(sp, pv) + dv)
