@@ -16,6 +16,7 @@ import pytest
 from autotuner.expr import parse_process
 from autotuner.gains import Gains
 from autotuner.relay import Code, RelayConfig
+from autotuner.remote import field_config
 from autotuner.session import tune_link
 from autotuner.tuning import default_sample_time
 from drivers.can_link import (REQUIRED, CanLink, default_dbc, gains_from_wire, gains_to_wire, load_dbc,
@@ -411,7 +412,7 @@ async def tune_over_can(fault=None, fault_after: float = 0.3):
         asyncio.get_running_loop().call_later(fault_after, fault, plc, node)
     try:
         # tolerances for a shared CI machine: timing jitter at 10x real time scatters the estimates
-        cfg = RelayConfig(amp=5.0, time_limit=500.0, phase_tol_deg=2.0, gain_tol=0.02)
+        cfg = field_config(RelayConfig(amp=5.0, time_limit=500.0, phase_tol_deg=2.0, gain_tol=0.02))
         result = await tune_link(link, cfg, ts, speed=HIL_SPEED)
         await asyncio.sleep(3 * plc.ts / HIL_SPEED)  # the plant takes the restored MV
     finally:
