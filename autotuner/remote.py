@@ -33,6 +33,8 @@ from .tuning import TuneResult
 FIELD_PHASE_TOL = 1.0
 FIELD_GAIN_TOL = 0.01
 FIELD_STATIC_TOL = 0.05
+# Scattered estimates are averaged over more periods before they settle.
+FIELD_MAX_PERIODS = 40
 # The simulated plant behind a link ticks this many times per session sample,
 # so its own sampling adds little delay to what the session sees.
 PLANT_TICKS_PER_SAMPLE = 5
@@ -45,6 +47,7 @@ def field_config(config: RelayConfig) -> RelayConfig:
         phase_tol_deg=max(config.phase_tol_deg, FIELD_PHASE_TOL),
         gain_tol=max(config.gain_tol, FIELD_GAIN_TOL),
         static_tol=max(config.static_tol, FIELD_STATIC_TOL),
+        max_periods=max(config.max_periods, FIELD_MAX_PERIODS),
     )
 
 
