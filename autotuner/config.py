@@ -1,0 +1,206 @@
+"""The daemon's configuration (YAML) as pydantic v2 models, and the body of a TUNE request.
+
+A config file lists the loops the daemon owns, the API tokens and where the
+history is kept (docs/daemon.md has a full example). :func:`load_config`
+reads and validates it; every problem is a :class:`ConfigError` whose message
+names the file, the path inside it (``loops[1].tuning.amp``) and what is
+wrong — never a traceback. Relative paths (register maps, DBCs, the history
+database) are relative to the config file's folder.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .expr import parse_process
+
+
+class ConfigError(ValueError):
+    """The config file cannot be used; the message says where and why."""
+
+
+class Strict(BaseModel):
+    """Unknown keys are errors (a typo must not silently fall back to a default)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+Controller = Literal["PI", "PID"]
+PositiveFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+
+
+class Tuning(Strict):
+    """Defaults of a loop's experiment and design.
+
+    amp: relay amplitude, MV units; hysteresis: PV units (None: 3σ of the
+    measured noise); phase: lag of the identified point, degrees; ms: maximum
+    sensitivity of the design; time_limit: longest experiment, plant seconds.
+    """
+
+    controller: Controller = "PI"
+    amp: PositiveFloat = 1.0
+    hysteresis: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] | None = None
+    phase: Annotated[float, Field(ge=90.0, le=170.0)] = 135.0
+    ms: Annotated[float, Field(ge=1.05, le=4.0)] = 1.4
+    time_limit: PositiveFloat = 7200.0
+
+
+class TuneRequest(Strict):
+    """Body of ``POST /loops/{id}/tune``: any field left out takes the loop's configured default."""
+
+    controller: Controller | None = None
+    amp: PositiveFloat | None = None
+    hysteresis: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] | None = None
+    phase: Annotated[float, Field(ge=90.0, le=170.0)] | None = None
+    ms: Annotated[float, Field(ge=1.05, le=4.0)] | None = None
+    apply: bool | None = None
+
+
+Range = tuple[float, float]
+
+
+class Limits(Strict):
+    """Safety limits of the experiment: PV range (abort outside it) and MV range, engineering units."""
+
+    pv: Range = (-math.inf, math.inf)
+    mv: Range = (-math.inf, math.inf)
+
+    @field_validator("pv", "mv")
+    @classmethod
+    def _ordered(cls, value: Range) -> Range:
+        if not value[0] < value[1]:
+            raise ValueError(f"must be [low, high] with low < high, got [{value[0]}, {value[1]}]")
+        return value
+
+
+class SimPlant(Strict):
+    """A simulated PLC run inside the daemon: ``plant`` under a PID unit, with white PV noise (σ, PV units)."""
+
+    plant: str
+    noise: Annotated[float, Field(ge=0.0)] = 0.0
+    seed: int = 0
+
+    @field_validator("plant")
+    @classmethod
+    def _parses(cls, value: str) -> str:
+        parse_process(value)  # its ValueError names the token and position
+        return value
+
+
+class LoopConfig(Strict):
+    """One loop: a field link (``link`` + ``map``/``dbc``) or an in-process simulated plant (``sim``).
+
+    ts: sample time of the experiment, plant seconds. speed: plant seconds per
+    wall second — 1 for a real plant; more only for a simulated one (``sim``,
+    or ``autotuner sim --speed`` behind a link). apply: write the tuned gains
+    when a request does not say. group: loops of one exclusion group never
+    tune at the same time.
+    """
+
+    id: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
+    description: str = ""
+    link: str | None = None
+    map: Path | None = None
+    dbc: Path | None = None
+    sim: SimPlant | None = None
+    ts: PositiveFloat
+    speed: Annotated[float, Field(gt=0.0, le=1000.0)] = 1.0
+    tuning: Tuning = Tuning()
+    limits: Limits = Limits()
+    apply: bool = False
+    group: str | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self) -> LoopConfig:
+        if (self.link is None) == (self.sim is None):
+            raise ValueError("give exactly one of 'link' (a field device URL) or 'sim' (a simulated plant)")
+        if self.link is not None and not self.link.startswith(("modbus://", "modbus+tcp://", "modbus+rtu://",
+                                                                 "can://")):
+            raise ValueError(f"link {self.link!r} must be modbus://HOST:PORT[/UNIT], modbus+rtu://… or can://…")
+        return self
+
+
+Role = Literal["viewer", "operator", "admin"]
+
+
+class Token(Strict):
+    """An API token: who it is (``name``, recorded in the history), its role and the SHA-256 of the token (hex)."""
+
+    name: str
+    role: Role
+    sha256: Annotated[str, Field(pattern=r"^[0-9a-fA-F]{64}$")]
+
+
+class DaemonConfig(Strict):
+    """The whole file: the history database (an SQLite file, or ``:memory:``), the tokens and the loops."""
+
+    history: str = "autotuner-history.db"
+    tokens: list[Token] = []
+    loops: list[LoopConfig]
+
+    @model_validator(mode="after")
+    def _unique_ids(self) -> DaemonConfig:
+        seen: set[str] = set()
+        for loop in self.loops:
+            if loop.id in seen:
+                raise ValueError(f"loop id {loop.id!r} is used twice")
+            seen.add(loop.id)
+        return self
+
+    def loop(self, loop_id: str) -> LoopConfig | None:
+        """The loop named ``loop_id``, or None."""
+        return next((loop for loop in self.loops if loop.id == loop_id), None)
+
+
+def _where(loc: tuple[Any, ...]) -> str:
+    """``('loops', 1, 'tuning', 'amp')`` → ``loops[1].tuning.amp``."""
+    text = ""
+    for part in loc:
+        text += f"[{part}]" if isinstance(part, int) else f".{part}" if text else str(part)
+    return text or "(top level)"
+
+
+def _message(error: dict[str, Any]) -> str:
+    message = error["msg"]
+    return re.sub(r"^(Value|Assertion) error, ", "", message)
+
+
+def parse_config(data: Any, source: str) -> DaemonConfig:
+    """Validate already-parsed YAML ``data``; errors name ``source`` and the path inside it."""
+    try:
+        return DaemonConfig.model_validate(data)
+    except ValidationError as exc:
+        lines = [f"{source}: {_where(e['loc'])}: {_message(e)}" for e in exc.errors()]
+        raise ConfigError("\n".join(lines)) from None
+
+
+def load_config(path: Path) -> DaemonConfig:
+    """Read and validate the YAML file ``path``; relative paths in it become relative to its folder."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
+        raise ConfigError(f"{where}: not valid YAML: {getattr(exc, 'problem', None) or exc}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: (top level): must be a mapping with a 'loops' list")
+    config = parse_config(data, str(path))
+    base = path.parent
+
+    def resolve(p: Path | None) -> Path | None:
+        return None if p is None or p.is_absolute() else base / p
+
+    loops = [loop.model_copy(update={"map": resolve(loop.map) or loop.map, "dbc": resolve(loop.dbc) or loop.dbc})
+             for loop in config.loops]
+    history = config.history if config.history == ":memory:" else str(base / config.history)
+    return config.model_copy(update={"loops": loops, "history": history})

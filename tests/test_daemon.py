@@ -1,0 +1,163 @@
+"""The LoopManager: the PIDAT state machine per loop, exclusion groups, history, crash recovery."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from autotuner.config import DaemonConfig, TuneRequest
+from autotuner.daemon import LoopManager, Refused
+from autotuner.expr import parse_process
+from autotuner.gains import Gains
+from autotuner.history import History
+from autotuner.relay import Code
+from autotuner.tuning import default_sample_time
+from drivers.link import LoopState, Mode
+
+PLANT = "exp(-s)/(2*s+1)"
+SPEED = 10.0
+# 40 samples per period: 11 ms of wall time per sample at SPEED.
+TS = default_sample_time(parse_process(PLANT)) * 100 / 40
+
+
+def loop(loop_id: str, group: str | None = None, **extra) -> dict:
+    return {"id": loop_id, "sim": {"plant": PLANT}, "ts": TS, "speed": SPEED, "group": group,
+            "tuning": {"amp": 5.0, "time_limit": 500.0}, **extra}
+
+
+def manager(*loops: dict, history: History | None = None) -> LoopManager:
+    config = DaemonConfig.model_validate({"history": ":memory:", "loops": list(loops)})
+    return LoopManager(config, history or History(":memory:"))
+
+
+async def running(m: LoopManager, body):
+    await m.start()
+    try:
+        return await body(m)
+    finally:
+        await m.stop()
+
+
+def test_tune_busy_ite_counts_down_then_success_with_gains_applied():
+    async def body(m: LoopManager):
+        plc = m.loops["TIC1"].plc
+        before = plc.gains
+        events = m.subscribe("TIC1")
+        sid = m.tune("TIC1", TuneRequest(apply=True), user="alice")
+        status = m.loops["TIC1"].as_json()
+        assert status["tbsy"] and status["te"] is False and status["session"] == sid
+        ites = []
+        while m.loops["TIC1"].busy:
+            await asyncio.sleep(0.2)
+            s = m.loops["TIC1"].as_json()
+            if s["tbsy"] and s["stage"] == "relay":
+                ites.append(s["ite"])
+        done = m.loops["TIC1"].as_json()
+        samples = []
+        while not events.empty():
+            samples.append(events.get_nowait())
+        return sid, done, ites, plc, before, samples
+
+    m = manager(loop("TIC1"))
+    sid, done, ites, plc, before, samples = asyncio.run(running(m, body))
+    assert done["tbsy"] is False and done["te"] is False and done["ite"] == 0, done["message"]
+    # The estimate of the seconds left is rough until the first periods are measured, then goes down.
+    peak = ites.index(max(ites))
+    assert len(ites) - peak >= 3 and ites[-1] < 0.5 * ites[peak], ites
+    gains = Gains.from_json(done["gains"])
+    assert plc.gains.k == pytest.approx(gains.k) and plc.gains.ti == pytest.approx(gains.ti)
+    assert plc.mode is Mode.AUTO
+    assert plc.flags.tbsy is False and plc.flags.te is False
+    record = m.history.get(sid)
+    assert record["user"] == "alice" and record["state"] == "finished" and record["outcome"] == "success"
+    assert record["request"]["apply"] is True and record["request"]["amp"] == 5.0
+    assert record["gains_before"] == before.as_json()
+    assert record["gains_after"]["pk"] == pytest.approx(gains.k)
+    assert 10 < len(record["trace"]["t"]) <= 500
+    kinds = {e["event"] for e in samples}
+    assert kinds == {"sample", "state"}
+    sample = next(e["data"] for e in samples if e["event"] == "sample" and e["data"]["stage"] == "relay")
+    assert {"t", "pv", "mv", "relay", "filter_phase_deg", "ite"} <= sample.keys()
+    assert samples[-1] == {"event": "state", "data": done}
+
+
+def test_tbrk_aborts_restores_and_keeps_gains():
+    async def body(m: LoopManager):
+        plc = m.loops["TIC1"].plc
+        before = (plc.gains, plc.hv)
+        with pytest.raises(Refused) as idle:
+            m.abort("TIC1")
+        m.tune("TIC1", TuneRequest(apply=True), user="bob")
+        await asyncio.sleep(0.5)
+        assert plc.mode is Mode.MAN  # taken over
+        m.abort("TIC1")
+        await m.wait("TIC1")
+        return idle.value, plc, before, m.loops["TIC1"].as_json()
+
+    idle, plc, (gains, hv), status = asyncio.run(running(manager(loop("TIC1")), body))
+    assert idle.code == "idle"
+    assert status["tbsy"] is False and status["te"] is True and status["ite"] == int(Code.ABORTED)
+    assert plc.mode is Mode.AUTO and plc.gains == gains and plc.hv == pytest.approx(hv, abs=1e-9)
+
+
+def test_tune_refused_while_busy_and_within_an_exclusion_group():
+    async def body(m: LoopManager):
+        m.tune("A", TuneRequest(), user="u")
+        with pytest.raises(Refused) as busy:
+            m.tune("A", TuneRequest(), user="u")
+        with pytest.raises(Refused) as group:
+            m.tune("B", TuneRequest(), user="u")
+        m.tune("C", TuneRequest(), user="u")  # another group: concurrently
+        both = m.loops["A"].busy and m.loops["C"].busy
+        with pytest.raises(Refused) as unknown:
+            m.tune("nope", TuneRequest(), user="u")
+        m.abort("A")
+        m.abort("C")
+        await m.wait("A")
+        await m.wait("C")
+        return busy.value, group.value, unknown.value, both
+
+    busy, group, unknown, both = asyncio.run(running(manager(loop("A", "g1"), loop("B", "g1"), loop("C", "g2")), body))
+    assert busy.code == "busy" and group.code == "group_busy" and "'A'" in group.message
+    assert unknown.code == "not_found" and both
+
+
+def test_stop_aborts_running_sessions_and_records_them():
+    async def body(m: LoopManager):
+        sid = m.tune("A", TuneRequest(), user="u")
+        await asyncio.sleep(0.3)
+        return sid
+
+    m = manager(loop("A"))
+    sid = asyncio.run(running(m, body))
+    record = m.history.get(sid)
+    assert record["state"] == "finished" and record["code"] == int(Code.ABORTED)
+    assert m.loops["A"].plc.mode is Mode.AUTO
+
+
+def test_a_session_left_running_by_a_crash_is_closed_and_its_loop_restored(tmp_path):
+    path = str(tmp_path / "history.db")
+    crashed = History(path)
+    saved = LoopState(mode=Mode.AUTO, mv=50.0, sp=50.0, gains=Gains(k=0.7, ti=3.0))
+    crashed.begin("s1", "A", "alice", {"controller": "PI", "amp": 5.0})
+    crashed.saved("s1", saved)
+    crashed.begin("s0", "B", "alice", {"controller": "PI"})  # never touched its loop
+    crashed.close()
+
+    m = manager(loop("A"), loop("B"), history=History(path))
+    plc = m.loops["A"].plc
+    plc.mode, plc.hv = Mode.MAN, 55.0  # where the relay left it
+
+    async def body(m: LoopManager):
+        return m.loops["A"].as_json()
+
+    status = asyncio.run(running(m, body))
+    assert plc.mode is Mode.AUTO and plc.hv == 50.0
+    assert plc.flags.tbsy is False and plc.flags.te is True
+    record = m.history.get("s1")
+    assert record["state"] == "interrupted" and record["code"] == int(Code.ABORTED)
+    assert "restored to AUTO with MV 50" in record["message"]
+    assert m.history.get("s0")["state"] == "interrupted"
+    assert status["session"] == "s1" and status["te"] is True
+    assert m.history.running() == []
