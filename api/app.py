@@ -1,0 +1,132 @@
+"""The FastAPI application of the daemon: the REST API of design.md under ``/api/v1``.
+
+``create_app(config)`` builds it; its lifespan opens the history, starts the
+:class:`~autotuner.daemon.LoopManager` (simulated plants, crash recovery) and
+on shutdown (SIGTERM/SIGINT through uvicorn) aborts running experiments and
+restores their loops. Reads need a viewer token, TUNE/TBRK an operator;
+``GET /api/v1/health`` needs none. The OpenAPI description is at
+``/api/v1/openapi.json`` (interactive: ``/api/v1/docs``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Depends, FastAPI, Path, Query, Request
+from fastapi.responses import StreamingResponse
+
+from autotuner import __version__
+from autotuner.config import DaemonConfig, TuneRequest
+from autotuner.daemon import LoopManager
+from autotuner.history import History
+
+from . import errors
+from .auth import Principal, Tokens, require
+from .events import stream
+from .models import Accepted, Health, LoopStatus, Session, SessionSummary
+
+PREFIX = "/api/v1"
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    status: {"model": errors.ErrorBody, "description": text}
+    for status, text in ((401, "no valid token"), (403, "role too low"), (404, "unknown loop or session"),
+                         (422, "invalid request; the message names the field"))
+}
+LoopId = Annotated[str, Path(description="loop id from the config")]
+
+router = APIRouter(prefix=PREFIX, responses=_ERRORS)
+Viewer = Annotated[Principal, Depends(require("viewer"))]
+Operator = Annotated[Principal, Depends(require("operator"))]
+
+
+def _manager(request: Request) -> LoopManager:
+    return request.app.state.manager
+
+
+Manager = Annotated[LoopManager, Depends(_manager)]
+
+
+@router.get("/health", response_model=Health, tags=["health"])
+async def health(manager: Manager) -> dict[str, Any]:
+    """Liveness (no token needed)."""
+    return {"status": "ok", "loops": len(manager.loops)}
+
+
+@router.get("/loops", response_model=list[LoopStatus], tags=["loops"])
+async def loops(manager: Manager, _: Viewer) -> list[dict[str, Any]]:
+    """All configured loops with their status."""
+    return [loop.as_json() for loop in manager.loops.values()]
+
+
+@router.get("/loops/{loop_id}", response_model=LoopStatus, tags=["loops"])
+async def loop_status(loop_id: LoopId, manager: Manager, _: Viewer) -> dict[str, Any]:
+    """One loop: tbsy, te, ite, stage, progress, last point and gains."""
+    return manager.get(loop_id).as_json()
+
+
+@router.post("/loops/{loop_id}/tune", response_model=Accepted, status_code=202, tags=["loops"],
+             responses={409: {"model": errors.ErrorBody, "description": "the loop or its exclusion group is busy"}})
+async def tune(loop_id: LoopId, manager: Manager, who: Operator,
+               body: Annotated[TuneRequest, Body()] = TuneRequest()) -> dict[str, str]:
+    """TUNE: start an experiment; fields left out take the loop's configured defaults."""
+    return {"loop": loop_id, "session": manager.tune(loop_id, body, who.name)}
+
+
+@router.post("/loops/{loop_id}/break", response_model=Accepted, status_code=202, tags=["loops"],
+             responses={409: {"model": errors.ErrorBody, "description": "the loop is idle"}})
+async def abort(loop_id: LoopId, manager: Manager, _: Operator) -> dict[str, str]:
+    """TBRK: abort the running experiment; the loop is restored to its previous mode and MV."""
+    return {"loop": loop_id, "session": manager.abort(loop_id)}
+
+
+@router.get("/loops/{loop_id}/events", tags=["loops"],
+            responses={200: {"content": {"text/event-stream": {}}, "description": "state and sample events"}})
+async def events(loop_id: LoopId, manager: Manager, _: Viewer) -> StreamingResponse:
+    """Server-Sent Events: ``state`` (the loop's status) and ``sample`` (t, pv, mv, relay, filter_phase_deg, ite)."""
+    manager.get(loop_id)  # 404 before the stream starts
+    return StreamingResponse(stream(manager, loop_id), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+@router.get("/loops/{loop_id}/history", response_model=list[SessionSummary], tags=["history"])
+async def history(loop_id: LoopId, manager: Manager, _: Viewer,
+                  limit: Annotated[int, Query(ge=1, le=1000, description="most sessions returned")] = 100,
+                  ) -> list[dict[str, Any]]:
+    """Past sessions of the loop, newest first (without traces)."""
+    manager.get(loop_id)
+    return manager.history.of_loop(loop_id, limit)
+
+
+@router.get("/sessions/{sid}", response_model=Session, tags=["history"])
+async def session(sid: str, manager: Manager, _: Viewer) -> dict[str, Any]:
+    """One session in full, with its downsampled trace."""
+    record = manager.history.get(sid)
+    if record is None:
+        raise errors.ApiError(404, "not_found", f"no session {sid!r}")
+    return record
+
+
+def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
+    """The API over the loops of ``config``; ``env_token`` (default: $AUTOTUNER_TOKEN) is an extra operator token."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        store = History(config.history)
+        manager = LoopManager(config, store)
+        await manager.start()
+        app.state.manager = manager
+        try:
+            yield
+        finally:
+            await manager.stop()
+            store.close()
+
+    app = FastAPI(title="autotuner", version=__version__, lifespan=lifespan,
+                  description="Relay-feedback PID autotuner daemon: TUNE / TBRK / TBSY / TE over HTTP (docs/daemon.md).",
+                  openapi_url=f"{PREFIX}/openapi.json", docs_url=f"{PREFIX}/docs", redoc_url=None)
+    app.state.tokens = Tokens(config.tokens, os.environ.get("AUTOTUNER_TOKEN") if env_token is None else env_token)
+    errors.install(app)
+    app.include_router(router)
+    return app

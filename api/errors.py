@@ -1,0 +1,74 @@
+"""JSON errors: every error response is ``{"code": MACHINE_CODE, "message": HUMAN TEXT}``, never a traceback."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException
+
+from autotuner.daemon import Refused
+
+log = logging.getLogger("autotuner.api")
+
+_CODES = {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
+          409: "conflict", 422: "invalid", 500: "internal"}
+
+
+class ErrorBody(BaseModel):
+    """An error: ``code`` for programs (not_found, busy, group_busy, idle, invalid, unauthorized, forbidden, ...),
+    ``message`` for people."""
+
+    code: str
+    message: str
+
+
+class ApiError(Exception):
+    """An error response with status ``status``."""
+
+    def __init__(self, status: int, code: str, message: str, headers: dict[str, str] | None = None) -> None:
+        super().__init__(message)
+        self.status, self.code, self.message, self.headers = status, code, message, headers
+
+
+def _response(status: int, code: str, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
+    return JSONResponse({"code": code, "message": message}, status_code=status, headers=headers)
+
+
+def _field(loc: tuple[Any, ...]) -> str:
+    """``('body', 'amp')`` → ``amp``; ``('path', 'loop_id')`` → ``loop_id``; nested as ``a.b[0]``."""
+    text = ""
+    for part in loc[1:] if loc and loc[0] in ("body", "query", "path", "header") else loc:
+        text += f"[{part}]" if isinstance(part, int) else f".{part}" if text else str(part)
+    return text or "body"
+
+
+def install(app: FastAPI) -> None:
+    """Register the handlers that turn every error into an :class:`ErrorBody`."""
+
+    @app.exception_handler(ApiError)
+    async def api_error(_: Request, exc: ApiError) -> JSONResponse:
+        return _response(exc.status, exc.code, exc.message, exc.headers)
+
+    @app.exception_handler(Refused)
+    async def refused(_: Request, exc: Refused) -> JSONResponse:
+        return _response(404 if exc.code == "not_found" else 409, exc.code, exc.message)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = exc.errors()
+        message = "; ".join(f"{_field(e['loc'])}: {e['msg']}" for e in errors) or "invalid request"
+        return _response(422, "invalid", message)
+
+    @app.exception_handler(HTTPException)
+    async def http_error(_: Request, exc: HTTPException) -> JSONResponse:
+        return _response(exc.status_code, _CODES.get(exc.status_code, "error"), str(exc.detail), exc.headers)
+
+    @app.exception_handler(Exception)
+    async def internal(_: Request, exc: Exception) -> JSONResponse:
+        log.exception("internal error")
+        return _response(500, "internal", f"internal error ({type(exc).__name__}); see the daemon's log")

@@ -1,0 +1,50 @@
+"""Server-Sent Events of one loop: ``state`` events (the loop's status) and ``sample`` events (t, PV, MV, relay, ...).
+
+The stream starts with the current state; a comment line every
+``KEEPALIVE`` seconds keeps proxies from closing an idle stream.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from collections.abc import AsyncIterator
+from typing import Any
+
+from autotuner.daemon import LoopManager
+
+# Seconds between keep-alive comments on an idle stream.
+KEEPALIVE = 15.0
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
+
+
+def frame(event: str, data: dict[str, Any]) -> str:
+    """One SSE frame."""
+    return f"event: {event}\ndata: {json.dumps(_finite(data), allow_nan=False)}\n\n"
+
+
+async def stream(manager: LoopManager, loop_id: str) -> AsyncIterator[str]:
+    """The loop's events until the client goes away."""
+    queue = manager.subscribe(loop_id)
+    try:
+        yield frame("state", manager.get(loop_id).as_json())
+        while True:
+            try:
+                event = await asyncio.wait_for(queue.get(), KEEPALIVE)
+            except TimeoutError:
+                yield ": keep-alive\n\n"
+                continue
+            yield frame(event["event"], event["data"])
+    finally:
+        manager.unsubscribe(loop_id, queue)

@@ -1,0 +1,193 @@
+"""The REST API through HTTP: auth and roles, JSON errors, TUNE/TBRK/409s, history, events, OpenAPI."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import socket
+import threading
+import time
+
+import httpx
+import pytest
+import uvicorn
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from api.auth import token_hash
+from autotuner.config import Token
+from autotuner.demo import demo_config
+from autotuner.gains import Gains
+from autotuner.relay import Code
+from drivers.link import Mode
+
+OPERATOR, VIEWER, ADMIN = "op-secret", "view-secret", "admin-secret"
+SPEED = 25.0
+API = "/api/v1"
+
+
+CONFIG = demo_config(SPEED).model_copy(update={"tokens": [
+    Token(name="hmi", role="viewer", sha256=token_hash(VIEWER)),
+    Token(name="root", role="admin", sha256=token_hash(ADMIN)),
+]})
+
+
+def auth(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+@pytest.fixture
+def client():
+    with TestClient(create_app(CONFIG, env_token=OPERATOR), raise_server_exceptions=False) as c:
+        yield c
+
+
+def wait_idle(client: TestClient, loop_id: str, timeout: float = 60.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        status = client.get(f"{API}/loops/{loop_id}", headers=auth(VIEWER)).json()
+        if not status["tbsy"]:
+            return status
+        time.sleep(0.1)
+    raise AssertionError(f"{loop_id} still busy after {timeout} s")
+
+
+def test_health_needs_no_token_and_everything_else_does(client):
+    assert client.get(f"{API}/health").json() == {"status": "ok", "loops": 3}
+    for method, path in (("GET", "/loops"), ("GET", "/loops/TIC-101"), ("POST", "/loops/TIC-101/tune"),
+                         ("POST", "/loops/TIC-101/break"), ("GET", "/loops/TIC-101/history"),
+                         ("GET", "/sessions/x"), ("GET", "/loops/TIC-101/events")):
+        r = client.request(method, API + path)
+        assert r.status_code == 401, path
+        assert r.json()["code"] == "unauthorized" and r.headers["www-authenticate"] == "Bearer"
+    r = client.get(f"{API}/loops", headers=auth("wrong"))
+    assert r.status_code == 401 and "token" in r.json()["message"]
+
+
+def test_viewer_reads_but_cannot_write(client):
+    loops = client.get(f"{API}/loops", headers=auth(VIEWER)).json()
+    assert [loop["id"] for loop in loops] == ["TIC-101", "LIC-201", "FIC-301"]
+    assert loops[0]["tbsy"] is False and loops[0]["te"] is False and loops[0]["ite"] == 0
+    for path in ("/loops/TIC-101/tune", "/loops/TIC-101/break"):
+        r = client.post(API + path, headers=auth(VIEWER))
+        assert r.status_code == 403 and r.json()["code"] == "forbidden"
+    assert client.get(f"{API}/loops/TIC-101", headers=auth(VIEWER)).json()["tbsy"] is False  # no state change
+
+
+def test_unknown_loop_or_session_is_404(client):
+    for method, path in (("GET", "/loops/nope"), ("POST", "/loops/nope/tune"), ("POST", "/loops/nope/break"),
+                         ("GET", "/loops/nope/history"), ("GET", "/loops/nope/events"), ("GET", "/sessions/nope"),
+                         ("GET", "/no/such/path")):
+        r = client.request(method, API + path, headers=auth(OPERATOR))
+        assert r.status_code == 404, path
+        assert r.json()["code"] == "not_found" and r.json()["message"]
+
+
+@pytest.mark.parametrize("body, field", [
+    ({"amp": -1}, "amp"), ({"phase": 200}, "phase"), ({"controller": "PIDX"}, "controller"),
+    ({"ms": "high"}, "ms"), ({"ampp": 2}, "ampp"), ({"apply": "perhaps"}, "apply"),
+])
+def test_invalid_body_is_422_naming_the_field(client, body, field):
+    r = client.post(f"{API}/loops/TIC-101/tune", headers=auth(OPERATOR), json=body)
+    assert r.status_code == 422
+    assert r.json()["code"] == "invalid" and r.json()["message"].startswith(f"{field}: ")
+    assert client.get(f"{API}/loops/TIC-101", headers=auth(VIEWER)).json()["tbsy"] is False
+
+
+def test_break_while_idle_is_409(client):
+    r = client.post(f"{API}/loops/LIC-201/break", headers=auth(OPERATOR))
+    assert r.status_code == 409 and r.json()["code"] == "idle"
+
+
+def test_tune_through_http_to_success_with_gains_applied(client):
+    plc = client.app.state.manager.loops["TIC-101"].plc
+    before = plc.gains
+    r = client.post(f"{API}/loops/TIC-101/tune", headers=auth(OPERATOR), json={"apply": True, "controller": "PI"})
+    assert r.status_code == 202
+    sid = r.json()["session"]
+    assert r.json() == {"loop": "TIC-101", "session": sid}
+    busy = client.post(f"{API}/loops/TIC-101/tune", headers=auth(ADMIN))
+    assert busy.status_code == 409 and busy.json()["code"] == "busy"
+    running = client.get(f"{API}/loops/TIC-101", headers=auth(VIEWER)).json()
+    assert running["tbsy"] is True and running["session"] == sid
+    done = wait_idle(client, "TIC-101")
+    assert done["te"] is False and done["ite"] == 0 and done["message"] == "ok"
+    assert done["point"]["phase_deg"] == pytest.approx(-135.0, abs=1.5)
+    gains = Gains.from_json(done["gains"])
+    assert plc.gains.k == pytest.approx(gains.k) and plc.mode is Mode.AUTO
+    history = client.get(f"{API}/loops/TIC-101/history", headers=auth(VIEWER)).json()
+    assert [h["id"] for h in history] == [sid]
+    assert history[0]["user"] == "AUTOTUNER_TOKEN" and history[0]["outcome"] == "success"
+    assert "trace" not in history[0]
+    record = client.get(f"{API}/sessions/{sid}", headers=auth(VIEWER)).json()
+    assert record["gains_before"]["pk"] == pytest.approx(before.k)
+    assert record["gains_after"]["pk"] == pytest.approx(gains.k)
+    assert record["request"]["apply"] is True and len(record["trace"]["t"]) > 10
+
+
+def test_tbrk_through_http_restores_the_loop_and_history_is_newest_first(client):
+    plc = client.app.state.manager.loops["FIC-301"].plc
+    gains = plc.gains
+    first = client.post(f"{API}/loops/FIC-301/tune", headers=auth(OPERATOR)).json()["session"]
+    time.sleep(0.3)
+    r = client.post(f"{API}/loops/FIC-301/break", headers=auth(OPERATOR))
+    assert r.status_code == 202 and r.json()["session"] == first
+    status = wait_idle(client, "FIC-301")
+    assert status["te"] is True and status["ite"] == int(Code.ABORTED)
+    assert plc.mode is Mode.AUTO and plc.gains == gains
+    second = client.post(f"{API}/loops/FIC-301/tune", headers=auth(OPERATOR)).json()["session"]
+    client.post(f"{API}/loops/FIC-301/break", headers=auth(OPERATOR))
+    wait_idle(client, "FIC-301")
+    history = client.get(f"{API}/loops/FIC-301/history", headers=auth(VIEWER)).json()
+    assert [h["id"] for h in history] == [second, first]
+    assert history[1]["code"] == int(Code.ABORTED) and history[1]["outcome"] == "failure"
+
+
+def test_openapi_describes_the_endpoints(client):
+    spec = client.get(f"{API}/openapi.json").json()
+    assert {f"{API}/loops", f"{API}/loops/{{loop_id}}", f"{API}/loops/{{loop_id}}/tune",
+            f"{API}/loops/{{loop_id}}/break", f"{API}/loops/{{loop_id}}/events", f"{API}/loops/{{loop_id}}/history",
+            f"{API}/sessions/{{sid}}", f"{API}/health"} <= spec["paths"].keys()
+    assert "409" in spec["paths"][f"{API}/loops/{{loop_id}}/tune"]["post"]["responses"]
+
+
+@contextlib.contextmanager
+def server():
+    """The app behind a real uvicorn server on an ephemeral localhost port; yields its base URL."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    srv = uvicorn.Server(uvicorn.Config(create_app(CONFIG, env_token=OPERATOR), log_level="warning"))
+    thread = threading.Thread(target=srv.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    try:
+        while not srv.started:
+            time.sleep(0.02)
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        srv.should_exit = True
+        thread.join(30)
+        sock.close()
+
+
+def test_events_stream_samples_and_state_changes():
+    with server() as url, httpx.Client(base_url=url + API, headers=auth(OPERATOR), timeout=30) as http:
+        events: list[tuple[str, dict]] = []
+        with http.stream("GET", "/loops/TIC-101/events") as stream:
+            assert stream.headers["content-type"].startswith("text/event-stream")
+            kind = None
+            for line in stream.iter_lines():
+                if line.startswith("event: "):
+                    kind = line[7:]
+                elif line.startswith("data: "):
+                    events.append((kind, json.loads(line[6:])))
+                    if len(events) == 1:
+                        assert http.post("/loops/TIC-101/tune").status_code == 202
+                    if sum(k == "sample" for k, _ in events) >= 40:
+                        break
+        assert http.post("/loops/TIC-101/break").status_code == 202
+    assert events[0][0] == "state" and events[0][1]["tbsy"] is False
+    assert events[1][0] == "state" and events[1][1]["tbsy"] is True
+    samples = [d for k, d in events if k == "sample"]
+    assert {"t", "pv", "mv", "relay", "filter_phase_deg", "ite", "stage", "progress"} <= samples[-1].keys()
+    assert samples[-1]["t"] > samples[0]["t"]
