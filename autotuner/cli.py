@@ -22,8 +22,10 @@ from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
+import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
@@ -37,6 +39,7 @@ from .expr import parse_process
 from .identify import ProcessData, from_fopdt, from_plant, from_point
 from .gains import FormError, Gains, to_parallel, to_series
 from .process import Process
+from .robustness import check_loop, log_grid, pid_frequency_response
 from .relay import Point, RelayConfig, Status
 from .rules import RULES, Options, RuleError, Tuning, tune as tune_rule
 from .remote import PLANT_TICKS_PER_SAMPLE, measure_jitter, tune_url, tune_via
@@ -99,7 +102,7 @@ def version() -> None:
 
 
 def _bad_input(message: str) -> NoReturn:
-    stderr.print(f"[bold red]error:[/] {message}", highlight=False, markup=True, soft_wrap=True)
+    stderr.print(f"[bold red]error:[/] {escape(message)}", highlight=False, markup=True, soft_wrap=True)
     raise typer.Exit(EXIT_BAD_INPUT)
 
 
@@ -196,11 +199,23 @@ def _model_text(model: Process) -> str:
     return text
 
 
-def _result_table(result: TuneResult, ts: float) -> Table:
+def _plant_ms(process: Process, gains: Gains, w_ref: float) -> str:
+    """Ms of the designed loop on the simulated plant itself (inf: unstable)."""
+    check = check_loop(
+        process.freqresp,
+        lambda w: pid_frequency_response(w, gains.k, gains.ti, gains.td, gains.nd),
+        log_grid(w_ref),
+        integrators=process.integrator_count + 1,
+        rhp_poles=int(np.sum(process.poles.real > 1e-12)),
+    )
+    return "unstable" if math.isinf(check.ms) else f"{check.ms:.3f}"
+
+
+def _result_table(result: TuneResult, ts: float, plant: Process | None = None) -> Table:
     table = Table(title=f"{result.controller} tuning", show_header=False, title_justify="left")
     table.add_column(style="bold")
     table.add_column()
-    outcome = "ok" if result.ok else f"[red]failed[/] (ite = {int(result.code)}): {result.message}"
+    outcome = "ok" if result.ok else f"[red]failed[/] (ite = {int(result.code)}): {escape(result.message)}"
     table.add_row("result", outcome)
     ident, des = result.identification, result.design
     if ident is None:
@@ -217,6 +232,8 @@ def _result_table(result: TuneResult, ts: float) -> Table:
             table.add_row(name, text)
         table.add_row("model", f"{des.model.text}: {_model_text(des.model)}")
         table.add_row("Ms on model", f"{des.model_ms:.3f}")
+        if plant is not None:
+            table.add_row("Ms on the plant", _plant_ms(plant, des.gains, p.omega))
     return table
 
 
@@ -252,8 +269,9 @@ def tune_command(
     via: Annotated[Transport | None, typer.Option(case_sensitive=False, help="Serve the simulated --plant over a "
                                                   "real Modbus TCP server or CAN virtual bus and tune it through "
                                                   "that link (self-test).")] = None,
-    speed: Annotated[float, typer.Option(min=0.1, max=1000.0, help="With --via: plant seconds per wall second.")]
-    = 20.0,
+    speed: Annotated[float | None, typer.Option(min=0.1, max=1000.0, help="With --via: plant seconds per wall "
+                                                "second. Default: as fast as keeps 10 ms of wall time per "
+                                                "sample, at most 20.")] = None,
     time_limit: Annotated[float | None, typer.Option(help="Longest experiment, s. Default: 200 expected periods "
                                                      "(simulation), 7200 s (--link).")] = None,
 ) -> None:
@@ -275,8 +293,11 @@ def tune_command(
         sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit)
         sample_time = sim.ts
 
+        # A sample every 10 ms of wall time is what an asyncio loop keeps without much jitter.
+        via_speed = speed or min(20.0, sim.ts / 0.01)
+
         def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
-            return tune_via(sim.process, via.value, config, sim.ts, controller.value, ms, speed, noise, seed,
+            return tune_via(sim.process, via.value, config, sim.ts, controller.value, ms, via_speed, noise, seed,
                             on_status)
     else:
         sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit)
@@ -291,7 +312,7 @@ def tune_command(
     if as_json:
         _print_json(result)
     else:
-        stdout.print(_result_table(result, sample_time))
+        stdout.print(_result_table(result, sample_time, None if link is not None else sim.process))
     raise typer.Exit(EXIT_OK if result.ok else EXIT_FAILED)
 
 
@@ -386,6 +407,56 @@ def jitter_command(
         table.add_column(name, justify="right")
     table.add_row(*(f"{x:.2f} ms" for x in (j.late_p50, j.late_p99, j.late_max, j.interval_p1, j.interval_p99)))
     stdout.print(table)
+
+
+# -- serve ------------------------------------------------------------------
+
+
+@app.command("serve")
+def serve_command(
+    config: Annotated[Path | None, typer.Option(help="Daemon config (YAML, docs/daemon.md). Default: a built-in "
+                                                "demo of 3 simulated loops, 20× real time.")] = None,
+    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=1, max=65535, help="TCP port.")] = 8000,
+    ssl_certfile: Annotated[Path | None, typer.Option(help="TLS certificate (PEM); with --ssl-keyfile serves "
+                                                      "HTTPS.")] = None,
+    ssl_keyfile: Annotated[Path | None, typer.Option(help="TLS private key (PEM).")] = None,
+) -> None:
+    """Run the daemon: the REST API of design.md under /api/v1 over the configured loops.
+
+    Tokens come from the config (hashed) and from $AUTOTUNER_TOKEN (an operator). The demo without
+    --config generates an operator token and prints it once when $AUTOTUNER_TOKEN is unset.
+    SIGTERM/SIGINT abort running experiments and restore their loops before the daemon exits.
+    """
+    import os
+
+    import uvicorn
+
+    from api.app import PREFIX, create_app
+    from api.auth import new_token
+
+    from .config import ConfigError, load_config
+    from .demo import demo_config
+
+    if (ssl_certfile is None) != (ssl_keyfile is None):
+        _bad_input("--ssl-certfile and --ssl-keyfile go together")
+    try:
+        daemon_config = demo_config() if config is None else load_config(config)
+    except ConfigError as exc:
+        _bad_input(str(exc))
+    token = os.environ.get("AUTOTUNER_TOKEN") or None
+    if config is None and token is None:
+        token = new_token()
+        print(f"operator token (shown once; or set AUTOTUNER_TOKEN): {token}", flush=True)
+    elif not daemon_config.tokens and token is None:
+        stderr.print("warning: no tokens in the config and AUTOTUNER_TOKEN unset: every request except "
+                     f"{PREFIX}/health will be refused", highlight=False)
+    scheme = "http" if ssl_certfile is None else "https"
+    print(f"autotuner API at {scheme}://{host}:{port}{PREFIX}  (OpenAPI: {PREFIX}/docs); "
+          f"{len(daemon_config.loops)} loops: {', '.join(loop.id for loop in daemon_config.loops)}", flush=True)
+    uvicorn.run(create_app(daemon_config, env_token=token or ""), host=host, port=port, log_level="info",
+                ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
+                ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))
 
 
 # -- bench ------------------------------------------------------------------

@@ -19,13 +19,13 @@ from typing import Any
 
 import numpy as np
 
-from drivers.link import Link
+from drivers.link import Link, LinkError
 from drivers.simplc import SimulatedPlc, run
 
 from .process import Process
-from .relay import RelayConfig, Status
+from .relay import MESSAGES, Code, RelayConfig, Status
 from .session import deadlines, tune_link
-from .tuning import TuneResult
+from .tuning import Trace, TuneResult
 
 # Sampling a PLC through a link scatters the per-period estimates by about
 # ±0.5°, ±0.4 % and ±0.03 in |F|/K0 (the PLC's clock and the session's are
@@ -80,7 +80,11 @@ async def tune_url(
 ) -> TuneResult:
     """Tune the loop at ``url`` in real time, sampling every ``ts`` seconds."""
     link = open_link(url, map_path, dbc_path)
-    await link.open()
+    try:
+        await link.open()
+    except LinkError as exc:
+        return TuneResult(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", controller, None, None,
+                          Trace(np.zeros(0), np.zeros(0), np.zeros(0)))
     try:
         return await tune_link(link, field_config(config), ts, controller, ms, apply, on_status=on_status)
     finally:

@@ -92,7 +92,8 @@ def test_tune_human_output_on_demo_plant() -> None:
     result = _invoke("tune")
     assert result.exit_code == 0, result.output
     out = result.stdout
-    for label in ("point", "static gain", "experiment", "standard (ISA)", "series", "parallel", "model", "Ms on model"):
+    for label in ("point", "static gain", "experiment", "standard (ISA)", "series", "parallel", "model", "Ms on model",
+                  "Ms on the plant"):
         assert label in out
     assert "rad/s" in out and "periods" in out and "samples" in out
     assert "{" not in out  # not JSON
@@ -212,3 +213,38 @@ def test_installed_console_script_exit_codes() -> None:
     bad = subprocess.run([script, "tune", "--plant", "2s+1"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2
     assert "position 1" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_tune_via_modbus_tunes_through_the_real_protocol_stack() -> None:
+    result = _invoke("tune", "--plant", PLANT, "--via", "modbus", "--json")
+    assert result.exit_code == 0, result.output
+    doc = _last_json(result.stdout)
+    assert doc["te"] is False and doc["ite"] == 0 and set(doc["gains"]) == {"pk", "pti", "ptd", "pnd", "pb", "pc"}
+    point = doc["point"]
+    true = true_response(point["omega"])
+    # Sampled through a server whose clock is not the session's: a few percent.
+    assert point["gain"] == pytest.approx(abs(true), rel=0.05)
+    assert point["phase_deg"] == pytest.approx(math.degrees(np.angle(true)), abs=3.0)
+
+
+def test_unreachable_link_fails_with_code_7_not_a_traceback() -> None:
+    result = _invoke("tune", "--link", "modbus://127.0.0.1:1/1", "--ts", "0.1", "--json")
+    assert result.exit_code == 1
+    doc = _last_json(result.stdout)
+    assert doc["te"] is True and doc["ite"] == 7
+    assert "cannot connect" in doc["message"]
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--link", "foo://x", "--ts", "0.1"], "unknown link"),
+        (["--link", "modbus://127.0.0.1:1/1"], "--ts"),
+        (["--link", "modbus://host:notaport/1", "--ts", "0.1"], "Modbus URL"),
+    ],
+)
+def test_bad_link_options_exit_2(args: list[str], words: str) -> None:
+    result = _invoke("tune", *args)
+    assert result.exit_code == 2
+    assert words in result.output
+    assert "Traceback" not in result.output
