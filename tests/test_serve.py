@@ -1,0 +1,125 @@
+"""`autotuner serve` as a process, and the config file's error messages."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from autotuner.config import ConfigError, load_config
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_demo_serves_three_loops_with_a_generated_token_and_stops_on_sigterm():
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if k != "AUTOTUNER_TOKEN"}
+    proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--port", str(port)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        token = proc.stdout.readline().rsplit(" ", 1)[1].strip()
+        assert f"http://127.0.0.1:{port}/api/v1" in proc.stdout.readline()
+        base = f"http://127.0.0.1:{port}/api/v1"
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                assert httpx.get(f"{base}/health").json()["status"] == "ok"
+                break
+            except httpx.TransportError:
+                assert time.monotonic() < deadline and proc.poll() is None
+                time.sleep(0.1)
+        headers = {"Authorization": f"Bearer {token}"}
+        loops = httpx.get(f"{base}/loops", headers=headers).json()
+        assert len(loops) == 3 and len({loop["link"] for loop in loops}) == 3
+        assert httpx.post(f"{base}/loops/LIC-201/tune", headers=headers).status_code == 202
+        assert httpx.post(f"{base}/loops/LIC-201/tune").status_code == 401
+        proc.send_signal(signal.SIGTERM)
+        # uvicorn shuts the app down (the running experiment is aborted, its loop restored), then re-raises SIGTERM.
+        assert proc.wait(30) in (0, -signal.SIGTERM)
+        assert "Application shutdown complete" in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "daemon.yaml"
+    path.write_text(text)
+    return path
+
+
+GOOD = """
+history: db/history.sqlite
+tokens:
+  - {name: hmi, role: viewer, sha256: %s}
+loops:
+  - id: TIC-101
+    description: reactor temperature
+    link: modbus://127.0.0.1:5020/1
+    map: maps/tic.yaml
+    ts: 0.5
+    group: reactor
+    apply: true
+    tuning: {controller: PID, amp: 5, phase: 135, ms: 1.4}
+    limits: {pv: [0, 120], mv: [0, 100]}
+  - id: SIM-1
+    sim: {plant: "exp(-s)/(2*s+1)"}
+    ts: 0.1
+    speed: 20
+""" % ("ab" * 32)
+
+
+def test_a_good_config_resolves_paths_next_to_the_file(tmp_path):
+    config = load_config(write(tmp_path, GOOD))
+    tic = config.loop("TIC-101")
+    assert tic.map == tmp_path / "maps/tic.yaml" and tic.tuning.controller == "PID" and tic.limits.pv == (0, 120)
+    assert config.history == str(tmp_path / "db/history.sqlite")
+    assert config.loop("SIM-1").speed == 20 and config.loop("nope") is None
+
+
+@pytest.mark.parametrize("change, where, what", [
+    (("amp: 5", "amp: -5"), "loops[0].tuning.amp", "greater than 0"),
+    (("pv: [0, 120]", "pv: [120, 0]"), "loops[0].limits.pv", "low < high"),
+    (("    ts: 0.5\n", "    ts: 0.5\n    tss: 1\n"), "loops[0].tss", "Extra inputs"),
+    (("id: SIM-1", "id: TIC-101"), "(top level)", "used twice"),
+    (("role: viewer", "role: boss"), "tokens[0].role", "viewer"),
+    (("exp(-s)/(2*s+1)", "exp(-s)/(2*s+"), "loops[1].sim.plant", ""),
+    (("    link: modbus", "    sim: {plant: 1/(s+1)}\n    link: modbus"), "loops[0]", "exactly one of"),
+    (("link: modbus://", "link: http://"), "loops[0]", "must be modbus://"),
+    (("    ts: 0.1\n", ""), "loops[1].ts", "Field required"),
+])
+def test_every_error_names_the_file_the_path_and_what_is_wrong(tmp_path, change, where, what):
+    path = write(tmp_path, GOOD.replace(*change))
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert str(exc.value).startswith(f"{path}: {where}: ")
+    assert what in str(exc.value) and "Traceback" not in str(exc.value)
+
+
+def test_yaml_syntax_errors_and_missing_files(tmp_path):
+    with pytest.raises(ConfigError, match=r"daemon.yaml:4:1: not valid YAML: expected ',' or ']'"):
+        load_config(write(tmp_path, "loops:\n  - id: a\n  - [unclosed\n"))
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match="must be a mapping"):
+        load_config(write(tmp_path, "- a\n"))
+
+
+def test_serve_with_a_bad_config_exits_2_with_the_message(tmp_path):
+    path = write(tmp_path, GOOD.replace("amp: 5", "amp: -5"))
+    proc = subprocess.run([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(path)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "loops[0].tuning.amp" in proc.stderr and "Traceback" not in proc.stderr
