@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
+import queue
 import socket
 import threading
 import time
@@ -15,11 +17,15 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.auth import token_hash
-from autotuner.config import Token
+from autotuner.config import DaemonConfig, Token
 from autotuner.demo import demo_config
+from autotuner.expr import parse_process
 from autotuner.gains import Gains
 from autotuner.relay import Code
+from autotuner.remote import PLANT_TICKS_PER_SAMPLE, served
+from autotuner.tuning import default_sample_time
 from drivers.link import Mode
+from drivers.simplc import SimulatedPlc
 
 OPERATOR, VIEWER, ADMIN = "op-secret", "view-secret", "admin-secret"
 SPEED = 25.0
@@ -42,10 +48,10 @@ def client():
         yield c
 
 
-def wait_idle(client: TestClient, loop_id: str, timeout: float = 60.0) -> dict:
+def wait_idle(client: TestClient, loop_id: str, timeout: float = 60.0, token: str = VIEWER) -> dict:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        status = client.get(f"{API}/loops/{loop_id}", headers=auth(VIEWER)).json()
+        status = client.get(f"{API}/loops/{loop_id}", headers=auth(token)).json()
         if not status["tbsy"]:
             return status
         time.sleep(0.1)
@@ -191,3 +197,42 @@ def test_events_stream_samples_and_state_changes():
     samples = [d for k, d in events if k == "sample"]
     assert {"t", "pv", "mv", "relay", "filter_phase_deg", "ite", "stage", "progress"} <= samples[-1].keys()
     assert samples[-1]["t"] > samples[0]["t"]
+
+
+@contextlib.contextmanager
+def modbus_plant(plc: SimulatedPlc, speed: float):
+    """``plc`` run ``speed`` × real time behind a Modbus TCP server on localhost, in its own thread; yields the URL."""
+    urls: queue.Queue[str] = queue.Queue()
+    done = threading.Event()
+
+    async def main() -> None:
+        async with served(plc, "modbus", speed) as (url, _):
+            urls.put(url)
+            while not done.is_set():
+                await asyncio.sleep(0.05)
+
+    thread = threading.Thread(target=asyncio.run, args=(main(),), daemon=True)
+    thread.start()
+    try:
+        yield urls.get(timeout=30)
+    finally:
+        done.set()
+        thread.join(30)
+
+
+def test_tune_over_modbus_tcp_through_http_writes_the_gains():
+    plant = "exp(-s)/(2*s+1)"
+    ts = default_sample_time(parse_process(plant)) * 100 / 40
+    plc = SimulatedPlc(parse_process(plant), ts=ts / PLANT_TICKS_PER_SAMPLE)
+    with modbus_plant(plc, 10.0) as url:
+        config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
+            {"id": "TIC-1", "link": url, "ts": ts, "speed": 10.0, "apply": True,
+             "tuning": {"amp": 5.0, "time_limit": 500.0}}]})
+        with TestClient(create_app(config, env_token=OPERATOR)) as client:
+            sid = client.post(f"{API}/loops/TIC-1/tune", headers=auth(OPERATOR)).json()["session"]
+            assert client.post(f"{API}/loops/TIC-1/tune", headers=auth(OPERATOR)).status_code == 409
+            done = wait_idle(client, "TIC-1", token=OPERATOR)
+            record = client.get(f"{API}/sessions/{sid}", headers=auth(OPERATOR)).json()
+    assert done["te"] is False and done["ite"] == 0, done["message"]
+    assert record["gains_after"]["pk"] == pytest.approx(done["gains"]["pk"])  # read back over Modbus
+    assert plc.gains.k == pytest.approx(done["gains"]["pk"], rel=1e-3) and plc.mode is Mode.AUTO
