@@ -36,7 +36,7 @@ from .process import Process
 from .relay import Point, RelayConfig
 from .robustness import Plant, check_loop, log_grid, migo, pid_frequency_response
 from .simulate import PlantSim
-from .tuning import SAMPLES_PER_PERIOD, phase_frequency, run_experiment, tune
+from .tuning import SAMPLES_PER_PERIOD, phase_frequency, tune
 
 NOISE_FRACTION = 0.01
 AH_RADIUS = 0.5

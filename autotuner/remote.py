@@ -168,7 +168,7 @@ async def measure_jitter(process: Process, transport: str, rate: float = 50.0, s
         await link.open()
         try:
             async for due in deadlines(1.0 / rate):
-                pv = await link.read_pv()
+                await link.read_pv()
                 now = time.monotonic()
                 await link.write_mv(plc.mv0)
                 late.append(now - due)

@@ -41,7 +41,6 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from autotuner.gains import Gains
 
 from .link import Mode
 from .modbus_map import (
