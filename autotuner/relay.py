@@ -82,6 +82,8 @@ class RelayConfig:
         MV alternates between ``mv0 + amp`` and ``mv0 − amp·(1 − 2·bias)``.
     reverse: reverse-acting loop (more MV gives less PV).
     pv_limits, mv_limits: safety range of the PV and allowed range of the MV.
+    mv_rate: largest rate of change of the MV, MV units per second (the relay
+        then ramps between its levels; the estimate uses the MV as applied).
     time_limit: longest experiment, seconds.
     noise_samples: samples of the noise-measuring stage.
     max_periods: give up after this many oscillation periods.
@@ -99,6 +101,7 @@ class RelayConfig:
     reverse: bool = False
     pv_limits: tuple[float, float] = (-math.inf, math.inf)
     mv_limits: tuple[float, float] = (-math.inf, math.inf)
+    mv_rate: float = math.inf
     time_limit: float = math.inf
     noise_samples: int = 30
     max_periods: int = 25
@@ -115,6 +118,8 @@ class RelayConfig:
             raise ValueError(f"hysteresis must be ≥ 0 PV units, got {self.hysteresis}")
         if not 0.0 <= self.bias < 0.5:
             raise ValueError(f"bias must be in [0, 0.5), got {self.bias}")
+        if not self.mv_rate > 0.0:
+            raise ValueError(f"mv_rate must be positive MV units per second, got {self.mv_rate}")
         if not self.time_limit > 0.0:
             raise ValueError(f"time limit must be positive seconds, got {self.time_limit}")
         if self.noise_samples < 5:
@@ -272,6 +277,8 @@ class RelayExperiment:
         mv = self._relay_step(t, pv)
         if self.done:
             return self.mv0
+        step = self.config.mv_rate * (t - self._t[-2])
+        mv = min(max(mv, self._u[-1] - step), self._u[-1] + step)
         self._u.append(mv)
         return mv
 

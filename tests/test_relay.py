@@ -264,3 +264,20 @@ def test_a_fault_reported_from_outside_ends_the_experiment():
     assert experiment.step(sim.t, sim.measure()) == 1.0
     experiment.abort()  # a later TBRK does not overwrite the first outcome
     assert experiment.code is Code.LINK_FAULT
+
+
+def test_mv_rate_limit_is_respected_and_the_point_still_exact():
+    expr, f, _ = CASES[0]
+    process = parse_process(expr)
+    w = phase_frequency(process, 135.0)
+    ts = 2 * math.pi / w / 100
+    rate = 2.0 / (0.05 * 2 * math.pi / w)  # a full relay swing takes 5 % of a period
+    sim = PlantSim(process, ts)
+    experiment, trace = run_experiment(sim, RelayConfig(amp=1.0, mv_rate=rate, time_limit=1000.0))
+    assert experiment.code is Code.OK, experiment.message
+    steps = np.abs(np.diff(trace.mv[:-1]))
+    assert steps.max() <= rate * ts * (1 + 1e-9)
+    assert steps.max() > 0.9 * rate * ts  # the limit was active
+    point = experiment.result.point
+    true = analytic(f, point.omega)
+    assert abs(point.value - true) / abs(true) < 0.01
