@@ -668,6 +668,49 @@ def design_command(
         stdout.print(_tuning_table(tuning))
 
 
+# -- loadbench --------------------------------------------------------------
+
+
+@app.command("loadbench")
+def loadbench_command(
+    loops: Annotated[list[int] | None, typer.Option("--loops", min=1, max=500, help="Loops tuned at once; "
+                                                    "repeat for several runs. Default: 1, 10, 25, 50.")] = None,
+    speed: Annotated[float, typer.Option(min=0.1, max=100.0, help="Plant seconds per wall second.")] = 1.0,
+    ts: Annotated[float, typer.Option(min=0.001, help="Sample time, plant seconds.")] = 0.1,
+    plant: Annotated[str, typer.Option(help="Process transfer function in s.")] = "exp(-0.5*s)/(s+1)",
+    as_markdown: Annotated[bool, typer.Option("--markdown", help="Print a markdown table.")] = False,
+) -> None:
+    """Benchmark: N simulated loops tuned at once over Modbus TCP (localhost); sampling lateness and CPU.
+
+    Not a test: it takes about a minute per run at the defaults (docs/daemon.md, "Load benchmark").
+    """
+    from .loadbench import HEADERS, markdown, run_load, table_rows
+
+    try:
+        parse_process(plant)
+    except ValueError as exc:
+        _bad_input(f"bad --plant expression\n{exc}")
+    results = []
+    for n in loops or [1, 10, 25, 50]:
+        result = asyncio.run(run_load(n, speed, ts, plant))
+        results.append(result)
+        for loop_id, message in result.failures.items():
+            stderr.print(f"{n} loops: {loop_id} failed: {message}", highlight=False, markup=False)
+    title = (f"tunings at once over Modbus TCP (localhost): ts {ts:g} s, {speed:g}× real time, one sample every "
+             f"{1e3 * ts / speed:g} ms per loop; lateness of the PV read behind its due time")
+    if as_markdown:
+        print(f"{title}\n\n{markdown(results)}")
+    else:
+        table = Table(title=title, title_justify="left")
+        for name in HEADERS:
+            table.add_column(name, justify="right")
+        for row in table_rows(results):
+            table.add_row(*row)
+        stdout.print(table)
+    if any(r.succeeded < r.loops for r in results):
+        raise typer.Exit(EXIT_FAILED)
+
+
 def main() -> Any:
     """Console-script entry point."""
     return app()

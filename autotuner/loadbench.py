@@ -1,0 +1,172 @@
+"""Load benchmark of the daemon: N simulated loops tuned at once over Modbus TCP on localhost.
+
+The plants are N :class:`~drivers.simplc.SimulatedPlc`, each behind its own
+Modbus TCP server (:func:`drivers.modbus_server.serve_modbus`, an ephemeral
+port), all in a child process — the field devices, kept off the daemon's
+event loop and its CPU account. The daemon side is a
+:class:`~autotuner.daemon.LoopManager` with N loops whose links are
+``modbus://127.0.0.1:PORT/1``; the benchmark starts all N tunings at once and
+waits for them to end.
+
+Measured from outside the session: each loop's link is wrapped so every
+``read_pv`` is time-stamped (``time.monotonic()``). A session samples on a
+deadline schedule (:func:`autotuner.session.deadlines`: sample k is due at
+``start + k·ts/speed``, one PV read per sample, the first one due at once), so
+the k-th read of a session is due at its first read + k·ts/speed. Lateness is
+when the read *completed* behind that due time (the Modbus round trip
+included) — what the experiment sees as jitter. CPU is the daemon process's
+CPU time (user + system) over the wall time, in percent of one core; the
+plant process's is reported beside it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import multiprocessing
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from drivers.simplc import SimulatedPlc, run
+
+from .config import DaemonConfig, TuneRequest
+from .daemon import LoopManager
+from .expr import parse_process
+from .history import History
+from .remote import PLANT_TICKS_PER_SAMPLE
+
+# A fast plant: one tuning is about a minute of plant time (ts 0.1 s: about 60 samples per period).
+DEFAULT_PLANT = "exp(-0.5*s)/(s+1)"
+DEFAULT_TS = 0.1
+DEFAULT_SPEED = 1.0
+
+
+@dataclass(frozen=True)
+class LoadResult:
+    """One run: N loops, how many tunings succeeded, wall time, sampling lateness (ms) and CPU (% of a core)."""
+
+    loops: int
+    succeeded: int
+    wall: float
+    samples: int
+    late_p50: float
+    late_p99: float
+    late_max: float
+    cpu_daemon: float
+    cpu_plants: float
+    failures: dict[str, str]
+
+
+class _Timed:
+    """A link whose ``read_pv`` calls are time-stamped (start and completion); everything else forwarded."""
+
+    def __init__(self, link: Any, starts: list[float], done: list[float]) -> None:
+        self._link = link
+        self._starts = starts
+        self._done = done
+
+    async def read_pv(self) -> float:
+        self._starts.append(time.monotonic())
+        pv = await self._link.read_pv()
+        self._done.append(time.monotonic())
+        return pv
+
+    @property
+    def pv_age(self) -> float | None:
+        return self._link.pv_age
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._link, name)
+
+
+def lateness(starts: list[float], done: list[float], period: float) -> np.ndarray:
+    """Seconds each read completed after its due time: read k is due when the first read began + k·period."""
+    if not done:
+        return np.zeros(0)
+    t = np.asarray(done)
+    return t - (starts[0] + period * np.arange(len(t)))
+
+
+def _plants_main(n: int, plant: str, ts: float, speed: float, conn: Any) -> None:
+    """Child process: N simulated PLCs behind N Modbus servers; sends the ports, runs until told, sends CPU."""
+    from drivers.modbus_server import serve_modbus
+
+    async def main() -> None:
+        halt = asyncio.Event()
+        plcs = [SimulatedPlc(parse_process(plant), ts=ts / PLANT_TICKS_PER_SAMPLE) for _ in range(n)]
+        tasks = [asyncio.create_task(run(plc, speed, halt)) for plc in plcs]
+        servers = [await serve_modbus(plc, "127.0.0.1", 0) for plc in plcs]
+        conn.send([s.port for s in servers])
+        cpu0, wall0 = time.process_time(), time.monotonic()
+        await asyncio.get_running_loop().run_in_executor(None, conn.recv)  # "stop"
+        cpu = 100.0 * (time.process_time() - cpu0) / (time.monotonic() - wall0)
+        for server in servers:
+            await server.close()
+        halt.set()
+        await asyncio.gather(*tasks)
+        conn.send(cpu)
+
+    asyncio.run(main())
+
+
+async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS, plant: str = DEFAULT_PLANT,
+                   amp: float = 5.0, time_limit: float = 600.0) -> LoadResult:
+    """Tune ``n`` simulated loops at once over Modbus TCP; the result with the sampling lateness and CPU."""
+    parse_process(plant)  # a bad expression fails here, not in the child
+    ours, theirs = multiprocessing.Pipe()
+    child = multiprocessing.get_context("spawn").Process(target=_plants_main, args=(n, plant, ts, speed, theirs),
+                                                         daemon=True)
+    child.start()
+    loop = asyncio.get_running_loop()
+    try:
+        ports = await loop.run_in_executor(None, ours.recv)
+        config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
+            {"id": f"L{i:03d}", "link": f"modbus://127.0.0.1:{port}/1", "ts": ts, "speed": speed, "apply": True,
+             "tuning": {"amp": amp, "time_limit": time_limit}} for i, port in enumerate(ports)]})
+        history = History(config.history)
+        manager = LoopManager(config, history)
+        reads: dict[str, tuple[list[float], list[float]]] = {loop_id: ([], []) for loop_id in manager.loops}
+        for loop_id, item in manager.loops.items():
+            item.connect = (lambda connect, times: lambda: _Timed(connect(), *times))(item.connect, reads[loop_id])
+        await manager.start()
+        try:
+            cpu0, wall0 = time.process_time(), time.monotonic()
+            for loop_id in manager.loops:
+                manager.tune(loop_id, TuneRequest(), "loadbench")
+            await asyncio.gather(*(manager.wait(loop_id) for loop_id in manager.loops))
+            wall = time.monotonic() - wall0
+            cpu = 100.0 * (time.process_time() - cpu0) / wall
+        finally:
+            await manager.stop()
+            history.close()
+        ours.send("stop")
+        cpu_plants = await loop.run_in_executor(None, ours.recv)
+    finally:
+        child.join(10)
+        if child.is_alive():
+            child.kill()
+    results = {loop_id: item.result or {} for loop_id, item in manager.loops.items()}
+    failures = {loop_id: r.get("message", "no result") for loop_id, r in results.items() if r.get("ite") != 0}
+    late = 1e3 * np.concatenate([lateness(starts, done, ts / speed) for starts, done in reads.values()])
+    p50, p99 = np.percentile(late, [50, 99]) if late.size else (float("nan"),) * 2
+    return LoadResult(n, n - len(failures), wall, int(late.size), float(p50), float(p99),
+                      float(late.max()) if late.size else float("nan"), cpu, cpu_plants, failures)
+
+
+def table_rows(results: list[LoadResult]) -> list[list[str]]:
+    """Rows of the markdown table of the docs (and of the command's table)."""
+    return [[str(r.loops), f"{r.succeeded}/{r.loops}", f"{r.wall:.1f}", str(r.samples), f"{r.late_p50:.2f}",
+             f"{r.late_p99:.2f}", f"{r.late_max:.1f}", f"{r.cpu_daemon:.0f}", f"{r.cpu_plants:.0f}"]
+            for r in results]
+
+
+HEADERS = ["loops", "ok", "wall s", "samples", "p50 ms", "p99 ms", "max ms", "CPU daemon %", "CPU plants %"]
+
+
+def markdown(results: list[LoadResult]) -> str:
+    """The results as a markdown table."""
+    lines = ["| " + " | ".join(HEADERS) + " |", "|" + "---:|" * len(HEADERS)]
+    lines += ["| " + " | ".join(row) + " |" for row in table_rows(results)]
+    return "\n".join(lines)

@@ -1,0 +1,24 @@
+"""Smoke test of ``autotuner loadbench`` (the benchmark itself is not a test: docs/daemon.md, "Load benchmark")."""
+
+from __future__ import annotations
+
+import pytest
+from typer.testing import CliRunner
+
+from autotuner.cli import app
+from autotuner.loadbench import lateness
+
+
+def test_lateness_is_measured_against_the_deadline_schedule():
+    starts = [10.0, 10.1, 10.2]
+    done = [10.001, 10.103, 10.250]
+    assert lateness(starts, done, 0.1) * 1e3 == pytest.approx([1.0, 3.0, 50.0])
+
+
+def test_loadbench_two_loops_over_modbus():
+    result = CliRunner().invoke(app, ["loadbench", "--loops", "2", "--speed", "20", "--markdown"])
+    assert result.exit_code == 0, result.output
+    row = result.output.strip().splitlines()[-1].strip("| ").split(" | ")
+    assert row[:2] == ["2", "2/2"]
+    assert int(row[3]) > 100  # samples
+    assert float(row[5]) < 1000.0  # p99 lateness, ms: finite and sane
