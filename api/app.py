@@ -31,7 +31,8 @@ from .models import Accepted, Health, LoopStatus, Session, SessionSummary
 PREFIX = "/api/v1"
 _ERRORS: dict[int | str, dict[str, Any]] = {
     status: {"model": errors.ErrorBody, "description": text}
-    for status, text in ((401, "no valid token"), (403, "role too low"), (404, "unknown loop or session"),
+    for status, text in ((400, "a body that is not JSON"), (401, "no valid token"), (403, "role too low"),
+                         (404, "unknown loop or session"),
                          (422, "invalid request; the message names the field"))
 }
 LoopId = Annotated[str, Path(description="loop id from the config")]

@@ -230,7 +230,11 @@ class RelayExperiment:
         self._relay_start = 0
         self._peak_error = 0.0
         if self._mv_high <= mv0 or self._mv_low >= mv0:
-            self._finish(Code.MV_RANGE, f"MV {mv0} is at a limit of {config.mv_limits}; the relay cannot move it")
+            self._finish(
+                Code.MV_RANGE,
+                f"the relay cannot move the MV from {mv0:g}: the levels {self._mv_low:g} and {self._mv_high:g} "
+                f"(amp {config.amp:g} within the limits {config.mv_limits}) do not straddle it",
+            )
 
     # -- public interface -------------------------------------------------
 

@@ -140,7 +140,9 @@ async def tune_link(
     finally:
         if not restore_error:
             restore_error = await _restore(link, saved)
-    result = _result(experiment, controller, ms, _trace(times, pvs, mvs), restore_error)
+    # The design takes ~0.1 s of CPU: in a thread, so the other loops of a
+    # daemon keep sampling on time meanwhile.
+    result = await asyncio.to_thread(_result, experiment, controller, ms, _trace(times, pvs, mvs), restore_error)
     if result.ok and apply:
         try:
             await link.write_gains(result.design.gains)
