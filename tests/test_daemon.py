@@ -85,7 +85,7 @@ def test_tune_busy_ite_counts_down_then_success_with_gains_applied():
 def test_tbrk_aborts_restores_and_keeps_gains():
     async def body(m: LoopManager):
         plc = m.loops["TIC1"].plc
-        before = (plc.gains, plc.hv)
+        before = plc.gains
         with pytest.raises(Refused) as idle:
             m.abort("TIC1")
         m.tune("TIC1", TuneRequest(apply=True), user="bob")
@@ -95,10 +95,11 @@ def test_tbrk_aborts_restores_and_keeps_gains():
         await m.wait("TIC1")
         return idle.value, plc, before, m.loops["TIC1"].as_json()
 
-    idle, plc, (gains, hv), status = asyncio.run(running(manager(loop("TIC1")), body))
+    idle, plc, gains, status = asyncio.run(running(manager(loop("TIC1")), body))
     assert idle.code == "idle"
     assert status["tbsy"] is False and status["te"] is True and status["ite"] == int(Code.ABORTED)
-    assert plc.mode is Mode.AUTO and plc.gains == gains and plc.hv == pytest.approx(hv, abs=1e-9)
+    # (The MV itself moves on: the plant runs on in AUTO after the restore.)
+    assert plc.mode is Mode.AUTO and plc.gains == gains
 
 
 def test_tune_refused_while_busy_and_within_an_exclusion_group():

@@ -16,7 +16,8 @@ def test_lateness_is_measured_against_the_deadline_schedule():
 
 
 def test_loadbench_two_loops_over_modbus():
-    result = CliRunner().invoke(app, ["loadbench", "--loops", "2", "--speed", "20", "--markdown"])
+    # 20 ms of wall time per sample: converges on a busy CI machine too.
+    result = CliRunner().invoke(app, ["loadbench", "--loops", "2", "--speed", "5", "--markdown"])
     assert result.exit_code == 0, result.output
     row = result.output.strip().splitlines()[-1].strip("| ").split(" | ")
     assert row[:2] == ["2", "2/2"]
