@@ -100,7 +100,9 @@ class LoopConfig(Strict):
     wall second — 1 for a real plant; more only for a simulated one (``sim``,
     or ``autotuner sim --speed`` behind a link). apply: write the tuned gains
     when a request does not say. group: loops of one exclusion group never
-    tune at the same time.
+    tune at the same time. handshake: poll the device's TUNE/TBRK bits every
+    ``handshake_poll`` wall seconds, so an HMI wired to the PLC starts and
+    aborts tunings like the PIDAT block (docs/daemon.md, "PLC handshake").
     """
 
     id: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
@@ -115,6 +117,8 @@ class LoopConfig(Strict):
     limits: Limits = Limits()
     apply: bool = False
     group: str | None = None
+    handshake: bool = False
+    handshake_poll: Annotated[float, Field(ge=0.02, le=60.0)] = 0.5
 
     @model_validator(mode="after")
     def _one_source(self) -> LoopConfig:

@@ -17,12 +17,25 @@ its loop is put back from the saved state.
 
 Live events go to subscribers (the API's Server-Sent Events) through bounded
 queues; a slow subscriber loses events, it never delays the sampling.
+
+A loop configured with ``handshake: true`` also obeys the device's own bits,
+like the function block wired to an HMI: a task of its own polls
+``read_flags`` on a link of its own every ``handshake_poll`` wall seconds
+(idle or busy; the session's sampling is not involved), a rising edge of TUNE
+is a TUNE from user ``plc`` with the loop's defaults, a rising edge of TBRK
+aborts the running session. A TUNE the state does not allow is not run: while
+the loop's own session runs it is ignored (TBSY and ``ite`` are that
+session's); while another loop of the exclusion group tunes, TE is set and
+``ite`` shows :data:`GROUP_BUSY_CODE`, the loop untouched. Link errors of the
+poll are logged and retried with a growing pause; they never reach another
+loop or the API.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import math
 import time
 import uuid
@@ -49,6 +62,15 @@ from .tuning import Trace, TuneResult
 QUEUE_EVENTS = 1000
 # How long :meth:`LoopManager.stop` waits for aborted sessions to restore their loops, wall seconds.
 STOP_WAIT = 40.0
+# Who the history records for sessions started by the device's TUNE bit.
+PLC_USER = "plc"
+# ``ite`` (with TE set) when the device's TUNE is refused because another loop of the exclusion group
+# tunes; outside the experiment's codes (autotuner.relay.Code, 0–8).
+GROUP_BUSY_CODE = 10
+# Longest pause between polls of a handshake whose link fails, wall seconds.
+HANDSHAKE_RETRY_MAX = 5.0
+
+log = logging.getLogger("autotuner.daemon")
 
 
 class Refused(Exception):
@@ -129,6 +151,8 @@ class Loop:
     connect: Callable[[], Link]
     plc: SimulatedPlc | None = None
     task: asyncio.Task[None] | None = None
+    poller: asyncio.Task[None] | None = None
+    handshake_error: str | None = None
     stop: asyncio.Event = field(default_factory=asyncio.Event)
     session: str | None = None
     status: Status | None = None
@@ -178,6 +202,7 @@ class LoopManager:
         self.history = history
         self.loops: dict[str, Loop] = {c.id: self._loop(c) for c in config.loops}
         self._halt = asyncio.Event()
+        self._polling = False
         self._plants: list[asyncio.Task[None]] = []
 
     @staticmethod
@@ -195,9 +220,22 @@ class LoopManager:
                 self._plants.append(asyncio.create_task(run(loop.plc, loop.config.speed, self._halt)))
         for record in self.history.running():
             await self._recover(record)
+        self._polling = True
+        for loop in self.loops.values():
+            if loop.config.handshake:
+                loop.poller = asyncio.create_task(self._handshake(loop))
 
     async def stop(self) -> None:
-        """Abort every running session (TBRK), wait until their loops are restored, stop the plants."""
+        """Stop the handshake polls, abort every running session (TBRK), wait until their loops are restored, stop
+        the plants."""
+        self._polling = False  # also ends a poll whose link call swallowed the cancellation (3.11's wait_for)
+        pollers = [loop.poller for loop in self.loops.values() if loop.poller is not None]
+        for poller in pollers:
+            poller.cancel()
+        if pollers:
+            await asyncio.wait(pollers, timeout=STOP_WAIT)
+        for loop in self.loops.values():
+            loop.poller = None
         tasks = [loop.task for loop in self.loops.values() if loop.task is not None]
         for loop in self.loops.values():
             loop.stop.set()
@@ -308,6 +346,77 @@ class LoopManager:
             self.history.finish(sid, loop.result, gains_after, downsample(result.trace), state)
             loop.task = None
             self._publish(loop, "state", loop.as_json())
+
+    async def _handshake(self, loop: Loop) -> None:
+        """Poll the device's TUNE/TBRK bits of ``loop`` and act on their rising edges, until cancelled.
+
+        The first reading after (re)connecting is only a reference: a bit
+        already true then is no edge, so a TUNE left set across a restart or a
+        link outage never starts an experiment by itself.
+        """
+        period = loop.config.handshake_poll
+        pause = period
+        link: Link | None = None
+        last: TuneFlags | None = None
+        try:
+            while self._polling:
+                try:
+                    if link is None:
+                        link = loop.connect()
+                        await link.open()
+                    flags = await link.read_flags()
+                    if last is not None:
+                        await self._edges(loop, link, last, flags)
+                    last = flags
+                except (LinkError, OSError) as exc:
+                    self._handshake_failed(loop, str(exc) or type(exc).__name__)
+                except Exception as exc:  # a bug must not end the handshake (nor reach the event loop)
+                    log.exception("loop %s: handshake poll failed", loop.config.id)
+                    self._handshake_failed(loop, f"{type(exc).__name__}: {exc}")
+                else:
+                    if loop.handshake_error is not None:
+                        log.info("loop %s: handshake link back", loop.config.id)
+                    loop.handshake_error = None
+                    pause = period
+                    await asyncio.sleep(period)
+                    continue
+                last = None
+                if link is not None:
+                    await link.close()
+                    link = None
+                await asyncio.sleep(pause)
+                pause = min(2.0 * pause, max(period, HANDSHAKE_RETRY_MAX))
+        finally:
+            if link is not None:
+                await link.close()
+
+    @staticmethod
+    def _handshake_failed(loop: Loop, error: str) -> None:
+        if loop.handshake_error is None:
+            log.warning("loop %s: handshake link failed (%s); retrying", loop.config.id, error)
+        loop.handshake_error = error
+
+    async def _edges(self, loop: Loop, link: Link, last: TuneFlags, flags: TuneFlags) -> None:
+        """TBRK first (a break wins), then TUNE; a TUNE edge while TBRK is held is ignored."""
+        loop_id = loop.config.id
+        if not self._polling:
+            return  # the daemon is stopping: no new session
+        if flags.tbrk and not last.tbrk and loop.busy:
+            log.info("loop %s: TBRK from the device aborts session %s", loop_id, loop.session)
+            self.abort(loop_id)
+        if not flags.tune or last.tune:
+            return
+        if flags.tbrk:
+            log.info("loop %s: TUNE from the device ignored while TBRK is set", loop_id)
+            return
+        try:
+            sid = self.tune(loop_id, TuneRequest(), user=PLC_USER)
+        except Refused as refused:
+            log.info("loop %s: TUNE from the device refused: %s", loop_id, refused.message)
+            if refused.code == "group_busy":
+                await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(GROUP_BUSY_CODE)))
+            return
+        log.info("loop %s: TUNE from the device started session %s", loop_id, sid)
 
     async def _recover(self, record: dict[str, Any]) -> None:
         """Close a session a crash left running; put its loop back from the saved state if it was touched."""
