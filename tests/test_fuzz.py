@@ -53,7 +53,7 @@ LOOP_IDS = ("TIC-1", "LIC-2", "FIC-3")
 # Random examples per operation after the coverage phase; the whole file stays well under a minute.
 EXAMPLES = 25
 # A Server-Sent Events stream never ends; the transport keeps what arrived within this many seconds.
-STREAM_TIMEOUT = 0.1
+STREAM_TIMEOUT = 0.5
 WRITES = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 # A body that is not JSON at all is refused by FastAPI with 400 {"code": "bad_request"} before
 # validation, and before the auth dependency runs.

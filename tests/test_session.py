@@ -18,7 +18,7 @@ from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc, run
 
 PLANT = "exp(-s)/(2*s+1)"
-SPEED = 10.0
+SPEED = 5.0
 # 40 samples per period: 11 ms of wall time per sample at SPEED, which a
 # busy test machine keeps without much jitter.
 SAMPLES_PER_PERIOD = 40
