@@ -440,7 +440,9 @@ class RelayExperiment:
         # Within the resolution of the mean MV shift, a vanishing |F|/K0 is an
         # integrator; a negative one (unstable process, or a load change during
         # the experiment) is reported as it is and refused by the design.
-        static = point.gain / inverse_gain if abs(inverse_gain) * _INTEGRATING_RATIO > 1.0 else math.inf
+        # A negative |F|/K0 within the tolerance of its estimate is an integrator seen through noise.
+        integrating = inverse_gain * _INTEGRATING_RATIO <= 1.0 and inverse_gain > -self.config.static_tol
+        static = math.inf if integrating else point.gain / inverse_gain
         duration = self._t[-1] - self._t[0]
         self.result = Identification(
             point=point,
