@@ -11,12 +11,14 @@ restores their loops. Reads need a viewer token, TUNE/TBRK an operator;
 from __future__ import annotations
 
 import os
+import pathlib
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, FastAPI, Path, Query, Request
 from fastapi.responses import StreamingResponse
+from fastapi.staticfiles import StaticFiles
 
 from autotuner import __version__
 from autotuner.config import DaemonConfig, TuneRequest
@@ -29,6 +31,8 @@ from .events import stream
 from .models import Accepted, Health, LoopStatus, Session, SessionSummary
 
 PREFIX = "/api/v1"
+# The operator page (issue 7): static files using only the public API below.
+STATIC = pathlib.Path(__file__).parent / "static"
 _ERRORS: dict[int | str, dict[str, Any]] = {
     status: {"model": errors.ErrorBody, "description": text}
     for status, text in ((400, "a body that is not JSON"), (401, "no valid token"), (403, "role too low"),
@@ -130,4 +134,5 @@ def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
     app.state.tokens = Tokens(config.tokens, os.environ.get("AUTOTUNER_TOKEN") if env_token is None else env_token)
     errors.install(app)
     app.include_router(router)
+    app.mount("/", StaticFiles(directory=STATIC, html=True), name="page")
     return app
