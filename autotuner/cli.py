@@ -24,6 +24,7 @@ from typing import Annotated, Any, NoReturn
 
 import numpy as np
 import typer
+from pydantic import ValidationError
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
@@ -35,6 +36,8 @@ from drivers.simplc import run as run_plc
 from . import __version__
 from .bench import default_batch, format_table, load_batch, run_batch
 from .compare import METHOD_NOTE, Row, compare
+from .config import ConfigError, LoopConfig, TuneRequest, load_config
+from .configured import find_loop, tune_configured
 from .expr import parse_process
 from .identify import ProcessData, from_fopdt, from_plant, from_point
 from .gains import FormError, Gains, to_parallel, to_series
@@ -243,6 +246,7 @@ def _print_json(result: TuneResult) -> None:
 
 @app.command("tune")
 def tune_command(
+    ctx: typer.Context,
     plant: Annotated[
         str,
         typer.Option(help="Process transfer function in s with optional dead time. "
@@ -274,13 +278,28 @@ def tune_command(
                                                 "sample, at most 20.")] = None,
     time_limit: Annotated[float | None, typer.Option(help="Longest experiment, s. Default: 200 expected periods "
                                                      "(simulation), 7200 s (--link).")] = None,
+    config_file: Annotated[Path | None, typer.Option("--config", help="Daemon config (YAML, docs/daemon.md): tune "
+                                                     "its loop --loop with the loop's link, sample time, limits "
+                                                     "and defaults; options given here override the defaults.")]
+    = None,
+    loop_id: Annotated[str | None, typer.Option("--loop", help="Loop id in --config.")] = None,
 ) -> None:
     """Run a relay experiment and print the gains: on a simulated plant (default, faster than real time),
-    through a field link to a real loop (--link), or on a simulated plant behind a real protocol stack (--via).
+    through a field link to a real loop (--link, or a loop of a daemon config with --config/--loop), or on a
+    simulated plant behind a real protocol stack (--via).
 
     Exit codes: 0 success, 1 the experiment or design failed, 2 bad input.
     """
-    if link is not None:
+    if (config_file is None) != (loop_id is None):
+        _bad_input("--config and --loop go together")
+    if config_file is not None:
+        loop = _configured_loop(ctx, config_file, loop_id)
+        request = _explicit_request(ctx, controller.value, amp, hysteresis, phase, ms, apply)
+        sample_time = loop.ts
+
+        def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
+            return tune_configured(loop, request, on_status)
+    elif link is not None:
         if ts is None:
             _bad_input("--link needs --ts, the loop's sample time in seconds")
         config = _config(amp, hysteresis, phase, time_limit or LINK_TIME_LIMIT)
@@ -312,8 +331,42 @@ def tune_command(
     if as_json:
         _print_json(result)
     else:
-        stdout.print(_result_table(result, sample_time, None if link is not None else sim.process))
+        simulated = link is None and config_file is None
+        stdout.print(_result_table(result, sample_time, sim.process if simulated else None))
     raise typer.Exit(EXIT_OK if result.ok else EXIT_FAILED)
+
+
+# Options that choose another target than the config's loop.
+_TARGET_OPTIONS = ("plant", "link", "via", "ts", "map_file", "dbc", "speed", "noise", "seed", "time_limit")
+
+
+def _given(ctx: typer.Context, name: str) -> bool:
+    # By name: typer vendors its own click, whose ParameterSource is not click's.
+    source = ctx.get_parameter_source(name)
+    return source is not None and source.name != "DEFAULT"
+
+
+def _configured_loop(ctx: typer.Context, path: Path, loop_id: str) -> LoopConfig:
+    """The loop ``loop_id`` of the daemon config ``path``; bad input (exit 2) for a bad file, id or option mix."""
+    clash = [name for name in _TARGET_OPTIONS if _given(ctx, name)]
+    if clash:
+        options = ", ".join("--" + name.replace("_file", "").replace("_", "-") for name in clash)
+        _bad_input(f"--config/--loop take the loop's own settings; drop {options}")
+    try:
+        return find_loop(load_config(path), loop_id)
+    except (ConfigError, ValueError) as exc:
+        _bad_input(str(exc))
+
+
+def _explicit_request(ctx: typer.Context, controller: str, amp: float, hysteresis: float | None, phase: float,
+                      ms: float, apply: bool) -> TuneRequest:
+    """The tuning options given on the command line, as a TUNE request over the loop's defaults."""
+    values = {"controller": controller, "amp": amp, "hysteresis": hysteresis, "phase": phase, "ms": ms,
+              "apply": apply}
+    try:
+        return TuneRequest(**{name: value for name, value in values.items() if _given(ctx, name)})
+    except ValidationError as exc:
+        _bad_input("; ".join(f"--{error['loc'][0]}: {error['msg']}" for error in exc.errors()))
 
 
 # -- sim --------------------------------------------------------------------
@@ -435,7 +488,6 @@ def serve_command(
     from api.app import PREFIX, create_app
     from api.auth import new_token
 
-    from .config import ConfigError, load_config
     from .demo import demo_config
 
     if (ssl_certfile is None) != (ssl_keyfile is None):

@@ -79,14 +79,28 @@ async def tune_url(
     on_status: Callable[[Status], None] | None = None,
 ) -> TuneResult:
     """Tune the loop at ``url`` in real time, sampling every ``ts`` seconds."""
-    link = open_link(url, map_path, dbc_path)
+    return await tune_opened(open_link(url, map_path, dbc_path), field_config(config), ts, controller, ms, apply,
+                             on_status=on_status)
+
+
+async def tune_opened(
+    link: Link,
+    config: RelayConfig,
+    ts: float,
+    controller: str = "PI",
+    ms: float = 1.4,
+    apply: bool = False,
+    speed: float = 1.0,
+    on_status: Callable[[Status], None] | None = None,
+) -> TuneResult:
+    """Open ``link``, tune its loop (:func:`~autotuner.session.tune_link`), close it; code 7 if it cannot open."""
     try:
         await link.open()
     except LinkError as exc:
         return TuneResult(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", controller, None, None,
                           Trace(np.zeros(0), np.zeros(0), np.zeros(0)))
     try:
-        return await tune_link(link, field_config(config), ts, controller, ms, apply, on_status=on_status)
+        return await tune_link(link, config, ts, controller, ms, apply, speed, on_status=on_status)
     finally:
         await link.close()
 

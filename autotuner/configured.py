@@ -1,0 +1,69 @@
+"""One loop of a daemon config, tuned without the daemon: ``autotuner tune --config FILE --loop ID``.
+
+The loop is reached exactly as ``autotuner serve`` reaches it (its link and
+map, or its simulated plant run at the configured speed), with its tuning
+defaults and safety limits; options given on the command line override the
+defaults the way a REST TUNE body does. Nothing guards against the daemon
+tuning the same loop at the same time: stop it or leave that loop out.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+
+from drivers.link import Link
+from drivers.simlink import SimLink
+from drivers.simplc import SimulatedPlc, run
+
+from .config import DaemonConfig, LoopConfig, TuneRequest
+from .daemon import relay_config, settings_of
+from .expr import parse_process
+from .relay import Status
+from .remote import PLANT_TICKS_PER_SAMPLE, open_link, tune_opened
+from .tuning import TuneResult
+
+
+def find_loop(config: DaemonConfig, loop_id: str) -> LoopConfig:
+    """The loop ``loop_id`` of ``config``; ValueError listing the configured ids if there is none."""
+    for loop in config.loops:
+        if loop.id == loop_id:
+            return loop
+    known = ", ".join(loop.id for loop in config.loops) or "none"
+    raise ValueError(f"no loop {loop_id!r} in the config (loops: {known})")
+
+
+def simulated_plc(loop: LoopConfig) -> SimulatedPlc | None:
+    """The simulated PLC of a ``sim:`` loop (its plant ticks ``PLANT_TICKS_PER_SAMPLE`` times per sample), else None."""
+    if loop.sim is None:
+        return None
+    return SimulatedPlc(parse_process(loop.sim.plant), ts=loop.ts / PLANT_TICKS_PER_SAMPLE,
+                        noise_std=loop.sim.noise, seed=loop.sim.seed)
+
+
+def connector(loop: LoopConfig, plc: SimulatedPlc | None) -> Callable[[], Link]:
+    """How to reach ``loop``: a new link to ``plc`` if it is simulated, else to its configured URL."""
+    if plc is not None:
+        return lambda: SimLink(plc)
+    return lambda: open_link(str(loop.link), _path(loop.map), _path(loop.dbc))
+
+
+async def tune_configured(
+    loop: LoopConfig, request: TuneRequest, on_status: Callable[[Status], None] | None = None
+) -> TuneResult:
+    """Tune ``loop`` once with ``request`` over the loop's defaults (a simulated loop's plant runs meanwhile)."""
+    settings = settings_of(loop, request)
+    plc = simulated_plc(loop)
+    halt = asyncio.Event()
+    plant = None if plc is None else asyncio.create_task(run(plc, loop.speed, halt))
+    try:
+        return await tune_opened(connector(loop, plc)(), relay_config(loop, settings), loop.ts, settings.controller,
+                                 settings.ms, settings.apply, loop.speed, on_status)
+    finally:
+        halt.set()
+        if plant is not None:
+            await plant
+
+
+def _path(path: object) -> str | None:
+    return None if path is None else str(path)
