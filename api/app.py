@@ -3,13 +3,14 @@
 ``create_app(config)`` builds it; its lifespan opens the history, starts the
 :class:`~autotuner.daemon.LoopManager` (simulated plants, crash recovery) and
 on shutdown (SIGTERM/SIGINT through uvicorn) aborts running experiments and
-restores their loops. Reads need a viewer token, TUNE/TBRK an operator;
+restores their loops. Reads need a viewer token, TUNE/TBRK/apply an operator;
 ``GET /api/v1/health`` needs none. The OpenAPI description is at
 ``/api/v1/openapi.json`` (interactive: ``/api/v1/docs``).
 """
 
 from __future__ import annotations
 
+import asyncio
 import os
 import pathlib
 from collections.abc import AsyncIterator
@@ -21,14 +22,15 @@ from fastapi.responses import StreamingResponse
 from fastapi.staticfiles import StaticFiles
 
 from autotuner import __version__
-from autotuner.config import DaemonConfig, TuneRequest
-from autotuner.daemon import LoopManager
+from autotuner.analysis import analyse
+from autotuner.config import DaemonConfig, Tuning, TuneRequest
+from autotuner.daemon import LoopManager, Refused
 from autotuner.history import History
 
 from . import errors
 from .auth import Principal, Tokens, require
 from .events import stream
-from .models import Accepted, Health, LoopStatus, Session, SessionSummary
+from .models import Accepted, Analysis, Applied, ApplyRequest, Health, LoopStatus, Session, SessionSummary
 
 PREFIX = "/api/v1"
 # The operator page (issue 7): static files using only the public API below.
@@ -40,6 +42,8 @@ _ERRORS: dict[int | str, dict[str, Any]] = {
                          (422, "invalid request; the message names the field"))
 }
 LoopId = Annotated[str, Path(description="loop id from the config")]
+# Analyses kept per app (a finished session's analysis never changes).
+ANALYSES_KEPT = 64
 
 router = APIRouter(prefix=PREFIX, responses=_ERRORS)
 Viewer = Annotated[Principal, Depends(require("viewer"))]
@@ -86,10 +90,31 @@ async def abort(loop_id: LoopId, manager: Manager, _: Operator) -> dict[str, str
     return {"loop": loop_id, "session": manager.abort(loop_id)}
 
 
+@router.post("/loops/{loop_id}/apply", response_model=Applied, tags=["loops"], responses={
+    409: {"model": errors.ErrorBody,
+          "description": "busy: the loop tunes (or is being written); nothing_to_apply: the session failed, has no "
+                         "gains, or the loop has no finished session"},
+    502: {"model": errors.ErrorBody, "description": "link: the gains could not be written to the controller"}})
+async def apply(loop_id: LoopId, manager: Manager, who: Operator,
+                body: Annotated[ApplyRequest, Body()] = ApplyRequest()) -> dict[str, Any]:
+    """Write a session's designed gains to the controller (default: the loop's newest session) and read them back.
+
+    Recorded in the history (``applied_at``, ``applied_by``, ``gains_after``).
+    Writing the gains of an already applied session again is allowed.
+    """
+    try:
+        return await manager.apply(loop_id, body.session, who.name)
+    except Refused as refused:
+        if refused.code == "link":
+            raise errors.ApiError(502, "link", refused.message) from None
+        raise
+
+
 @router.get("/loops/{loop_id}/events", tags=["loops"],
             responses={200: {"content": {"text/event-stream": {}}, "description": "state and sample events"}})
 async def events(loop_id: LoopId, manager: Manager, _: Viewer) -> StreamingResponse:
-    """Server-Sent Events: ``state`` (the loop's status) and ``sample`` (t, pv, mv, relay, filter_phase_deg, ite)."""
+    """Server-Sent Events: ``state`` (the loop's status) and ``sample`` (while tuning: t, time, pv, sp, mv, relay,
+    filter_phase_deg, stage, progress, ite, periods; while idle, from the monitor: time, pv, sp, mv, mode)."""
     manager.get(loop_id)  # 404 before the stream starts
     return StreamingResponse(stream(manager, loop_id), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
@@ -113,6 +138,31 @@ async def session(sid: str, manager: Manager, _: Viewer) -> dict[str, Any]:
     return record
 
 
+@router.get("/sessions/{sid}/analysis", response_model=Analysis, tags=["history"], responses={
+    409: {"model": errors.ErrorBody, "description": "no_result: the session has no identified point or no design"}})
+async def analysis(sid: str, request: Request, manager: Manager, _: Viewer) -> dict[str, Any]:
+    """What the session's gains (new) and the controller's gains before it (old) do on the identified model:
+    Ms, Nyquist curve, unit set-point and load step responses (autotuner/analysis.py)."""
+    cache: dict[str, dict[str, Any]] = request.app.state.analyses
+    if sid in cache:
+        return cache[sid]
+    record = manager.history.get(sid)
+    if record is None:
+        raise errors.ApiError(404, "not_found", f"no session {sid!r}")
+    result = record["result"]
+    if not result or not result.get("point") or not result.get("gains"):
+        raise errors.ApiError(409, "no_result", f"session {sid} has no identified point and design")
+    ms = record["request"].get("ms", Tuning().ms)
+    try:  # about 0.1 s of CPU: in a thread, so the live loops keep sampling on time
+        body = await asyncio.to_thread(analyse, result, ms, record["gains_before"])
+    except ValueError as exc:
+        raise errors.ApiError(409, "no_result", f"session {sid}: no model from its result ({exc})") from None
+    if len(cache) >= ANALYSES_KEPT:
+        cache.pop(next(iter(cache)))
+    cache[sid] = body = {"session": sid, "loop": record["loop"], **body}
+    return body
+
+
 def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
     """The API over the loops of ``config``; ``env_token`` (default: $AUTOTUNER_TOKEN) is an extra operator token."""
 
@@ -131,6 +181,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
     app = FastAPI(title="autotuner", version=__version__, lifespan=lifespan,
                   description="Relay-feedback PID autotuner daemon: TUNE / TBRK / TBSY / TE over HTTP (docs/daemon.md).",
                   openapi_url=f"{PREFIX}/openapi.json", docs_url=f"{PREFIX}/docs", redoc_url=None)
+    app.state.analyses = {}
     app.state.tokens = Tokens(config.tokens, os.environ.get("AUTOTUNER_TOKEN") if env_token is None else env_token)
     errors.install(app)
     app.include_router(router)

@@ -2,14 +2,16 @@
 
 Units: ``ite`` plant seconds left while busy, the code when done; ``point.omega``
 rad/s, ``phase_deg`` degrees (negative for lag); gains in the standard (ISA)
-form, times in seconds; ``t`` of a trace in plant seconds.
+form, times in seconds; ``t`` of a trace in plant seconds; times of day
+(``last_tuned_at``, ``applied_at``, ...) UTC ISO 8601; ``time`` of an event
+unix seconds (wall clock).
 """
 
 from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict
 
 
 class Point(BaseModel):
@@ -32,7 +34,16 @@ class GainsOut(BaseModel):
 
 
 class LoopStatus(BaseModel):
-    """A loop: the PIDAT outputs (tbsy, te, ite), the stage and progress (0–1), and the last point and gains."""
+    """A loop: the PIDAT outputs (tbsy, te, ite), the stage and progress (0–1), the last point and gains, and
+    the live values.
+
+    mode, pv, sp, mv: the loop now (engineering units; null: not read yet or
+    link down) — from the monitor while idle, from the session while tuning
+    (SP: the saved one, mode MAN). current_gains: the controller's gains as
+    last read. last_tuned_at, last_outcome: the newest finished session.
+    pending_gains: idle, and that session succeeded with gains not applied.
+    monitor_error: why the monitor cannot read the loop, null when fine.
+    """
 
     id: str
     description: str
@@ -49,6 +60,15 @@ class LoopStatus(BaseModel):
     point: Point | None
     static_gain: float | None
     gains: GainsOut | None
+    mode: Literal["MAN", "AUTO"] | None
+    pv: float | None
+    sp: float | None
+    mv: float | None
+    current_gains: GainsOut | None
+    last_tuned_at: str | None
+    last_outcome: Literal["success", "failure"] | None
+    pending_gains: bool
+    monitor_error: str | None
 
 
 class Accepted(BaseModel):
@@ -63,7 +83,10 @@ class SessionSummary(BaseModel):
 
     state: running, finished, or interrupted (the daemon stopped during it);
     outcome: success or failure; code: the final ``ite``; request: the
-    settings in force; saved: the loop's state before the experiment.
+    settings in force; saved: the loop's state before the experiment;
+    applied_at, applied_by: when and by whom its gains were last written to
+    the controller (at its end with ``apply``, or ``POST /loops/{id}/apply``),
+    null if never; gains_after then the gains read back.
     """
 
     id: str
@@ -80,6 +103,8 @@ class SessionSummary(BaseModel):
     code: int | None
     message: str | None
     result: dict[str, Any] | None
+    applied_at: str | None
+    applied_by: str | None
 
 
 class TraceOut(BaseModel):
@@ -101,3 +126,86 @@ class Health(BaseModel):
 
     status: Literal["ok"]
     loops: int
+
+
+class ApplyRequest(BaseModel):
+    """Body of ``POST /loops/{id}/apply`` (optional): the session whose gains to write; absent: the newest."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    session: str | None = None
+
+
+class Applied(BaseModel):
+    """Gains of ``session`` written to ``loop``; ``gains``: as read back from the controller."""
+
+    loop: str
+    session: str
+    gains: GainsOut
+
+
+class AnalysisPoint(Point):
+    """The identified point with its real and imaginary parts (PV units per MV unit)."""
+
+    re: float
+    im: float
+
+
+class Model(BaseModel):
+    """The model the design fitted: FOPDT ``k·e^{−ls}/(ts + 1)`` (k PV/MV) or IPDT ``k·e^{−ls}/s`` (k PV/MV per
+    second, t = 0); t and l in seconds; text in the expression grammar."""
+
+    kind: Literal["FOPDT", "IPDT"]
+    k: float
+    t: float
+    l: float  # noqa: E741 (the dead time's usual name)
+    text: str
+
+
+class Circle(BaseModel):
+    """The Ms circle in the Nyquist plane: |1 + L| = 1/Ms around −1."""
+
+    center_re: float
+    radius: float
+
+
+class Nyquist(BaseModel):
+    """L(jω) = C(jω)·F(jω) on the model; omega rad/s, increasing."""
+
+    omega: list[float]
+    re: list[float]
+    im: list[float]
+
+
+class StepOut(BaseModel):
+    """A simulated step response: t plant seconds, PV, MV."""
+
+    t: list[float]
+    pv: list[float]
+    mv: list[float]
+
+
+class LoopResponse(BaseModel):
+    """Gains on the model: Ms (null if the closed loop is unstable), stability, Nyquist curve, and the unit
+    set-point and unit load (process input) steps; an unstable loop's steps are clipped."""
+
+    gains: GainsOut
+    ms: float | None
+    stable: bool
+    nyquist: Nyquist
+    setpoint: StepOut
+    load: StepOut
+
+
+class Analysis(BaseModel):
+    """What a session's gains (new) and the controller's before it (old, null if unknown) do on the model."""
+
+    session: str
+    loop: str
+    controller: str | None
+    ms_target: float
+    point: AnalysisPoint
+    model: Model
+    ms_circle: Circle
+    old: LoopResponse | None
+    new: LoopResponse

@@ -103,6 +103,9 @@ class LoopConfig(Strict):
     tune at the same time. handshake: poll the device's TUNE/TBRK bits every
     ``handshake_poll`` wall seconds, so an HMI wired to the PLC starts and
     aborts tunings like the PIDAT block (docs/daemon.md, "PLC handshake").
+    monitor_period: while the loop is idle, its mode, SP, MV, gains and PV
+    are read this often, wall seconds (the live values of the status and the
+    ``sample`` events).
     """
 
     id: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
@@ -119,6 +122,7 @@ class LoopConfig(Strict):
     group: str | None = None
     handshake: bool = False
     handshake_poll: Annotated[float, Field(ge=0.02, le=60.0)] = 0.5
+    monitor_period: Annotated[float, Field(ge=0.05, le=60.0)] = 1.0
 
     @model_validator(mode="after")
     def _one_source(self) -> LoopConfig:

@@ -18,17 +18,29 @@ its loop is put back from the saved state.
 Live events go to subscribers (the API's Server-Sent Events) through bounded
 queues; a slow subscriber loses events, it never delays the sampling.
 
+Each loop has one *watch* task with a link of its own (the session's
+sampling is not involved). While the loop is idle it monitors it: every
+``monitor_period`` wall seconds it reads the mode, SP, MV and gains
+(``read_state``) and the PV, keeps them in the status and publishes a
+``sample`` event (``state`` when the mode, the gains or the link's health
+change). It does not read the loop while the loop's session runs; the
+session's own samples are the live values then.
+
 A loop configured with ``handshake: true`` also obeys the device's own bits,
-like the function block wired to an HMI: a task of its own polls
-``read_flags`` on a link of its own every ``handshake_poll`` wall seconds
-(idle or busy; the session's sampling is not involved), a rising edge of TUNE
-is a TUNE from user ``plc`` with the loop's defaults, a rising edge of TBRK
-aborts the running session. A TUNE the state does not allow is not run: while
-the loop's own session runs it is ignored (TBSY and ``ite`` are that
-session's); while another loop of the exclusion group tunes, TE is set and
-``ite`` shows :data:`GROUP_BUSY_CODE`, the loop untouched. Link errors of the
-poll are logged and retried with a growing pause; they never reach another
-loop or the API.
+like the function block wired to an HMI: its watch task also reads
+``read_flags`` every ``handshake_poll`` wall seconds, idle or busy; a rising
+edge of TUNE is a TUNE from user ``plc`` with the loop's defaults, a rising
+edge of TBRK aborts the running session. A TUNE the state does not allow is
+not run: while the loop's own session runs it is ignored (TBSY and ``ite``
+are that session's); while another loop of the exclusion group tunes, TE is
+set and ``ite`` shows :data:`GROUP_BUSY_CODE`, the loop untouched.
+
+Link errors of the watch task are logged once per outage, kept in the
+status (``monitor_error``) and retried with a growing pause; they never
+reach another loop or the API.
+
+:meth:`LoopManager.apply` writes a finished session's designed gains to the
+controller on request, reads them back and records who applied them.
 """
 
 from __future__ import annotations
@@ -49,6 +61,7 @@ from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags
 from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc, run
 
+from .analysis import usable_gains
 from .config import DaemonConfig, LoopConfig, TuneRequest
 from .expr import parse_process
 from .gains import Gains
@@ -67,14 +80,18 @@ PLC_USER = "plc"
 # ``ite`` (with TE set) when the device's TUNE is refused because another loop of the exclusion group
 # tunes; outside the experiment's codes (autotuner.relay.Code, 0–8).
 GROUP_BUSY_CODE = 10
-# Longest pause between polls of a handshake whose link fails, wall seconds.
-HANDSHAKE_RETRY_MAX = 5.0
+# Longest pause between two tries of a watch task whose link fails, wall seconds.
+LINK_RETRY_MAX = 5.0
 
 log = logging.getLogger("autotuner.daemon")
 
 
 class Refused(Exception):
-    """A request the loop's state does not allow. ``code``: not_found, busy, group_busy or idle."""
+    """A request the loop's state does not allow.
+
+    ``code``: not_found, busy, group_busy, idle, nothing_to_apply, or link
+    (the device could not be written).
+    """
 
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)
@@ -145,24 +162,61 @@ class _Tap:
 
 @dataclass
 class Loop:
-    """One loop at run time: its config, how to reach it, and its tuning state."""
+    """One loop at run time: its config, how to reach it, its tuning state and its last monitored values.
+
+    ``mode``, ``pv``, ``sp``, ``mv`` and ``gains`` are the watch task's last
+    reading (None: not read yet); ``latest`` the newest finished session in
+    the history; ``saved`` and ``tap`` the running session's saved state and
+    live values.
+    """
 
     config: LoopConfig
     connect: Callable[[], Link]
     plc: SimulatedPlc | None = None
     task: asyncio.Task[None] | None = None
-    poller: asyncio.Task[None] | None = None
-    handshake_error: str | None = None
+    watcher: asyncio.Task[None] | None = None
+    monitor_error: str | None = None
     stop: asyncio.Event = field(default_factory=asyncio.Event)
     session: str | None = None
     status: Status | None = None
     result: dict[str, Any] | None = None
     subscribers: set[asyncio.Queue[dict[str, Any]]] = field(default_factory=set)
+    mode: Mode | None = None
+    pv: float | None = None
+    sp: float | None = None
+    mv: float | None = None
+    gains: Gains | None = None
+    latest: dict[str, Any] | None = None
+    saved: LoopState | None = None
+    tap: _Tap | None = None
+    applying: bool = False
 
     @property
     def busy(self) -> bool:
         """TBSY: a session is running."""
         return self.task is not None
+
+    @property
+    def handshake_error(self) -> str | None:
+        """Why the handshake's bits cannot be read (its link is the watch task's), None when fine."""
+        return self.monitor_error if self.config.handshake else None
+
+    def live(self) -> dict[str, Any]:
+        """Mode (MAN, AUTO or None), PV, SP and MV now: the session's while it runs, else the monitor's."""
+        mode, pv, sp, mv = self.mode, self.pv, self.sp, self.mv
+        if self.busy and self.saved is not None:
+            mode, sp = Mode.MAN, self.saved.sp  # the session holds the loop in MAN; its SP is the saved one
+            if self.tap is not None and math.isfinite(self.tap.pv):
+                pv, mv = self.tap.pv, self.tap.mv
+        return {"mode": None if mode is None else Mode(mode).name, "pv": _finite(pv), "sp": _finite(sp),
+                "mv": _finite(mv)}
+
+    @property
+    def pending_gains(self) -> bool:
+        """Idle, and the newest session succeeded with gains nobody has applied yet."""
+        last = self.latest
+        return (not self.busy and last is not None and last["outcome"] == "success"
+                and last["applied_at"] is None and (last["result"] or {}).get("gains") is not None)
 
     def as_json(self) -> dict[str, Any]:
         """The status of design.md: tbsy, te, ite, stage, progress, last point and gains."""
@@ -188,7 +242,17 @@ class Loop:
             "point": None if r is None else r["point"],
             "static_gain": None if r is None else r["static_gain"],
             "gains": None if r is None else r["gains"],
+            **self.live(),
+            "current_gains": None if self.gains is None else self.gains.as_json(),
+            "last_tuned_at": None if self.latest is None else self.latest["finished_at"],
+            "last_outcome": None if self.latest is None else self.latest["outcome"],
+            "pending_gains": self.pending_gains,
+            "monitor_error": self.monitor_error,
         }
+
+
+def _finite(x: float | None) -> float | None:
+    return x if x is not None and math.isfinite(x) else None
 
 
 def _empty_trace() -> Trace:
@@ -221,21 +285,21 @@ class LoopManager:
         for record in self.history.running():
             await self._recover(record)
         self._polling = True
-        for loop in self.loops.values():
-            if loop.config.handshake:
-                loop.poller = asyncio.create_task(self._handshake(loop))
+        for loop_id, loop in self.loops.items():
+            loop.latest = self.history.latest(loop_id)
+            loop.watcher = asyncio.create_task(self._watch(loop))
 
     async def stop(self) -> None:
-        """Stop the handshake polls, abort every running session (TBRK), wait until their loops are restored, stop
-        the plants."""
-        self._polling = False  # also ends a poll whose link call swallowed the cancellation (3.11's wait_for)
-        pollers = [loop.poller for loop in self.loops.values() if loop.poller is not None]
-        for poller in pollers:
-            poller.cancel()
-        if pollers:
-            await asyncio.wait(pollers, timeout=STOP_WAIT)
+        """Stop the watch tasks (monitor, handshake), abort every running session (TBRK), wait until their loops
+        are restored, stop the plants."""
+        self._polling = False  # also ends a watch whose link call swallowed the cancellation (3.11's wait_for)
+        watchers = [loop.watcher for loop in self.loops.values() if loop.watcher is not None]
+        for watcher in watchers:
+            watcher.cancel()
+        if watchers:
+            await asyncio.wait(watchers, timeout=STOP_WAIT)
         for loop in self.loops.values():
-            loop.poller = None
+            loop.watcher = None
         tasks = [loop.task for loop in self.loops.values() if loop.task is not None]
         for loop in self.loops.values():
             loop.stop.set()
@@ -256,6 +320,8 @@ class LoopManager:
         loop = self.get(loop_id)
         if loop.busy:
             raise Refused("busy", f"loop {loop_id!r} is tuning (session {loop.session})")
+        if loop.applying:
+            raise Refused("busy", f"gains are being written to loop {loop_id!r}")
         group = loop.config.group
         if group is not None:
             for other in self.loops.values():
@@ -267,7 +333,7 @@ class LoopManager:
         self.history.begin(sid, loop_id, user, settings.as_json())
         loop.session, loop.status, loop.result = sid, None, None
         loop.stop = asyncio.Event()
-        loop.task = asyncio.create_task(self._session(loop, sid, settings, config))
+        loop.task = asyncio.create_task(self._session(loop, sid, user, settings, config))
         self._publish(loop, "state", loop.as_json())
         return sid
 
@@ -278,6 +344,45 @@ class LoopManager:
             raise Refused("idle", f"loop {loop_id!r} is not tuning")
         loop.stop.set()
         return loop.session
+
+    async def apply(self, loop_id: str, sid: str | None, user: str) -> dict[str, Any]:
+        """Write the designed gains of session ``sid`` (None: the loop's newest) to the idle loop ``loop_id``.
+
+        The gains are read back (if that read fails, the written ones are
+        taken), recorded in the history as applied by ``user`` with the gains
+        after, and become the loop's current gains. ``{"loop", "session",
+        "gains"}``. Refused: not_found (loop, or a session of this loop),
+        busy (the loop tunes, or is being written), nothing_to_apply (no
+        session yet, or it failed or has no gains), link (the write failed;
+        nothing recorded).
+        """
+        loop = self.get(loop_id)
+        if loop.busy or loop.applying:
+            raise Refused("busy", f"loop {loop_id!r} is tuning or being written")
+        record = self.history.latest(loop_id) if sid is None else self.history.get(sid)
+        if record is None and sid is None:
+            raise Refused("nothing_to_apply", f"loop {loop_id!r} has no finished session")
+        if record is None or record["loop"] != loop_id:
+            raise Refused("not_found", f"no session {sid!r} of loop {loop_id!r}")
+        sid = record["id"]
+        if record["outcome"] != "success":
+            raise Refused("nothing_to_apply", f"session {sid} did not succeed: {record['message']}")
+        gains = usable_gains((record["result"] or {}).get("gains"))
+        if gains is None:
+            raise Refused("nothing_to_apply", f"session {sid} has no usable gains")
+        loop.applying = True
+        try:
+            after = await _write_gains(loop.connect(), gains)
+        except LinkError as exc:
+            raise Refused("link", f"gains not written to loop {loop_id!r}: {exc}") from None
+        finally:
+            loop.applying = False
+        self.history.applied(sid, user, after)
+        loop.gains = after
+        loop.latest = self.history.latest(loop_id)
+        log.info("loop %s: gains of session %s applied by %s", loop_id, sid, user)
+        self._publish(loop, "state", loop.as_json())
+        return {"loop": loop_id, "session": sid, "gains": after.as_json()}
 
     async def wait(self, loop_id: str) -> None:
         """Until the running session of ``loop_id`` (if any) has ended and been recorded."""
@@ -303,9 +408,10 @@ class LoopManager:
                     queue.get_nowait()
             queue.put_nowait({"event": event, "data": data})
 
-    async def _session(self, loop: Loop, sid: str, settings: Settings, config: RelayConfig) -> None:
+    async def _session(self, loop: Loop, sid: str, user: str, settings: Settings, config: RelayConfig) -> None:
         link = loop.connect()
         tap = _Tap(link)
+        loop.tap, loop.saved = tap, None
         start = time.monotonic()
         speed = loop.config.speed
 
@@ -314,7 +420,8 @@ class LoopManager:
             loop.status = status
             if status.stage is not Stage.DONE:
                 self._publish(loop, "sample", {
-                    "t": (time.monotonic() - start) * speed, "pv": tap.pv, "mv": tap.mv, "relay": status.relay,
+                    "t": (time.monotonic() - start) * speed, "time": time.time(), "pv": tap.pv,
+                    "sp": None if loop.saved is None else loop.saved.sp, "mv": tap.mv, "relay": status.relay,
                     "filter_phase_deg": status.filter_phase_deg, "stage": status.stage.value,
                     "progress": status.progress, "ite": status.ite, "periods": status.periods,
                 })
@@ -326,7 +433,7 @@ class LoopManager:
         state = "finished"
         try:
             await link.open()
-            saved = await link.read_state()
+            saved = loop.saved = await link.read_state()
             self.history.saved(sid, saved)
             result = await tune_link(tap, config, loop.config.ts, settings.controller, settings.ms, settings.apply,
                                      speed, loop.stop, on_status)
@@ -343,58 +450,102 @@ class LoopManager:
                 result = TuneResult(Code.ABORTED, "aborted: the daemon stopped", settings.controller, None, None,
                                     _empty_trace())
             loop.result = result.as_json()
-            self.history.finish(sid, loop.result, gains_after, downsample(result.trace), state)
-            loop.task = None
+            applied_by = user if result.ok and settings.apply else None
+            self.history.finish(sid, loop.result, gains_after, downsample(result.trace), state, applied_by)
+            loop.latest = self.history.latest(loop.config.id)
+            if loop.saved is not None:  # what the session left: its restored mode and the gains read back
+                loop.mode, loop.gains = Mode(loop.saved.mode), gains_after
+            loop.task, loop.tap, loop.saved = None, None, None
             self._publish(loop, "state", loop.as_json())
 
-    async def _handshake(self, loop: Loop) -> None:
-        """Poll the device's TUNE/TBRK bits of ``loop`` and act on their rising edges, until cancelled.
+    async def _watch(self, loop: Loop) -> None:
+        """The loop's watch task, until cancelled: monitor it while idle, poll its handshake bits (if configured).
 
-        The first reading after (re)connecting is only a reference: a bit
-        already true then is no edge, so a TUNE left set across a restart or a
-        link outage never starts an experiment by itself.
+        One link of its own, opened on first use and after a failure. Every
+        ``monitor_period`` wall seconds while the loop is idle: its state and
+        PV (:meth:`_monitor`). With a handshake, every ``handshake_poll``
+        seconds, idle or busy: the TUNE/TBRK bits, acting on their rising
+        edges. The first reading of the bits after (re)connecting is only a
+        reference: a bit already true then is no edge, so a TUNE left set
+        across a restart or a link outage never starts an experiment by
+        itself. Without a handshake the link is closed while the loop's
+        session runs. A failure closes the link and is retried after a pause
+        growing from the period to :data:`LINK_RETRY_MAX`.
         """
-        period = loop.config.handshake_poll
+        config = loop.config
+        period = min(config.handshake_poll, config.monitor_period) if config.handshake else config.monitor_period
         pause = period
         link: Link | None = None
         last: TuneFlags | None = None
+        monitor_due = 0.0
         try:
             while self._polling:
                 try:
+                    if not config.handshake and loop.task is not None:
+                        if link is not None:
+                            await link.close()
+                            link = None
+                        await asyncio.wait([loop.task])  # nothing to read while the session runs
+                        monitor_due = 0.0
+                        continue
                     if link is None:
                         link = loop.connect()
                         await link.open()
-                    flags = await link.read_flags()
-                    if last is not None:
-                        await self._edges(loop, link, last, flags)
-                    last = flags
+                    if config.handshake:
+                        flags = await link.read_flags()
+                        if last is not None:
+                            await self._edges(loop, link, last, flags)
+                        last = flags
+                    if not loop.busy and time.monotonic() >= monitor_due:
+                        monitor_due = time.monotonic() + config.monitor_period
+                        await self._monitor(loop, link)
                 except (LinkError, OSError) as exc:
-                    self._handshake_failed(loop, str(exc) or type(exc).__name__)
-                except Exception as exc:  # a bug must not end the handshake (nor reach the event loop)
-                    log.exception("loop %s: handshake poll failed", loop.config.id)
-                    self._handshake_failed(loop, f"{type(exc).__name__}: {exc}")
+                    self._link_failed(loop, str(exc) or type(exc).__name__)
+                except Exception as exc:  # a bug must not end the watch (nor reach the event loop)
+                    log.exception("loop %s: watch failed", config.id)
+                    self._link_failed(loop, f"{type(exc).__name__}: {exc}")
                 else:
-                    if loop.handshake_error is not None:
-                        log.info("loop %s: handshake link back", loop.config.id)
-                    loop.handshake_error = None
+                    if loop.monitor_error is not None:
+                        log.info("loop %s: %s link back", config.id, _watching(config))
+                        loop.monitor_error = None
+                        self._publish(loop, "state", loop.as_json())
                     pause = period
                     await asyncio.sleep(period)
                     continue
-                last = None
+                last, monitor_due = None, 0.0
                 if link is not None:
                     await link.close()
                     link = None
                 await asyncio.sleep(pause)
-                pause = min(2.0 * pause, max(period, HANDSHAKE_RETRY_MAX))
+                pause = min(2.0 * pause, max(period, LINK_RETRY_MAX))
         finally:
             if link is not None:
                 await link.close()
 
-    @staticmethod
-    def _handshake_failed(loop: Loop, error: str) -> None:
-        if loop.handshake_error is None:
-            log.warning("loop %s: handshake link failed (%s); retrying", loop.config.id, error)
-        loop.handshake_error = error
+    async def _monitor(self, loop: Loop, link: Link) -> None:
+        """Read the idle loop's state and PV; keep them, publish a ``sample`` (``state`` if mode or gains changed)."""
+        state = await link.read_state()
+        pv = await link.read_pv()
+        if loop.busy:
+            return  # a session started meanwhile: its samples are the live values
+        changed = (loop.mode, loop.gains) != (state.mode, state.gains)
+        loop.mode, loop.gains = Mode(state.mode), state.gains
+        loop.pv, loop.sp, loop.mv = pv, state.sp, state.mv
+        self._publish(loop, "sample", {"time": time.time(), "pv": pv, "sp": state.sp, "mv": state.mv,
+                                       "mode": loop.mode.name})
+        if changed:
+            self._publish(loop, "state", loop.as_json())
+
+    def _link_failed(self, loop: Loop, error: str) -> None:
+        """The watch link failed: logged once per outage, kept as ``monitor_error``; the mode is unknown."""
+        if loop.monitor_error is None:
+            log.warning("loop %s: %s link failed (%s); retrying", loop.config.id, _watching(loop.config), error)
+        changed = loop.monitor_error != error or loop.mode is not None
+        loop.monitor_error = error
+        if not loop.busy:
+            loop.mode = None
+        if changed:
+            self._publish(loop, "state", loop.as_json())
 
     async def _edges(self, loop: Loop, link: Link, last: TuneFlags, flags: TuneFlags) -> None:
         """TBRK first (a break wins), then TUNE; a TUNE edge while TBRK is held is ignored."""
@@ -431,6 +582,25 @@ class LoopManager:
         self.history.finish(record["id"], result, None, None, "interrupted")
         if loop is not None:
             loop.session, loop.result = record["id"], result
+
+
+def _watching(config: LoopConfig) -> str:
+    """What a loop's watch task is called in the log."""
+    return "handshake" if config.handshake else "monitor"
+
+
+async def _write_gains(link: Link, gains: Gains) -> Gains:
+    """Open ``link``, write ``gains``, read them back (the written ones if the read-back fails), close."""
+    try:
+        await link.open()
+        await link.write_gains(gains)
+        try:
+            return (await link.read_state()).gains
+        except LinkError as exc:
+            log.warning("gains written but not read back (%s)", exc)
+            return gains
+    finally:
+        await link.close()
 
 
 async def _gains(link: Link, saved: LoopState, result: TuneResult, apply: bool) -> Gains:

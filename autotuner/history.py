@@ -5,7 +5,10 @@ the loop's state — mode, MV, SP, gains — has been saved, before the
 experiment touches the loop (so a daemon that crashes mid-experiment can put
 the loop back on its next start), and when it ends
 (``finished``, or ``interrupted`` when a restart found it still running),
-with the result, the gains after and a downsampled trace.
+with the result, the gains after and a downsampled trace. Gains written to the
+controller are recorded as applied (``applied_at``, ``applied_by``): at the
+end of a session asked to apply them, or later by ``POST /loops/{id}/apply``
+(:meth:`History.applied`), which also replaces the gains after.
 
 Records are plain JSON-able dicts; times are UTC ISO 8601 strings.
 """
@@ -40,10 +43,14 @@ CREATE TABLE IF NOT EXISTS sessions (
     saved TEXT,
     result TEXT,
     gains_after TEXT,
-    trace TEXT
+    trace TEXT,
+    applied_at TEXT,
+    applied_by TEXT
 );
 CREATE INDEX IF NOT EXISTS sessions_by_loop ON sessions (loop, started_at);
 """
+# Columns added since the first schema, added to an older file when it is opened.
+_ADDED = (("applied_at", "TEXT"), ("applied_by", "TEXT"))
 
 
 def now() -> str:
@@ -77,6 +84,10 @@ class History:
         self._lock = threading.Lock()
         with self._lock:
             self._db.executescript(_SCHEMA)
+            columns = {row["name"] for row in self._db.execute("PRAGMA table_info(sessions)")}
+            for name, kind in _ADDED:
+                if name not in columns:
+                    self._db.execute(f"ALTER TABLE sessions ADD COLUMN {name} {kind}")
 
     def close(self) -> None:
         """Close the database."""
@@ -97,16 +108,38 @@ class History:
             self._db.execute("UPDATE sessions SET saved = ? WHERE id = ?", (json.dumps(state_json(saved)), sid))
 
     def finish(self, sid: str, result: dict[str, Any], gains_after: Gains | None,
-               trace: dict[str, list[float]] | None, state: str = "finished") -> None:
-        """Record the end of session ``sid``: the result JSON, the controller's gains after it and the trace."""
+               trace: dict[str, list[float]] | None, state: str = "finished", applied_by: str | None = None) -> None:
+        """Record the end of session ``sid``: the result JSON, the controller's gains after it and the trace.
+
+        ``applied_by``: who had the designed gains written at the end of the
+        session (the session's user, when it asked to apply them and they
+        were written); None if they were not.
+        """
+        at = now()
         with self._lock:
             self._db.execute(
-                "UPDATE sessions SET finished_at = ?, state = ?, result = ?, gains_after = ?, trace = ? "
-                "WHERE id = ?",
-                (now(), state, json.dumps(result, allow_nan=False),
+                "UPDATE sessions SET finished_at = ?, state = ?, result = ?, gains_after = ?, trace = ?, "
+                "applied_at = ?, applied_by = ? WHERE id = ?",
+                (at, state, json.dumps(result, allow_nan=False),
                  None if gains_after is None else json.dumps(gains_after.as_json()),
-                 None if trace is None else json.dumps(trace, allow_nan=False), sid),
+                 None if trace is None else json.dumps(trace, allow_nan=False),
+                 None if applied_by is None else at, applied_by, sid),
             )
+
+    def applied(self, sid: str, user: str, gains_after: Gains) -> None:
+        """Record that ``user`` had the gains of session ``sid`` written now; ``gains_after``: read back."""
+        with self._lock:
+            self._db.execute("UPDATE sessions SET applied_at = ?, applied_by = ?, gains_after = ? WHERE id = ?",
+                             (now(), user, json.dumps(gains_after.as_json()), sid))
+
+    def latest(self, loop: str) -> dict[str, Any] | None:
+        """The newest finished (or interrupted) session of ``loop``, without its trace, or None."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT * FROM sessions WHERE loop = ? AND finished_at IS NOT NULL "
+                "ORDER BY started_at DESC, rowid DESC LIMIT 1", (loop,)
+            ).fetchone()
+        return None if row is None else _record(row, with_trace=False)
 
     def running(self) -> list[dict[str, Any]]:
         """Sessions recorded as running (after a crash: the ones whose loops must be put back)."""
@@ -151,6 +184,8 @@ def _record(row: sqlite3.Row, with_trace: bool) -> dict[str, Any]:
         "code": None if result is None else result["ite"],
         "message": None if result is None else result["message"],
         "result": result,
+        "applied_at": row["applied_at"],
+        "applied_by": row["applied_by"],
     }
     if with_trace:
         record["trace"] = _load(row["trace"])

@@ -77,9 +77,17 @@ def test_tune_busy_ite_counts_down_then_success_with_gains_applied():
     assert 10 < len(record["trace"]["t"]) <= 500
     kinds = {e["event"] for e in samples}
     assert kinds == {"sample", "state"}
-    sample = next(e["data"] for e in samples if e["event"] == "sample" and e["data"]["stage"] == "relay")
-    assert {"t", "pv", "mv", "relay", "filter_phase_deg", "ite"} <= sample.keys()
-    assert samples[-1] == {"event": "state", "data": done}
+    sample = next(e["data"] for e in samples if e["event"] == "sample" and e["data"].get("stage") == "relay")
+    assert {"t", "time", "pv", "sp", "mv", "relay", "filter_phase_deg", "ite"} <= sample.keys()
+    assert sample["sp"] == record["saved"]["sp"]
+    # The last state is the end of the session (the monitor's samples follow it once the loop is idle and
+    # update the live values pv, sp, mv).
+    last = [e["data"] for e in samples if e["event"] == "state"][-1]
+    live = ("pv", "sp", "mv")
+    assert {k: v for k, v in last.items() if k not in live} == {k: v for k, v in done.items() if k not in live}
+    assert done["mode"] == "AUTO" and done["current_gains"] == done["gains"] and done["pending_gains"] is False
+    assert done["last_outcome"] == "success" and done["last_tuned_at"] == record["finished_at"]
+    assert record["applied_by"] == "alice" and record["applied_at"] == record["finished_at"]
 
 
 def test_tbrk_aborts_restores_and_keeps_gains():
