@@ -1,0 +1,773 @@
+// The operator page: login, loop overview, loop page (live trend, TUNE/TBRK/apply, result), history, session.
+// Plain ES modules, no build step; routes in the URL's hash: #/, #/loop/ID, #/loop/ID/history, #/session/SID.
+
+import { ApiError, clearToken, eventStream, get, getToken, onUnauthorized, post, setToken, whoami } from "./api.js";
+import { ROWS, cell, fmt } from "./gains.js";
+import { nyquist, timeChart } from "./plot.js";
+
+// ---------------------------------------------------------------- helpers
+
+function h(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs || {})) {
+    if (v === undefined || v === null || v === false) continue;
+    if (k === "class") node.className = v;
+    else if (k.startsWith("on")) node.addEventListener(k.slice(2), v);
+    else if (k === "dataset") Object.assign(node.dataset, v);
+    else node.setAttribute(k, v === true ? "" : v);
+  }
+  for (const c of children.flat()) {
+    if (c === null || c === undefined || c === false) continue;
+    node.appendChild(typeof c === "string" || typeof c === "number" ? document.createTextNode(String(c)) : c);
+  }
+  return node;
+}
+
+function svgNode(cls, label) {
+  const node = document.createElementNS("http://www.w3.org/2000/svg", "svg");
+  node.setAttribute("class", cls);
+  node.setAttribute("role", "img");
+  node.setAttribute("aria-label", label);
+  return node;
+}
+
+// append / replaceChildren without the nulls of conditional children (the DOM would print "null").
+const clean = (children) => children.flat().filter((c) => c !== null && c !== undefined && c !== false);
+const add = (node, ...children) => node.append(...clean(children));
+const fill = (node, ...children) => node.replaceChildren(...clean(children));
+
+const $ = (sel, root = document) => root.querySelector(sel);
+const main = () => $("#main");
+const esc = (s) => encodeURIComponent(s);
+
+// Meaning of ite when the experiment has ended (autotuner/relay.py Code; 10: refused, exclusion group busy).
+const CODES = {
+  0: "ok",
+  1: "aborted (TBRK)",
+  2: "PV left its safety limits",
+  3: "no oscillation",
+  4: "identified point did not converge",
+  5: "invalid sample",
+  6: "relay cannot move the MV within its limits",
+  7: "link to the loop failed",
+  8: "no robust PI/PID design",
+  10: "refused: exclusion group busy",
+};
+
+const STAGES = { noise: "measuring noise", relay: "relay experiment", done: "designing" };
+
+function num(x, unit = "", digits = 4) {
+  if (x === null || x === undefined || Number.isNaN(x)) return "—";
+  return unit ? `${fmt(x, digits)} ${unit}` : fmt(x, digits);
+}
+
+function when(iso) {
+  if (!iso) return "—";
+  const d = new Date(iso);
+  if (Number.isNaN(d.getTime())) return iso;
+  const pad = (n) => String(n).padStart(2, "0");
+  return `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())} ${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}`;
+}
+
+function clock(unix) {
+  const d = new Date(unix * 1000);
+  const pad = (n) => String(n).padStart(2, "0");
+  return `${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}`;
+}
+
+// The loop's state in words and a CSS class: tuning, failed, ok, idle.
+function statusOf(loop) {
+  if (loop.tbsy) {
+    const left = Math.max(0, Math.round(loop.ite));
+    return { cls: "tuning", badge: "TUNING", text: `${STAGES[loop.stage] || "starting"} · ${left} s left` };
+  }
+  const code = Math.round(loop.ite);
+  if (loop.te) return { cls: "failed", badge: "FAILED", text: `code ${code}: ${loop.message || CODES[code] || "?"}` };
+  if (loop.session) return { cls: "ok", badge: "OK", text: `code ${code}: ${CODES[code] || loop.message}` };
+  return { cls: "idle", badge: "IDLE", text: "not tuned since the daemon started" };
+}
+
+function flags(loop) {
+  const ite = loop.tbsy ? `${fmt(Math.max(0, loop.ite), 3)} s` : String(Math.round(loop.ite));
+  return h("span", { class: "flags" },
+    h("span", { class: `flag ${loop.tbsy ? "on" : ""}`, "data-flag": "tbsy" }, `TBSY ${loop.tbsy ? 1 : 0}`),
+    h("span", { class: `flag ${loop.te ? "on bad" : ""}`, "data-flag": "te" }, `TE ${loop.te ? 1 : 0}`),
+    h("span", { class: "flag ite", "data-flag": "ite" }, `ite ${ite}`));
+}
+
+function progressBar(loop) {
+  const pct = Math.round(100 * (loop.tbsy ? loop.progress || 0 : loop.session && !loop.te ? 1 : loop.progress || 0));
+  return h("div", { class: `progress ${loop.tbsy ? "running" : ""}`, role: "progressbar", "aria-valuenow": pct,
+                    "aria-valuemin": 0, "aria-valuemax": 100 },
+    h("div", { class: "bar", style: `width:${pct}%` }), h("span", {}, `${pct} %`));
+}
+
+function modeBadge(mode) {
+  if (!mode) return h("span", { class: "mode unknown" }, "—");
+  return h("span", { class: `mode ${mode === "AUTO" ? "auto" : "man"}` }, mode);
+}
+
+function outcomeBadge(outcome, code) {
+  if (!outcome) return h("span", { class: "badge idle" }, "—");
+  const ok = outcome === "success";
+  return h("span", { class: `badge ${ok ? "ok" : "failed"}` },
+    ok ? "success" : `failure${code !== null && code !== undefined ? ` (${code})` : ""}`);
+}
+
+// ---------------------------------------------------------------- messages and banners
+
+function notify(error, where = null) {
+  const text = error instanceof ApiError ? error.text : String(error.message || error);
+  const box = where || $("#toasts");
+  const node = h("div", { class: "alert error", role: "alert" }, h("span", {}, text),
+    h("button", { class: "close", title: "dismiss", onclick: () => node.remove() }, "×"));
+  if (where) fill(where, node);
+  else {
+    box.appendChild(node);
+    setTimeout(() => node.remove(), 12000);
+  }
+  return node;
+}
+
+function banner(id, text) {
+  const box = $("#banners");
+  let node = box.querySelector(`[data-banner="${id}"]`);
+  if (!text) { node?.remove(); return; }
+  if (!node) { node = h("div", { class: "banner", "data-banner": id, role: "status" }); box.appendChild(node); }
+  node.textContent = text;
+}
+
+// ---------------------------------------------------------------- session of the page (who is logged in)
+
+const me = { name: null, role: null };
+const canOperate = () => me.role === "operator" || me.role === "admin";
+
+function renderWho() {
+  const box = $("#who");
+  fill(box);
+  if (!getToken()) return;
+  add(box, h("span", { class: `role ${me.role || ""}`, "data-role": me.role || "" }, me.role || "?"),
+    me.name ? h("span", { class: "name" }, me.name) : null,
+    h("button", { class: "ghost", id: "logout", onclick: logout }, "Log out"));
+}
+
+function logout() {
+  clearToken();
+  me.name = me.role = null;
+  renderWho();
+  location.hash = "#/login";
+}
+
+onUnauthorized((err) => {
+  clearToken();
+  me.name = me.role = null;
+  renderWho();
+  loginMessage = err.text;
+  if (location.hash !== "#/login") location.hash = "#/login";
+  else route();
+});
+
+// ---------------------------------------------------------------- views
+
+let loginMessage = null;
+
+function loginView() {
+  const input = h("input", { type: "password", id: "token", name: "token", autocomplete: "off", spellcheck: "false",
+                             placeholder: "paste the API token", required: true });
+  const msg = h("div", { class: "form-msg", id: "login-msg" });
+  if (loginMessage) { notify(new Error(loginMessage), msg); loginMessage = null; }
+  const form = h("form", { class: "card login", id: "login", onsubmit: async (ev) => {
+    ev.preventDefault();
+    const token = input.value.trim();
+    if (!token) return;
+    try {
+      const who = await whoami(token);
+      setToken(token);
+      Object.assign(me, who);
+      renderWho();
+      if (!location.hash || location.hash === "#/login") location.hash = "#/";
+      else route();
+    } catch (err) {
+      notify(err.status === 401 ? new Error("This token is not known to the daemon (401).") : err, msg);
+    }
+  } },
+  h("h1", {}, "Log in"),
+  h("p", { class: "muted" }, "Paste an API token. It is kept in this browser tab's session storage only and sent as ",
+    h("code", {}, "Authorization: Bearer"), " to the daemon. A viewer token sees everything and can press nothing."),
+  h("label", { for: "token" }, "Token"), input,
+  h("button", { type: "submit", class: "primary" }, "Log in"), msg);
+  fill(main(), form);
+  input.focus();
+  return () => {};
+}
+
+// -- overview
+
+function overviewView() {
+  const tbody = h("tbody");
+  const table = h("table", { class: "loops", id: "loops" },
+    h("thead", {}, h("tr", {},
+      h("th", {}, "Loop"), h("th", {}, "Mode"), h("th", { class: "num" }, "PV"), h("th", { class: "num" }, "SP"),
+      h("th", { class: "num" }, "MV"), h("th", {}, "Tuning (TBSY / TE / ite)"), h("th", {}, "Last tuning"),
+      h("th", {}, "Gains"))),
+    tbody);
+  fill(main(), h("section", { class: "card wide" },
+    h("div", { class: "card-head" }, h("h1", {}, "Loops"), h("span", { class: "muted", id: "updated" }, "")), table));
+  const rows = new Map();
+  let stop = false;
+  let timer = null;
+
+  function row(loop) {
+    const st = statusOf(loop);
+    const tr = h("tr", { "data-loop": loop.id, class: `st-${st.cls}` },
+      h("td", {}, h("a", { href: `#/loop/${esc(loop.id)}`, class: "loop-id" }, loop.id),
+        h("div", { class: "muted small" }, loop.description || ""),
+        loop.monitor_error ? h("div", { class: "bad small" }, `monitor: ${loop.monitor_error}`) : null),
+      h("td", {}, modeBadge(loop.mode)),
+      h("td", { class: "num", "data-col": "pv" }, num(loop.pv)),
+      h("td", { class: "num", "data-col": "sp" }, num(loop.sp)),
+      h("td", { class: "num", "data-col": "mv" }, num(loop.mv)),
+      h("td", { "data-col": "status" },
+        h("div", { class: "status-line" }, h("span", { class: `badge ${st.cls}` }, st.badge), flags(loop)),
+        h("div", { class: "small" }, st.text), loop.tbsy ? progressBar(loop) : null),
+      h("td", { "data-col": "last" }, loop.last_tuned_at ? h("div", {}, when(loop.last_tuned_at)) : h("div", { class: "muted" }, "never"),
+        loop.last_outcome ? outcomeBadge(loop.last_outcome) : null),
+      h("td", { "data-col": "gains" }, gainsBrief(loop.current_gains || null),
+        loop.pending_gains ? h("div", {}, h("span", { class: "badge pending" }, "new gains to apply")) : null));
+    return tr;
+  }
+
+  async function poll() {
+    try {
+      const loops = await get("/loops");
+      banner("poll", null);
+      for (const loop of loops) {
+        const tr = row(loop);
+        const old = rows.get(loop.id);
+        if (old) old.replaceWith(tr);
+        else tbody.appendChild(tr);
+        rows.set(loop.id, tr);
+      }
+      $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
+    } catch (err) {
+      if (err.status === 401) return;
+      banner("poll", `Daemon unreachable — retrying (${err instanceof ApiError ? err.text : err.message})`);
+    }
+    if (!stop) timer = setTimeout(poll, 1000);
+  }
+  poll();
+  return () => { stop = true; clearTimeout(timer); banner("poll", null); };
+}
+
+function gainsBrief(g) {
+  if (!g) return h("span", { class: "muted" }, "—");
+  return h("span", { class: "mono small" }, `K ${fmt(g.pk, 3)} · Ti ${g.pti === null ? "∞" : `${fmt(g.pti, 3)} s`}`
+    + (g.ptd ? ` · Td ${fmt(g.ptd, 3)} s` : ""));
+}
+
+// -- loop page
+
+function loopTabs(id, active) {
+  return h("nav", { class: "tabs" },
+    h("a", { href: `#/loop/${esc(id)}`, class: active === "live" ? "active" : "" }, "Live"),
+    h("a", { href: `#/loop/${esc(id)}/history`, class: active === "history" ? "active" : "", id: "tab-history" }, "History"));
+}
+
+const TREND_WINDOW = 600; // wall seconds kept in the trend
+const TREND_MAX = 30000; // samples kept
+// The trend of each loop seen since the page was opened (kept when the operator looks at another view).
+const trends = new Map();
+
+function loopView(id) {
+  let loop = null;
+  let shownSession = null;
+  let stream = null;
+  let redraw = null;
+  let closed = false;
+  if (!trends.has(id)) trends.set(id, { time: [], pv: [], sp: [], mv: [], relay: [] });
+  const trend = trends.get(id);
+  // A break in the lines where samples were missed (another view, a lost stream).
+  const gap = () => {
+    const n = trend.time.length;
+    if (!n || trend.pv[n - 1] === null) return;
+    trend.time.push(trend.time[n - 1]);
+    for (const k of ["pv", "sp", "mv", "relay"]) trend[k].push(null);
+  };
+
+  const head = h("section", { class: "loop-head" });
+  const status = h("section", { class: "card status", id: "status" });
+  const actions = h("section", { class: "card actions", id: "actions" });
+  const trendSvg = svgNode("trend", "trend of PV, SP and MV");
+  trendSvg.id = "trend";
+  const trendCard = h("section", { class: "card wide" },
+    h("div", { class: "card-head" }, h("h2", {}, "Trend"), h("span", { class: "muted small", id: "trend-info" }, "waiting for samples…")),
+    trendSvg);
+  const result = h("section", { class: "card wide result", id: "result" });
+  fill(main(), head, h("div", { class: "row" }, status, actions), trendCard, result);
+
+  // The form, built once (so typing is not lost on updates); its defaults from the loop when the API gives them.
+  const form = tuneForm(id, () => loop);
+  const actionMsg = h("div", { class: "form-msg", id: "action-msg" });
+  const tbrk = h("button", { type: "button", class: "danger", id: "tbrk", onclick: async () => {
+    fill(actionMsg);
+    try { await post(`/loops/${esc(id)}/break`); } catch (err) { notify(err, actionMsg); }
+  } }, "TBRK — abort");
+  const apply = h("button", { type: "button", class: "secondary", id: "apply", onclick: () => confirmApply() }, "Apply gains…");
+  const applyBox = h("div", { class: "apply-box", id: "apply-box" });
+  const roleNote = h("p", { class: "muted small", id: "role-note" });
+  add(actions, h("h2", {}, "Actions"), form.node, h("div", { class: "buttons" }, tbrk, apply), applyBox, actionMsg, roleNote);
+  form.onError = (err) => notify(err, actionMsg);
+  form.onStart = () => fill(actionMsg);
+
+  function confirmApply() {
+    const g = loop?.gains;
+    if (!g) return;
+    fill(actionMsg);
+    fill(applyBox, h("div", { class: "confirm" },
+      h("span", {}, `Write K = ${fmt(g.pk)}, Ti = ${g.pti === null ? "∞" : `${fmt(g.pti)} s`}`
+        + `${g.ptd ? `, Td = ${fmt(g.ptd)} s` : ""} to the controller of ${id}?`),
+      h("button", { type: "button", class: "primary", id: "apply-confirm", onclick: async () => {
+        fill(applyBox);
+        try {
+          const body = loop?.session ? { session: loop.session } : {};
+          const answer = await post(`/loops/${esc(id)}/apply`, body);
+          fill(actionMsg, h("div", { class: "alert ok", id: "apply-done" },
+            `Gains of session ${String(answer?.session || "").slice(0, 8)} written to the controller.`));
+          loop = await get(`/loops/${esc(id)}`);
+          update();
+        } catch (err) { notify(err, actionMsg); }
+      } }, "Confirm"),
+      h("button", { type: "button", class: "ghost", onclick: () => fill(applyBox) }, "Cancel")));
+  }
+
+  function update() {
+    if (!loop || closed) return;
+    fill(head, 
+      h("div", { class: "title" }, h("a", { href: "#/", class: "muted small" }, "← all loops"),
+        h("h1", {}, loop.id, " ", h("span", { class: "desc" }, loop.description || "")),
+        h("div", { class: "muted small" }, `link ${loop.link}`, loop.group ? ` · exclusion group ${loop.group}` : "")),
+      h("div", { class: "readouts" },
+        readout("Mode", modeBadge(loop.mode)), readout("PV", num(loop.pv), "pv"), readout("SP", num(loop.sp), "sp"),
+        readout("MV", num(loop.mv), "mv")),
+      loopTabs(loop.id, "live"));
+    const st = statusOf(loop);
+    status.className = `card status st-${st.cls}`;
+    fill(status, h("h2", {}, "Tuning state"),
+      h("div", { class: "status-line" }, h("span", { class: `badge big ${st.cls}`, id: "badge" }, st.badge), flags(loop)),
+      h("div", { class: "stage", id: "stage" }, loop.tbsy ? `Stage: ${STAGES[loop.stage] || "starting"}` : st.text),
+      progressBar(loop),
+      h("div", { class: "muted small", id: "message" }, loop.message ? `message: ${loop.message}` : ""),
+      loop.monitor_error ? h("div", { class: "bad small" }, `monitor: ${loop.monitor_error}`) : null,
+      h("dl", { class: "kv small" },
+        h("dt", {}, "last tuning"), h("dd", {}, loop.last_tuned_at ? when(loop.last_tuned_at) : "—", " ",
+          loop.last_outcome ? outcomeBadge(loop.last_outcome) : ""),
+        h("dt", {}, "session"), h("dd", { class: "mono" }, loop.session ? loop.session.slice(0, 8) : "—")));
+    // Buttons: enabled only when the state allows and the token may operate.
+    const operate = canOperate();
+    form.setEnabled(operate && !loop.tbsy, !operate ? "needs an operator token" : loop.tbsy ? "the loop is tuning" : "");
+    tbrk.disabled = !(operate && loop.tbsy);
+    tbrk.title = !operate ? "needs an operator token" : loop.tbsy ? "abort the experiment and restore the loop" : "nothing runs";
+    const pending = loop.pending_gains === undefined ? Boolean(loop.gains && !loop.te) : loop.pending_gains;
+    apply.disabled = !(operate && !loop.tbsy && pending && loop.gains);
+    apply.title = !operate ? "needs an operator token" : loop.tbsy ? "the loop is tuning"
+      : !pending ? "no new gains to apply" : "write the new gains to the controller";
+    if (apply.disabled) fill(applyBox);
+    roleNote.textContent = operate ? "" : `Logged in with a ${me.role || "viewer"} token: you can watch, not act.`;
+    if (!loop.tbsy && loop.session && loop.session !== shownSession) showResult(loop.session);
+    if (loop.tbsy && shownSession !== null && loop.session !== shownSession) {
+      shownSession = null;
+      fill(result, h("h2", {}, "Result"), h("p", { class: "muted" }, "The experiment is running; the result shows when it ends."));
+    }
+  }
+
+  async function showResult(sid) {
+    shownSession = sid;
+    fill(result, h("h2", {}, "Result"), h("p", { class: "muted" }, "loading…"));
+    try {
+      const session = await get(`/sessions/${esc(sid)}`);
+      if (shownSession !== sid || closed) return;
+      await renderResult(result, session, { title: "Last session" });
+    } catch (err) {
+      if (shownSession === sid) notify(err, result);
+    }
+  }
+
+  function sample(s) {
+    const t = typeof s.time === "number" ? s.time : Date.now() / 1000;
+    trend.time.push(t);
+    trend.pv.push(s.pv ?? null);
+    trend.sp.push(s.sp ?? null);
+    trend.mv.push(s.mv ?? null);
+    trend.relay.push(s.relay ?? null);
+    const cut = trend.time.findIndex((x) => x >= t - TREND_WINDOW);
+    const drop = Math.max(cut, trend.time.length - TREND_MAX);
+    if (drop > 0) for (const k of Object.keys(trend)) trend[k].splice(0, drop);
+    if (loop) {
+      if (s.pv !== undefined) loop.pv = s.pv;
+      if (s.sp !== undefined) loop.sp = s.sp;
+      if (s.mv !== undefined) loop.mv = s.mv;
+      if (s.mode !== undefined) loop.mode = s.mode;
+      if (loop.tbsy && s.stage) {
+        loop.stage = s.stage;
+        loop.progress = s.progress;
+        loop.ite = s.ite;
+      }
+    }
+    schedule();
+  }
+
+  function schedule() {
+    if (redraw) return;
+    redraw = setTimeout(() => {
+      redraw = null;
+      if (closed) return;
+      drawTrend();
+      updateLive();
+    }, 200);
+  }
+
+  // Cheap updates from samples: readouts, progress, ite (the full update runs on state events).
+  function updateLive() {
+    if (!loop) return;
+    for (const k of ["pv", "sp", "mv"]) {
+      const node = head.querySelector(`[data-readout="${k}"]`);
+      if (node) node.textContent = num(loop[k]);
+    }
+    if (loop.tbsy) {
+      const st = statusOf(loop);
+      const bar = status.querySelector(".progress");
+      if (bar) bar.replaceWith(progressBar(loop));
+      const fl = status.querySelector(".flags");
+      if (fl) fl.replaceWith(flags(loop));
+      $("#stage", status).textContent = `Stage: ${STAGES[loop.stage] || "starting"} · ${st.text.split("· ")[1] || ""}`;
+    }
+  }
+
+  function drawTrend() {
+    const n = trend.time.length;
+    $("#trend-info").textContent = n ? `${n} samples · last ${clock(trend.time[n - 1])}` : "waiting for samples…";
+    if (!n) return;
+    const x1 = trend.time[n - 1];
+    const x0 = Math.min(trend.time[0], x1 - 30);
+    const hasRelay = trend.relay.some((r) => r !== null);
+    const panels = [
+      { height: 190, label: "PV, SP", series: [
+        { name: "SP", cls: "s-sp", x: trend.time, y: trend.sp, step: true },
+        { name: "PV", cls: "s-pv", x: trend.time, y: trend.pv },
+      ] },
+      { height: 120, label: "MV", series: [{ name: "MV", cls: "s-mv", x: trend.time, y: trend.mv, step: true }] },
+    ];
+    if (hasRelay) {
+      panels.push({ height: 44, label: "relay", yRange: [-1.4, 1.4],
+                    series: [{ name: "relay ±1", cls: "s-relay", x: trend.time, y: trend.relay, step: true }] });
+    }
+    timeChart(trendSvg, { width: 960, xRange: [x0, x1], panels, xTick: clock, xLabel: "time (clock)" });
+    trendSvg.dataset.samples = n;
+  }
+
+  async function start() {
+    try {
+      loop = await get(`/loops/${esc(id)}`);
+    } catch (err) {
+      notify(err, status);
+      return;
+    }
+    form.setDefaults(loop);
+    update();
+    stream = eventStream(`/loops/${esc(id)}/events`, {
+      state(data) {
+        const startedNew = data.tbsy && (!loop || !loop.tbsy || loop.session !== data.session);
+        if (startedNew) for (const k of Object.keys(trend)) trend[k].length = 0;
+        // A state event lacks nothing the page needs; keep the live values the samples brought meanwhile.
+        loop = { ...loop, ...data };
+        update();
+        schedule();
+      },
+      sample,
+      status(connected, detail) {
+        if (connected) gap();
+        banner("stream", connected ? null : `Live stream lost — reconnecting… (${detail || "connection closed"})`);
+        trendCard.classList.toggle("stale", !connected);
+      },
+    });
+  }
+  start();
+  return () => {
+    closed = true;
+    stream?.close();
+    clearTimeout(redraw);
+    banner("stream", null);
+  };
+}
+
+function readout(label, value, key) {
+  return h("div", { class: "readout" }, h("div", { class: "label" }, label),
+    h("div", { class: "value", "data-readout": key || label.toLowerCase() }, value));
+}
+
+// The TUNE form: controller, amp, hysteresis, phase, Ms, apply; only filled fields are sent (others: loop default).
+function tuneForm(id, getLoop) {
+  const fields = {
+    controller: h("select", { name: "controller", id: "f-controller" }, h("option", { value: "PI" }, "PI"), h("option", { value: "PID" }, "PID")),
+    amp: h("input", { name: "amp", id: "f-amp", type: "number", step: "any", inputmode: "decimal" }),
+    hysteresis: h("input", { name: "hysteresis", id: "f-hysteresis", type: "number", step: "any", placeholder: "auto (3σ of noise)" }),
+    phase: h("input", { name: "phase", id: "f-phase", type: "number", step: "any" }),
+    ms: h("input", { name: "ms", id: "f-ms", type: "number", step: "any" }),
+    apply: h("select", { name: "apply", id: "f-apply" }, h("option", { value: "" }, "loop default"),
+      h("option", { value: "true" }, "yes, on success"), h("option", { value: "false" }, "no, I apply them")),
+  };
+  const button = h("button", { type: "submit", class: "primary", id: "tune" }, "TUNE");
+  const row = (label, field, unit, hint) => h("label", { class: "field", "data-field": field.name },
+    h("span", { class: "label" }, label), field, h("span", { class: "unit" }, unit || ""), hint ? h("span", { class: "hint" }, hint) : null);
+  const obj = { onError: null, onStart: null };
+  const node = h("form", { class: "tune-form", id: "tune-form", novalidate: true, onsubmit: async (ev) => {
+    ev.preventDefault();
+    for (const f of Object.values(fields)) f.closest(".field").classList.remove("invalid");
+    obj.onStart?.();
+    const body = {};
+    if (fields.controller.value) body.controller = fields.controller.value;
+    for (const k of ["amp", "hysteresis", "phase", "ms"]) {
+      const raw = fields[k].value.trim();
+      if (raw !== "") body[k] = Number(raw);
+      else if (fields[k].validity.badInput) body[k] = fields[k].value; // let the API name it
+    }
+    if (fields.apply.value) body.apply = fields.apply.value === "true";
+    button.disabled = true;
+    try {
+      await post(`/loops/${esc(id)}/tune`, body);
+    } catch (err) {
+      if (err instanceof ApiError) {
+        for (const f of err.fields) fields[f]?.closest(".field").classList.add("invalid");
+      }
+      obj.onError?.(err);
+      button.disabled = Boolean(getLoop()?.tbsy) || !canOperate();
+    }
+  } },
+  row("Controller", fields.controller, ""),
+  row("Relay amplitude", fields.amp, "MV"),
+  row("Hysteresis", fields.hysteresis, "PV"),
+  row("Phase lag", fields.phase, "°", "90–170"),
+  row("Ms", fields.ms, "", "1.05–4"),
+  row("Write gains", fields.apply, ""),
+  h("div", { class: "buttons" }, button));
+  obj.node = node;
+  obj.setEnabled = (on, why) => {
+    button.disabled = !on;
+    button.title = why || "start the relay experiment";
+    for (const f of Object.values(fields)) f.disabled = !canOperate();
+  };
+  obj.setDefaults = (loop) => {
+    const d = loop.tuning || loop.defaults || null;
+    if (!d) {
+      for (const k of ["amp", "phase", "ms"]) fields[k].placeholder = "loop default";
+      return;
+    }
+    if (d.controller) fields.controller.value = d.controller;
+    if (d.amp !== undefined && d.amp !== null) fields.amp.value = d.amp;
+    if (d.hysteresis !== undefined && d.hysteresis !== null) fields.hysteresis.value = d.hysteresis;
+    if (d.phase !== undefined && d.phase !== null) fields.phase.value = d.phase;
+    if (d.ms !== undefined && d.ms !== null) fields.ms.value = d.ms;
+    const ap = d.apply ?? loop.apply;
+    if (ap !== undefined && ap !== null) fields.apply.value = ap ? "true" : "false";
+  };
+  return obj;
+}
+
+// -- a session's result: summary, Nyquist plot, gains side by side, simulated steps
+
+async function renderResult(box, session, { title }) {
+  const r = session.result || {};
+  const point = r.point;
+  const applied = session.applied_at
+    ? h("span", { class: "badge ok" }, `applied ${when(session.applied_at)}${session.applied_by ? ` by ${session.applied_by}` : ""}`) : null;
+  fill(box, 
+    h("div", { class: "card-head" }, h("h2", {}, title),
+      h("span", { class: "muted small" }, h("a", { href: `#/session/${esc(session.id)}` }, `session ${session.id.slice(0, 8)}`),
+        ` · ${when(session.started_at)} · by ${session.user}`)),
+    h("div", { class: "summary" }, outcomeBadge(session.outcome, session.code),
+      h("span", {}, session.message || ""), applied,
+      point ? h("span", { class: "mono small" }, `point ω = ${fmt(point.omega)} rad/s, |F| = ${fmt(point.gain)}, ∠F = ${fmt(point.phase_deg)}°`) : null,
+      r.static_gain !== undefined ? h("span", { class: "mono small" }, `static gain ${r.static_gain === null ? "∞ (integrating)" : fmt(r.static_gain)}`) : null));
+  if (!r.gains) {
+    add(box, h("p", { class: "muted" }, "No gains from this session."));
+    return;
+  }
+  const grid = h("div", { class: "result-grid" });
+  add(box, grid);
+  let analysis = null;
+  try {
+    analysis = await get(`/sessions/${esc(session.id)}/analysis`);
+  } catch (err) {
+    add(grid, h("div", { class: "alert warn" }, `Analysis unavailable: ${err instanceof ApiError ? err.text : err.message}`));
+  }
+  const oldGains = analysis?.old?.gains ?? session.gains_before ?? session.saved?.gains ?? null;
+  const newGains = analysis?.new?.gains ?? r.gains;
+  if (analysis) {
+    const nq = svgNode("nyquist", "Nyquist plot");
+    nq.id = "nyquist";
+    const curves = [];
+    if (analysis.old?.nyquist) curves.push({ name: "L old", cls: "s-old", re: analysis.old.nyquist.re, im: analysis.old.nyquist.im });
+    curves.push({ name: "L new", cls: "s-new", re: analysis.new.nyquist.re, im: analysis.new.nyquist.im });
+    nyquist(nq, { point: analysis.point, circle: analysis.ms_circle, curves,
+                  circleLabel: `Ms = ${fmt(analysis.ms_target, 3)} circle`, pointLabel: "F(jω₀)",
+                  pointLegend: "● identified point F(jω₀)" });
+    add(grid, h("div", { class: "panel-box" }, h("h3", {}, "Nyquist: open loop L = C·F"),
+      nq, h("p", { class: "muted small" }, `model ${analysis.model?.text || analysis.model?.kind || "—"} · Ms old ${analysis.old ? fmt(analysis.old.ms, 3) : "—"}`
+        + `, new ${fmt(analysis.new.ms, 3)}${analysis.new.stable === false ? " (unstable!)" : ""}`)));
+  }
+  add(grid, h("div", { class: "panel-box" }, h("h3", {}, "Gains"), gainsTable(oldGains, newGains)));
+  if (analysis) {
+    const steps = h("div", { class: "steps" });
+    for (const [key, label] of [["setpoint", "Set-point step"], ["load", "Load step"]]) {
+      const svg = svgNode(`step ${key}`, label);
+      svg.id = `step-${key}`;
+      add(steps, h("div", { class: "panel-box" }, h("h3", {}, `${label} (simulated on the identified model)`), svg));
+      const pv = [];
+      const mv = [];
+      if (analysis.old?.[key]) {
+        pv.push({ name: "PV old", cls: "s-old", x: analysis.old[key].t, y: analysis.old[key].pv });
+        mv.push({ name: "MV old", cls: "s-old", x: analysis.old[key].t, y: analysis.old[key].mv });
+      }
+      pv.push({ name: "PV new", cls: "s-new", x: analysis.new[key].t, y: analysis.new[key].pv });
+      mv.push({ name: "MV new", cls: "s-new", x: analysis.new[key].t, y: analysis.new[key].mv });
+      timeChart(svg, { width: 520, panels: [{ height: 150, label: "PV", series: pv }, { height: 80, label: "MV", series: mv }],
+                       xLabel: "plant seconds after the step" });
+    }
+    add(box, steps);
+  }
+}
+
+function gainsTable(oldG, newG) {
+  const tbody = h("tbody");
+  for (const group of ROWS) {
+    add(tbody, h("tr", { class: "form-row" }, h("th", { colspan: 4 }, group.form)));
+    for (const row of group.rows) {
+      add(tbody, h("tr", { "data-gain": row[3] && group.form.startsWith("standard") ? row[3] : null },
+        h("th", {}, row[0]), h("td", { class: "num old" }, cell(row, oldG, group.form)),
+        h("td", { class: "num new" }, cell(row, newG, group.form)), h("td", { class: "unit" }, row[1])));
+    }
+  }
+  return h("table", { class: "gains", id: "gains" },
+    h("thead", {}, h("tr", {}, h("th", {}, ""), h("th", { class: "num" }, "old"), h("th", { class: "num" }, "new"), h("th", {}, "unit"))),
+    tbody);
+}
+
+// -- history of a loop
+
+function historyView(id) {
+  const box = h("section", { class: "card wide" });
+  fill(main(), h("section", { class: "loop-head" },
+    h("div", { class: "title" }, h("a", { href: "#/", class: "muted small" }, "← all loops"), h("h1", {}, id, " ", h("span", { class: "desc" }, "history"))),
+    loopTabs(id, "history")), box);
+  let closed = false;
+  (async () => {
+    try {
+      const sessions = await get(`/loops/${esc(id)}/history?limit=200`);
+      if (closed) return;
+      const tbody = h("tbody");
+      for (const s of sessions) {
+        const p = s.result?.point;
+        const g = s.result?.gains;
+        add(tbody, h("tr", { "data-session": s.id, class: "clickable", onclick: () => { location.hash = `#/session/${esc(s.id)}`; } },
+          h("td", {}, h("a", { href: `#/session/${esc(s.id)}` }, when(s.started_at))),
+          h("td", {}, s.user),
+          h("td", {}, s.state === "running" ? h("span", { class: "badge tuning" }, "running") : outcomeBadge(s.outcome, s.code),
+            h("div", { class: "small muted" }, s.message || (s.state === "interrupted" ? "interrupted" : ""))),
+          h("td", { class: "mono small" }, s.request?.controller || "—"),
+          h("td", { class: "mono small" }, p ? `${fmt(p.omega, 3)} rad/s · ${fmt(p.gain, 3)} ∠${fmt(p.phase_deg, 3)}°` : "—"),
+          h("td", {}, gainsBrief(s.gains_before)),
+          h("td", {}, gainsBrief(g || null)),
+          h("td", {}, s.applied_at ? h("span", { class: "badge ok" }, `applied${s.applied_by ? ` by ${s.applied_by}` : ""}`)
+            : s.request?.apply && s.outcome === "success" ? h("span", { class: "badge ok" }, "written") : h("span", { class: "muted small" }, "—"))));
+      }
+      fill(box, h("div", { class: "card-head" }, h("h2", {}, `${sessions.length} session${sessions.length === 1 ? "" : "s"}`)),
+        sessions.length ? h("table", { class: "history", id: "history" },
+          h("thead", {}, h("tr", {}, h("th", {}, "Started"), h("th", {}, "Who"), h("th", {}, "Outcome"), h("th", {}, "Type"),
+            h("th", {}, "Point ω · |F| ∠F"), h("th", {}, "Gains before"), h("th", {}, "Gains designed"), h("th", {}, "Applied"))),
+          tbody) : h("p", { class: "muted" }, "No sessions yet."));
+    } catch (err) {
+      notify(err, box);
+    }
+  })();
+  return () => { closed = true; };
+}
+
+// -- one session in full
+
+function sessionView(sid) {
+  const box = h("section", { class: "card wide result", id: "result" });
+  const head = h("section", { class: "loop-head" });
+  const traceSvg = svgNode("trend", "trace of the session");
+  traceSvg.id = "trace";
+  const traceCard = h("section", { class: "card wide" }, h("h2", {}, "Trace (downsampled)"), traceSvg);
+  const info = h("section", { class: "card wide" });
+  fill(main(), head, info, traceCard, box);
+  let closed = false;
+  (async () => {
+    try {
+      const s = await get(`/sessions/${esc(sid)}`);
+      if (closed) return;
+      fill(head, h("div", { class: "title" }, h("a", { href: `#/loop/${esc(s.loop)}/history`, class: "muted small" }, `← history of ${s.loop}`),
+        h("h1", {}, s.loop, " ", h("span", { class: "desc" }, `session ${s.id.slice(0, 8)}`))), loopTabs(s.loop, "history"));
+      const req = s.request || {};
+      const exp = s.result?.experiment;
+      fill(info, h("h2", {}, "Session"), h("dl", { class: "kv grid4" },
+        h("dt", {}, "who"), h("dd", {}, s.user),
+        h("dt", {}, "started"), h("dd", {}, when(s.started_at)),
+        h("dt", {}, "finished"), h("dd", {}, when(s.finished_at)),
+        h("dt", {}, "state"), h("dd", {}, s.state),
+        h("dt", {}, "outcome"), h("dd", {}, outcomeBadge(s.outcome, s.code), " ", s.message || ""),
+        h("dt", {}, "settings"), h("dd", { class: "mono small" }, `${req.controller || "?"} · amp ${fmt(req.amp)} · hyst ${req.hysteresis === null ? "auto" : fmt(req.hysteresis)}`
+          + ` · phase ${fmt(req.phase)}° · Ms ${fmt(req.ms)} · apply ${req.apply ? "yes" : "no"}`),
+        h("dt", {}, "saved loop"), h("dd", { class: "mono small" }, s.saved ? `${s.saved.mode} · SP ${fmt(s.saved.sp)} · MV ${fmt(s.saved.mv)}` : "—"),
+        h("dt", {}, "experiment"), h("dd", { class: "mono small" }, exp ? `${fmt(exp.duration)} s · ${exp.periods ?? "—"} periods · ${exp.samples} samples` : "—")));
+      const tr = s.trace;
+      if (tr && tr.t.length) {
+        timeChart(traceSvg, { width: 960, panels: [
+          { height: 170, label: "PV", series: [{ name: "PV", cls: "s-pv", x: tr.t, y: tr.pv }, ...(tr.sp ? [{ name: "SP", cls: "s-sp", x: tr.t, y: tr.sp, step: true }] : [])] },
+          { height: 110, label: "MV", series: [{ name: "MV", cls: "s-mv", x: tr.t, y: tr.mv, step: true }] },
+        ], xLabel: "plant seconds from the start" });
+      } else {
+        add(traceCard, h("p", { class: "muted" }, "No trace recorded."));
+      }
+      await renderResult(box, s, { title: "Result" });
+    } catch (err) {
+      notify(err, info);
+    }
+  })();
+  return () => { closed = true; };
+}
+
+// ---------------------------------------------------------------- router
+
+let cleanup = () => {};
+
+async function route() {
+  cleanup();
+  cleanup = () => {};
+  fill($("#toasts"));
+  const hash = location.hash || "#/";
+  if (!getToken()) {
+    cleanup = loginView();
+    return;
+  }
+  if (!me.role) {
+    try {
+      Object.assign(me, await whoami(getToken()));
+    } catch (err) {
+      if (err.status === 401) return; // onUnauthorized handles it
+      notify(err);
+    }
+    renderWho();
+  }
+  const parts = hash.slice(2).split("/").map(decodeURIComponent);
+  if (parts[0] === "login") cleanup = loginView();
+  else if (parts[0] === "loop" && parts[1] && parts[2] === "history") cleanup = historyView(parts[1]);
+  else if (parts[0] === "loop" && parts[1]) cleanup = loopView(parts[1]);
+  else if (parts[0] === "session" && parts[1]) cleanup = sessionView(parts[1]);
+  else cleanup = overviewView();
+  document.title = `autotuner · ${parts[1] || "loops"}`;
+}
+
+window.addEventListener("hashchange", route);
+route();

@@ -1,0 +1,237 @@
+// Hand-written SVG plots (no library): stacked time charts sharing an x axis, and a Nyquist plot.
+// Styling is in style.css through the classes given to the series (s-pv, s-sp, s-mv, ...).
+
+const NS = "http://www.w3.org/2000/svg";
+
+export function el(tag, attrs = {}, parent = null, text = null) {
+  const node = document.createElementNS(NS, tag);
+  for (const [k, v] of Object.entries(attrs)) if (v !== undefined && v !== null) node.setAttribute(k, v);
+  if (text !== null) node.textContent = text;
+  if (parent) parent.appendChild(node);
+  return node;
+}
+
+function clear(svg) { while (svg.firstChild) svg.removeChild(svg.firstChild); }
+
+// Round tick values covering [min, max], about `count` of them.
+export function ticks(min, max, count = 5) {
+  if (!(max > min)) return [min];
+  const raw = (max - min) / count;
+  const mag = 10 ** Math.floor(Math.log10(raw));
+  const step = [1, 2, 2.5, 5, 10].map((m) => m * mag).find((s) => s >= raw) || raw;
+  const out = [];
+  for (let v = Math.ceil(min / step) * step; v <= max + step * 1e-9; v += step) out.push(Math.abs(v) < step * 1e-9 ? 0 : v);
+  return out;
+}
+
+function label(v) {
+  const a = Math.abs(v);
+  const s = a !== 0 && (a >= 1e5 || a < 1e-3) ? v.toExponential(1) : Number(v.toPrecision(4)).toString();
+  return s.replace("-", "−");
+}
+
+function extent(series, key, fallback) {
+  let lo = Infinity;
+  let hi = -Infinity;
+  for (const s of series) {
+    for (const v of s[key]) {
+      if (v === null || !Number.isFinite(v)) continue;
+      if (v < lo) lo = v;
+      if (v > hi) hi = v;
+    }
+  }
+  if (!Number.isFinite(lo)) return fallback;
+  if (hi - lo < 1e-9) { const d = Math.max(Math.abs(hi) * 0.05, 0.5); return [lo - d, hi + d]; }
+  const pad = (hi - lo) * 0.08;
+  return [lo - pad, hi + pad];
+}
+
+// At most ~4 points per pixel column (first, min, max, last), in time order.
+function decimate(xs, ys, x0, x1, columns) {
+  const n = xs.length;
+  if (n <= columns * 4) return xs.map((x, i) => [x, ys[i]]);
+  const out = [];
+  const w = (x1 - x0) / columns;
+  let col = null;
+  let bucket = [];
+  const flush = () => {
+    if (!bucket.length) return;
+    let lo = bucket[0];
+    let hi = bucket[0];
+    for (const p of bucket) { if (p[1] < lo[1]) lo = p; if (p[1] > hi[1]) hi = p; }
+    const pts = [bucket[0], lo, hi, bucket[bucket.length - 1]].sort((a, b) => a[0] - b[0]);
+    let last = null;
+    for (const p of pts) if (p !== last) { out.push(p); last = p; }
+    bucket = [];
+  };
+  for (let i = 0; i < n; i++) {
+    const c = Math.floor((xs[i] - x0) / w);
+    if (c !== col) { flush(); col = c; }
+    bucket.push([xs[i], ys[i]]);
+  }
+  flush();
+  return out;
+}
+
+function pathOf(points, sx, sy, step) {
+  let d = "";
+  let pen = false;
+  let prevY = null;
+  for (const [x, y] of points) {
+    if (y === null || !Number.isFinite(y)) { pen = false; continue; }
+    const px = sx(x).toFixed(1);
+    const py = sy(y).toFixed(1);
+    if (!pen) d += `M${px},${py}`;
+    else if (step) d += `H${px}V${py}`;
+    else d += `L${px},${py}`;
+    pen = true;
+    prevY = py;
+  }
+  return prevY === null ? "" : d;
+}
+
+// Stacked panels sharing the x axis.
+// opts: {width, xRange:[a,b]?, xLabel, xTick(v)→text, legend:bool,
+//        panels:[{height, label, yRange?, series:[{name, cls, x:[], y:[], step?}]}]}
+export function timeChart(svg, opts) {
+  clear(svg);
+  const width = opts.width || 800;
+  const left = 56;
+  const right = 12;
+  const top = 8;
+  const gap = 10;
+  const bottom = 34;
+  const panels = opts.panels;
+  const headH = 16; // a row above each panel: its label (left) and legend (right)
+  const total = top + panels.reduce((a, p) => a + headH + p.height + gap, 0) - gap + bottom;
+  svg.setAttribute("viewBox", `0 0 ${width} ${total}`);
+  svg.setAttribute("preserveAspectRatio", "xMidYMid meet");
+  const all = panels.flatMap((p) => p.series);
+  const [x0, x1] = opts.xRange || extent(all.map((s) => ({ x: s.x })), "x", [0, 1]);
+  const plotW = width - left - right;
+  const sx = (x) => left + ((x - x0) / (x1 - x0 || 1)) * plotW;
+  const xt = ticks(x0, x1, Math.max(3, Math.round(plotW / 110)));
+  let y = top;
+  const clipId = `clip${Math.random().toString(36).slice(2, 8)}`;
+  let points = 0;
+  panels.forEach((panel, index) => {
+    const h = panel.height;
+    y += headH;
+    const [y0, y1] = panel.yRange || extent(panel.series, "y", [0, 1]);
+    const sy = (v) => y + h - ((v - y0) / (y1 - y0 || 1)) * h;
+    const g = el("g", { class: "panel", "data-panel": panel.label }, svg);
+    el("rect", { class: "plot-bg", x: left, y, width: plotW, height: h }, g);
+    const cid = `${clipId}-${index}`;
+    el("rect", { x: left, y, width: plotW, height: h }, el("clipPath", { id: cid }, g));
+    for (const v of ticks(y0, y1, Math.max(2, Math.round(h / 40)))) {
+      el("line", { class: "grid", x1: left, x2: left + plotW, y1: sy(v), y2: sy(v) }, g);
+      el("text", { class: "tick", x: left - 6, y: sy(v) + 4, "text-anchor": "end" }, g, label(v));
+    }
+    for (const v of xt) el("line", { class: "grid", x1: sx(v), x2: sx(v), y1: y, y2: y + h }, g);
+    el("text", { class: "axis-label", x: left, y: y - 4 }, g, panel.label);
+    const lines = el("g", { "clip-path": `url(#${cid})` }, g);
+    for (const s of panel.series) {
+      const pts = decimate(s.x, s.y, x0, x1, plotW);
+      points += pts.length;
+      const d = pathOf(pts, sx, sy, s.step);
+      if (d) el("path", { class: `line ${s.cls}`, d, "data-series": s.name, "data-points": pts.length }, lines);
+    }
+    // Legend, above the panel on the right: a short line of the series' style and its name.
+    let lx = left + plotW;
+    for (const s of [...panel.series].reverse()) {
+      if (!s.name) continue;
+      el("text", { class: `legend ${s.cls}`, x: lx, y: y - 4, "text-anchor": "end" }, g, s.name);
+      lx -= 7.6 * s.name.length + 6;
+      el("line", { class: `line ${s.cls}`, x1: lx - 18, x2: lx, y1: y - 8, y2: y - 8 }, g);
+      lx -= 40;
+    }
+    y += h + gap;
+  });
+  const axisY = y - gap;
+  for (const v of xt) {
+    el("text", { class: "tick", x: sx(v), y: axisY + 15, "text-anchor": "middle" }, svg,
+       opts.xTick ? opts.xTick(v) : label(v));
+  }
+  if (opts.xLabel) el("text", { class: "axis-label", x: left + plotW, y: axisY + 30, "text-anchor": "end" }, svg, opts.xLabel);
+  svg.dataset.points = points;
+  return points;
+}
+
+// Nyquist plot of open loops with the identified point, the critical point and the Ms circle.
+// opts: {size, point:{re, im}|null, circle:{center_re, radius}|null,
+//        curves:[{name, cls, re:[], im:[]}]}
+export function nyquist(svg, opts) {
+  clear(svg);
+  const size = opts.size || 420;
+  const pad = 34;
+  svg.setAttribute("viewBox", `0 0 ${size} ${size}`);
+  // The view: the critical point, the origin, the Ms circle and the point, with room around them.
+  let xs = [-1, 0];
+  let ys = [0];
+  if (opts.circle) {
+    const { center_re: c, radius: r } = opts.circle;
+    xs.push(c - r, c + r);
+    ys.push(-r, r);
+  }
+  if (opts.point) { xs.push(opts.point.re); ys.push(opts.point.im); }
+  let lo = Math.min(...xs);
+  let hi = Math.max(...xs);
+  let bottomY = Math.min(...ys);
+  let topY = Math.max(...ys);
+  const spanRaw = Math.max(hi - lo, topY - bottomY, 1);
+  const span = spanRaw * 1.7;
+  const cx = (lo + hi) / 2;
+  const cy = (bottomY + topY) / 2 - spanRaw * 0.15;
+  const [re0, re1, im0, im1] = [cx - span / 2, cx + span / 2, cy - span / 2, cy + span / 2];
+  const inner = size - 2 * pad;
+  const sx = (v) => pad + ((v - re0) / (re1 - re0)) * inner;
+  const sy = (v) => pad + inner - ((v - im0) / (im1 - im0)) * inner;
+  el("rect", { class: "plot-bg", x: pad, y: pad, width: inner, height: inner }, svg);
+  const clipId = `nq${Math.random().toString(36).slice(2, 8)}`;
+  el("rect", { x: pad, y: pad, width: inner, height: inner }, el("clipPath", { id: clipId }, svg));
+  const n = Math.max(3, Math.round(inner / 70));
+  for (const v of ticks(re0, re1, n)) {
+    el("line", { class: v === 0 ? "axis" : "grid", x1: sx(v), x2: sx(v), y1: pad, y2: pad + inner }, svg);
+    el("text", { class: "tick", x: sx(v), y: pad + inner + 14, "text-anchor": "middle" }, svg, label(v));
+  }
+  for (const v of ticks(im0, im1, n)) {
+    el("line", { class: v === 0 ? "axis" : "grid", x1: pad, x2: pad + inner, y1: sy(v), y2: sy(v) }, svg);
+    el("text", { class: "tick", x: pad - 4, y: sy(v) + 4, "text-anchor": "end" }, svg, label(v));
+  }
+  el("text", { class: "axis-label", x: pad + inner, y: pad - 8, "text-anchor": "end" }, svg, "Re");
+  el("text", { class: "axis-label", x: pad, y: pad - 8 }, svg, "Im");
+  const g = el("g", { "clip-path": `url(#${clipId})` }, svg);
+  const scale = inner / (re1 - re0);
+  if (opts.circle) {
+    el("circle", { class: "ms-circle", "data-role": "ms-circle", cx: sx(opts.circle.center_re), cy: sy(0),
+                   r: opts.circle.radius * scale }, g);
+  }
+  for (const c of opts.curves) {
+    const pts = c.re.map((r, i) => [r, c.im[i]]);
+    let d = "";
+    let pen = false;
+    for (const [r, i] of pts) {
+      if (!Number.isFinite(r) || !Number.isFinite(i) || Math.abs(r) > 1e3 * span || Math.abs(i) > 1e3 * span) { pen = false; continue; }
+      d += `${pen ? "L" : "M"}${sx(r).toFixed(1)},${sy(i).toFixed(1)}`;
+      pen = true;
+    }
+    if (d) el("path", { class: `line ${c.cls}`, d, "data-series": c.name }, g);
+  }
+  // The critical point −1.
+  const k = 6;
+  el("path", { class: "critical", "data-role": "critical", d: `M${sx(-1) - k},${sy(0)}h${2 * k}M${sx(-1)},${sy(0) - k}v${2 * k}` }, g);
+  el("text", { class: "tick", x: sx(-1) + 4, y: sy(0) + 14 }, g, "−1");
+  if (opts.point) {
+    el("circle", { class: "point", "data-role": "point", cx: sx(opts.point.re), cy: sy(opts.point.im), r: 5 }, g);
+    el("text", { class: "point-label", x: sx(opts.point.re) + 8, y: sy(opts.point.im) - 6 }, g, opts.pointLabel || "F(jω₀)");
+  }
+  // Legend.
+  let ly = pad + 16;
+  const items = [...opts.curves.map((c) => [c.cls, c.name])];
+  if (opts.circle) items.push(["ms-circle-legend", opts.circleLabel || "Ms circle"]);
+  if (opts.point) items.push(["point-legend", opts.pointLegend || "identified point"]);
+  for (const [cls, name] of items) {
+    el("text", { class: `legend ${cls}`, x: pad + inner - 6, y: ly, "text-anchor": "end" }, svg, name);
+    ly += 15;
+  }
+}
