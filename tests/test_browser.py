@@ -1,0 +1,379 @@
+"""The operator page in a real headless browser (Debian's Chromium driven by Playwright) against a real
+``autotuner serve``: the built-in demo's three loops (at 12× real time for margin on a busy machine, with a viewer
+token and LIC-201/FIC-301 in one exclusion group), the operator's token from $AUTOTUNER_TOKEN.
+
+Between the browser and the daemon sits a small TCP proxy of this module, so a test can cut the network and check
+that the page says the live stream is lost and reconnects by itself.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+import yaml
+
+from api.auth import token_hash
+from autotuner.demo import demo_config
+
+sync_api = pytest.importorskip("playwright.sync_api")
+
+CHROMIUM = os.environ.get("AUTOTUNER_CHROMIUM", "/usr/bin/chromium")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run", "--disable-quic"]
+OPERATOR, VIEWER = "browser-operator-secret", "browser-viewer-secret"
+SPEED = 12.0
+# Generous: the plants run in real time (scaled) on a machine shared with the rest of the suite.
+TIMEOUT_MS = 90_000
+
+pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists() and shutil.which("chromium") is None,
+                                reason="Chromium is not installed (apt-get install chromium)")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Proxy:
+    """A TCP proxy 127.0.0.1:port → target; :meth:`down` cuts every connection and refuses new ones until :meth:`up`."""
+
+    def __init__(self, target_port: int) -> None:
+        self.target = ("127.0.0.1", target_port)
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.is_up = True
+        self.sockets: set[socket.socket] = set()
+        self.lock = threading.Lock()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.server.accept()
+            except OSError:
+                return
+            if not self.is_up:
+                client.close()
+                continue
+            try:
+                upstream = socket.create_connection(self.target)
+            except OSError:
+                client.close()
+                continue
+            with self.lock:
+                self.sockets |= {client, upstream}
+            for a, b in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    def _pump(self, src: socket.socket, dst: socket.socket) -> None:
+        try:
+            while data := src.recv(65536):
+                dst.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for s in (src, dst):
+                with self.lock:
+                    self.sockets.discard(s)
+                try:
+                    s.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+                s.close()
+
+    def down(self) -> None:
+        self.is_up = False
+        with self.lock:
+            sockets = list(self.sockets)
+        for s in sockets:
+            try:
+                s.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
+    def up(self) -> None:
+        self.is_up = True
+
+    def close(self) -> None:
+        self.down()
+        self.server.close()
+
+
+class Daemon:
+    """A running ``autotuner serve``: its API through httpx (as the operator), the page's URL through the proxy."""
+
+    def __init__(self, port: int, proxy: Proxy) -> None:
+        self.api = f"http://127.0.0.1:{port}/api/v1"
+        self.url = f"http://127.0.0.1:{proxy.port}/"
+        self.proxy = proxy
+        self.headers = {"Authorization": f"Bearer {OPERATOR}"}
+
+    def get(self, path: str):
+        r = httpx.get(self.api + path, headers=self.headers, timeout=30)
+        r.raise_for_status()
+        return r.json()
+
+    def post(self, path: str, body: dict | None = None) -> httpx.Response:
+        return httpx.post(self.api + path, headers=self.headers, json=body, timeout=30)
+
+    def wait_idle(self, loop_id: str, timeout: float = 90.0) -> dict:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            status = self.get(f"/loops/{loop_id}")
+            if not status["tbsy"]:
+                return status
+            time.sleep(0.2)
+        raise AssertionError(f"{loop_id} still busy after {timeout} s")
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory) -> Iterator[Daemon]:
+    tmp = tmp_path_factory.mktemp("browser")
+    config = demo_config(SPEED).model_dump(mode="json", exclude_defaults=True)
+    config["history"] = str(tmp / "history.sqlite")
+    config["tokens"] = [{"name": "hmi", "role": "viewer", "sha256": token_hash(VIEWER)}]
+    for loop in config["loops"]:
+        if loop["id"] in ("LIC-201", "FIC-301"):
+            loop["group"] = "utilities"
+    (tmp / "daemon.yaml").write_text(yaml.safe_dump(config))
+    port = free_port()
+    log = (tmp / "daemon.log").open("w")
+    env = {**os.environ, "AUTOTUNER_TOKEN": OPERATOR}
+    proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(tmp / "daemon.yaml"),
+                             "--port", str(port)], env=env, stdout=log, stderr=subprocess.STDOUT)
+    proxy = Proxy(port)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/api/v1/health").status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert proc.poll() is None and time.monotonic() < deadline, (tmp / "daemon.log").read_text()
+            time.sleep(0.1)
+        yield Daemon(port, proxy)
+    finally:
+        proxy.close()
+        proc.terminate()
+        try:
+            proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[object]:
+    with sync_api.sync_playwright() as p:
+        path = CHROMIUM if Path(CHROMIUM).exists() else shutil.which("chromium")
+        b = p.chromium.launch(executable_path=path, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def page(browser, daemon):
+    context = browser.new_context(viewport={"width": 1400, "height": 900})
+    page = context.new_page()
+    page.set_default_timeout(TIMEOUT_MS)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    yield page
+    context.close()
+    assert not errors, f"JavaScript errors on the page: {errors}"
+
+
+def login(page, daemon: Daemon, token: str, role: str) -> None:
+    page.goto(daemon.url)
+    page.fill("#token", token)
+    page.click("#login button[type=submit]")
+    page.wait_for_selector(f"#who [data-role={role}]")
+    page.wait_for_selector("#loops tbody tr")
+
+
+def number(text: str) -> float:
+    return float(text.strip().replace("−", "-"))
+
+
+def close(shown: float, actual: float) -> bool:
+    """``shown`` is ``actual`` to the page's 4 significant digits."""
+    return abs(shown - actual) <= 1e-3 * abs(actual) + 1e-12
+
+
+def wait_attr_above(page, selector: str, attr: str, value: float) -> float:
+    page.wait_for_function(
+        "([s, a, v]) => { const e = document.querySelector(s); return e && Number(e.getAttribute(a)) > v; }",
+        arg=[selector, attr, value])
+    return float(page.get_attribute(selector, attr))
+
+
+def test_login_with_an_unknown_token_is_refused_in_words(page, daemon):
+    page.goto(daemon.url)
+    page.fill("#token", "not-a-token")
+    page.click("#login button[type=submit]")
+    assert "not known to the daemon (401)" in page.inner_text("#login-msg .alert")
+    assert page.evaluate("sessionStorage.getItem('autotuner.token')") is None
+
+
+def test_operator_tunes_from_the_page_applies_the_gains_and_finds_the_session_in_history(page, daemon):
+    daemon.wait_idle("TIC-101")
+    login(page, daemon, OPERATOR, "operator")
+    # The overview: every loop, its description and live PV/SP/MV from the monitor.
+    rows = page.locator("#loops tbody tr")
+    assert rows.count() == 3
+    assert "two lags with dead time" in page.inner_text("tr[data-loop=TIC-101]")
+    page.wait_for_function("() => /\\d/.test(document.querySelector('tr[data-loop=TIC-101] [data-col=pv]').textContent)")
+    # The token stays in the tab's session storage, nowhere else.
+    assert page.evaluate("sessionStorage.getItem('autotuner.token')") == OPERATOR
+    assert page.evaluate("localStorage.length") == 0
+
+    page.click("tr[data-loop=TIC-101] a.loop-id")
+    page.wait_for_selector("#tune:enabled")
+    assert page.is_disabled("#tbrk")
+    page.select_option("#f-controller", "PI")
+    page.select_option("#f-apply", "false")
+    page.click("#tune")
+    # Running: TBSY 1, ite counts down, the stage and progress show, the trend grows.
+    page.wait_for_selector("#status [data-flag=tbsy]:has-text('TBSY 1')")
+    assert page.inner_text("#badge") == "TUNING"
+    assert page.is_disabled("#tune") and page.is_enabled("#tbrk") and page.is_disabled("#apply")
+    ite = page.inner_text("#status [data-flag=ite]")
+    page.wait_for_function("(v) => { const e = document.querySelector('#status [data-flag=ite]');"
+                           " return e && e.textContent !== v && document.querySelector('#badge').textContent === 'TUNING'; }",
+                           arg=ite)
+    assert "Stage:" in page.inner_text("#stage")
+    first = wait_attr_above(page, "#trend", "data-samples", 20)
+    points = int(page.get_attribute("#trend path[data-series=PV]", "data-points"))
+    wait_attr_above(page, "#trend", "data-samples", first + 20)
+    page.wait_for_function("(n) => Number(document.querySelector('#trend path[data-series=PV]')"
+                           ".getAttribute('data-points')) > n", arg=points)
+    assert page.locator("#trend path[data-series='relay ±1']").count() == 1  # the relay output while running
+    # Finished: the Nyquist plot with the identified point and the Ms circle, the gains, the simulated steps.
+    page.wait_for_selector("#badge:has-text('OK')")
+    assert page.inner_text("#status [data-flag=tbsy]") == "TBSY 0"
+    assert page.inner_text("#status [data-flag=ite]") == "ite 0"
+    page.wait_for_selector("#nyquist [data-role=point]")
+    assert page.locator("#nyquist [data-role=ms-circle]").count() == 1
+    assert page.locator("#nyquist [data-role=critical]").count() == 1
+    assert page.locator("#nyquist path[data-series='L new']").count() == 1
+    assert page.locator("#nyquist path[data-series='L old']").count() == 1
+    for step in ("#step-setpoint", "#step-load"):
+        assert page.locator(f"{step} path[data-series='PV new']").count() == 1
+        assert page.locator(f"{step} path[data-series='PV old']").count() == 1
+    status = daemon.get("/loops/TIC-101")
+    assert status["te"] is False and status["pending_gains"] is True
+    gains, before = status["gains"], status["current_gains"]
+    for key in ("pk", "pti", "pb"):
+        assert close(number(page.inner_text(f"#gains tr[data-gain={key}] td.new")), gains[key]), key
+        assert close(number(page.inner_text(f"#gains tr[data-gain={key}] td.old")), before[key]), key
+    assert "series (interacting)" in page.text_content("#gains") and "parallel" in page.text_content("#gains")
+
+    # Apply: confirm, then the controller has the new gains and nothing is pending.
+    page.click("#apply:enabled")
+    page.click("#apply-confirm")
+    page.wait_for_selector("#apply-done")
+    status = daemon.get("/loops/TIC-101")
+    assert status["pending_gains"] is False
+    assert close(status["current_gains"]["pk"], gains["pk"]) and close(status["current_gains"]["pti"], gains["pti"])
+    page.wait_for_selector("#apply:disabled")
+
+    # History: the session with who, outcome, point and gains; then in full with its trace.
+    sid = status["session"]
+    page.click("#tab-history")
+    row = page.locator(f"#history tr[data-session='{sid}']")
+    row.wait_for()
+    text = row.text_content()
+    assert "AUTOTUNER_TOKEN" in text and "success" in text and "rad/s" in text and "applied by AUTOTUNER_TOKEN" in text
+    assert f"K {gains['pk']:.3g}" in text  # the designed gains
+    row.click()
+    page.wait_for_selector("#trace path[data-series=PV]")
+    assert int(page.get_attribute("#trace path[data-series=PV]", "data-points")) > 50
+    assert "AUTOTUNER_TOKEN" in page.inner_text("main")
+    page.wait_for_selector("#result #nyquist [data-role=point]")
+
+
+def test_viewer_sees_everything_and_can_press_nothing(page, daemon):
+    login(page, daemon, VIEWER, "viewer")
+    assert page.locator("#loops tbody tr").count() == 3
+    page.click("tr[data-loop=LIC-201] a.loop-id")
+    page.wait_for_selector("#trend[data-samples]")  # live values stream to a viewer too
+    for button in ("#tune", "#tbrk", "#apply"):
+        assert page.is_disabled(button), button
+    assert page.is_disabled("#f-amp")
+    assert "you can watch, not act" in page.inner_text("#role-note")
+    # Even a button forced on gets the daemon's refusal, in words.
+    page.eval_on_selector("#tune", "b => { b.disabled = false; }")
+    page.click("#tune")
+    assert "Not allowed (403)" in page.inner_text("#action-msg .alert")
+    assert "viewer" in page.inner_text("#action-msg .alert")
+    assert daemon.get("/loops/LIC-201")["tbsy"] is False
+
+
+def test_tbrk_from_the_page_restores_the_loop(page, daemon):
+    daemon.wait_idle("FIC-301")
+    daemon.wait_idle("LIC-201")
+    login(page, daemon, OPERATOR, "operator")
+    page.goto(daemon.url + "#/loop/FIC-301")
+    page.click("#tune:enabled")
+    page.wait_for_selector("#status [data-flag=tbsy]:has-text('TBSY 1')")
+    page.wait_for_selector("[data-readout=mode]:has-text('MAN')")  # the experiment drives the MV
+    page.click("#tbrk:enabled")
+    page.wait_for_selector("#badge:has-text('FAILED')")
+    assert "code 1" in page.inner_text("#stage") and "aborted" in page.inner_text("#stage")
+    assert page.inner_text("#status [data-flag=te]") == "TE 1"
+    status = daemon.get("/loops/FIC-301")
+    assert status["tbsy"] is False and status["te"] is True and status["ite"] == 1
+    saved = daemon.get("/loops/FIC-301/history?limit=1")[0]["saved"]
+    assert status["mode"] == saved["mode"] == "AUTO"
+    page.wait_for_selector("[data-readout=mode]:has-text('AUTO')")
+    assert page.is_enabled("#tune") and page.is_disabled("#tbrk")
+
+
+def test_api_errors_in_words_and_a_lost_stream_reconnects(page, daemon):
+    daemon.wait_idle("FIC-301")
+    daemon.wait_idle("LIC-201")
+    login(page, daemon, OPERATOR, "operator")
+    page.goto(daemon.url + "#/loop/LIC-201")
+    page.wait_for_selector("#tune:enabled")
+    # 422: the field is named and marked.
+    page.fill("#f-amp", "-1")
+    page.click("#tune")
+    message = page.inner_text("#action-msg .alert")
+    assert message.startswith("Invalid input (422): amp:")
+    assert page.locator(".field.invalid[data-field=amp]").count() == 1
+    assert daemon.get("/loops/LIC-201")["tbsy"] is False
+    page.fill("#f-amp", "")
+    # 409: another loop of the exclusion group tunes.
+    assert daemon.post("/loops/FIC-301/tune").status_code == 202
+    try:
+        page.click("#tune")
+        message = page.inner_text("#action-msg .alert")
+        assert "Refused (409)" in message and "exclusion group" in message and "FIC-301" in message
+    finally:
+        daemon.post("/loops/FIC-301/break")
+    daemon.wait_idle("FIC-301")
+    # The network goes away: the page says so and reconnects by itself when it is back.
+    page.wait_for_selector("#trend[data-samples]")
+    daemon.proxy.down()
+    try:
+        banner = page.locator("[data-banner=stream]")
+        banner.wait_for()
+        assert "Live stream lost — reconnecting" in banner.inner_text()
+    finally:
+        daemon.proxy.up()
+    banner.wait_for(state="detached")
+    samples = float(page.get_attribute("#trend", "data-samples"))
+    wait_attr_above(page, "#trend", "data-samples", samples)  # samples flow again
