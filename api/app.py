@@ -20,6 +20,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Depends, FastAPI, Path, Query, Request
 from fastapi.responses import StreamingResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.routing import Match, Mount
+from starlette.types import Scope
 
 from autotuner import __version__
 from autotuner.analysis import analyse
@@ -163,6 +165,21 @@ async def analysis(sid: str, request: Request, manager: Manager, _: Viewer) -> d
     return body
 
 
+class _Page(Mount):
+    """The operator page's static files at ``/``, except under the API's prefix.
+
+    A mount at ``/`` matches every path, so an API path asked with a method
+    it does not have (``GET /api/v1/loops/X/tune``) would reach the static
+    files (404) instead of the router's 405; API paths are left to the router.
+    """
+
+    def matches(self, scope: Scope) -> tuple[Match, Scope]:
+        path = scope.get("path", "")
+        if path == PREFIX or path.startswith(PREFIX + "/"):
+            return Match.NONE, {}
+        return super().matches(scope)
+
+
 def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
     """The API over the loops of ``config``; ``env_token`` (default: $AUTOTUNER_TOKEN) is an extra operator token."""
 
@@ -185,5 +202,5 @@ def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
     app.state.tokens = Tokens(config.tokens, os.environ.get("AUTOTUNER_TOKEN") if env_token is None else env_token)
     errors.install(app)
     app.include_router(router)
-    app.mount("/", StaticFiles(directory=STATIC, html=True), name="page")
+    app.router.routes.append(_Page("/", StaticFiles(directory=STATIC, html=True), name="page"))
     return app
