@@ -1,4 +1,8 @@
-"""Server-Sent Events of one loop: ``state`` events (the loop's status) and ``sample`` events (t, PV, MV, relay, ...).
+"""Server-Sent Events of one loop: ``state`` events (the loop's status) and ``sample`` events.
+
+A ``sample`` is an experiment sample while the loop tunes (t, time, PV, SP,
+MV, relay, ...) and a monitor reading while it is idle (time, PV, SP, MV,
+mode); docs/daemon.md lists the fields. Non-finite numbers are sent as null.
 
 The stream starts with the current state; a comment line every
 ``KEEPALIVE`` seconds keeps proxies from closing an idle stream.
