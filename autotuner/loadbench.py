@@ -14,9 +14,9 @@ deadline schedule (:func:`autotuner.session.deadlines`: sample k is due at
 ``start + k·ts/speed``, one PV read per sample, the first one due at once), so
 the k-th read of a session is due at its first read + k·ts/speed. Lateness is
 when the read *completed* behind that due time (the Modbus round trip
-included) — what the experiment sees as jitter. CPU is the daemon process's
-CPU time (user + system) over the wall time, in percent of one core; the
-plant process's is reported beside it.
+included) — what the experiment sees as jitter. CPU is the daemon's CPU
+time (user + system: its process and the worker processes of the design) over
+the wall time, in percent of one core; the plant process's is reported beside it.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from .daemon import LoopManager
 from .expr import parse_process
 from .history import History
 from .remote import PLANT_TICKS_PER_SAMPLE
+from .session import design_cpu
 
 # A fast plant: one tuning is about a minute of plant time (ts 0.1 s: about 60 samples per period).
 DEFAULT_PLANT = "exp(-0.5*s)/(s+1)"
@@ -60,18 +61,28 @@ class LoadResult:
 
 
 class _Timed:
-    """A link whose ``read_pv`` calls are time-stamped (start and completion); everything else forwarded."""
+    """A link whose ``read_pv`` calls are time-stamped (start and completion); everything else forwarded.
 
-    def __init__(self, link: Any, starts: list[float], done: list[float]) -> None:
+    The daemon also monitors idle loops through links of its own (reads, no
+    MV): only a link that writes an MV is a session's.
+    """
+
+    def __init__(self, link: Any) -> None:
         self._link = link
-        self._starts = starts
-        self._done = done
+        self.starts: list[float] = []
+        self.done: list[float] = []
+        self.session = False
 
     async def read_pv(self) -> float:
-        self._starts.append(time.monotonic())
+        start = time.monotonic()
         pv = await self._link.read_pv()
-        self._done.append(time.monotonic())
+        self.starts.append(start)
+        self.done.append(time.monotonic())
         return pv
+
+    async def write_mv(self, mv: float) -> None:
+        self.session = True
+        await self._link.write_mv(mv)
 
     @property
     def pv_age(self) -> float | None:
@@ -79,6 +90,12 @@ class _Timed:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._link, name)
+
+
+def _timed(link: Any, links: list[_Timed]) -> _Timed:
+    timed = _Timed(link)
+    links.append(timed)
+    return timed
 
 
 def lateness(starts: list[float], done: list[float], period: float) -> np.ndarray:
@@ -127,17 +144,17 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
              "tuning": {"amp": amp, "time_limit": time_limit}} for i, port in enumerate(ports)]})
         history = History(config.history)
         manager = LoopManager(config, history)
-        reads: dict[str, tuple[list[float], list[float]]] = {loop_id: ([], []) for loop_id in manager.loops}
-        for loop_id, item in manager.loops.items():
-            item.connect = (lambda connect, times: lambda: _Timed(connect(), *times))(item.connect, reads[loop_id])
+        links: list[_Timed] = []
+        for item in manager.loops.values():
+            item.connect = (lambda connect: lambda: _timed(connect(), links))(item.connect)
         await manager.start()
         try:
-            cpu0, wall0 = time.process_time(), time.monotonic()
+            cpu0, wall0 = time.process_time() + design_cpu(), time.monotonic()
             for loop_id in manager.loops:
                 manager.tune(loop_id, TuneRequest(), "loadbench")
             await asyncio.gather(*(manager.wait(loop_id) for loop_id in manager.loops))
             wall = time.monotonic() - wall0
-            cpu = 100.0 * (time.process_time() - cpu0) / wall
+            cpu = 100.0 * (time.process_time() + design_cpu() - cpu0) / wall
         finally:
             await manager.stop()
             history.close()
@@ -149,7 +166,8 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
             child.kill()
     results = {loop_id: item.result or {} for loop_id, item in manager.loops.items()}
     failures = {loop_id: r.get("message", "no result") for loop_id, r in results.items() if r.get("ite") != 0}
-    late = 1e3 * np.concatenate([lateness(starts, done, ts / speed) for starts, done in reads.values()])
+    late = 1e3 * np.concatenate([lateness(link.starts, link.done, ts / speed) for link in links if link.session]
+                                + [np.zeros(0)])
     p50, p99 = np.percentile(late, [50, 99]) if late.size else (float("nan"),) * 2
     return LoadResult(n, n - len(failures), wall, int(late.size), float(p50), float(p99),
                       float(late.max()) if late.size else float("nan"), cpu, cpu_plants, failures)
