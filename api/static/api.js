@@ -32,6 +32,7 @@ export class ApiError extends Error {
         if (this.code === "nothing_to_apply") return `Refused (409): there are no new gains to apply — ${m}.`;
         return `Refused (409): ${m}.`;
       case 422: return `Invalid input (422): ${m}.`;
+      case 502: return `The controller could not be reached (502): ${m}.`;
       default: return `Error ${this.status} (${this.code}): ${m}.`;
     }
   }

@@ -1,0 +1,84 @@
+"""Screenshots of the operator page for the docs: ``python -m tests.screenshots [OUTDIR]`` (default: docs/).
+
+Starts the real built-in demo (``autotuner serve``, 20× real time) with a known operator token, drives the page in
+headless Chromium (Playwright): tunes TIC-101 from its loop page and saves ``loop-page.png`` when it has finished;
+then aborts a tuning of FIC-301 (TBRK), starts one of LIC-201 and saves ``overview.png`` while it runs.
+About 30 s. Needs Chromium (Debian: ``apt-get install chromium``; elsewhere set AUTOTUNER_CHROMIUM).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+from playwright.sync_api import sync_playwright
+
+TOKEN = "screenshot-operator"
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+        "--disable-sync", "--no-first-run", "--disable-quic"]
+
+
+def main(outdir: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--port", str(port)],
+                            env={**os.environ, "AUTOTUNER_TOKEN": TOKEN}, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    base = f"http://127.0.0.1:{port}"
+    api = httpx.Client(base_url=f"{base}/api/v1", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                if api.get("/health").status_code == 200:
+                    break
+            except httpx.TransportError:
+                time.sleep(0.1)
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise SystemExit("autotuner serve did not start")
+        chromium = os.environ.get("AUTOTUNER_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium, args=ARGS)
+            page = browser.new_page(viewport={"width": 1360, "height": 860})
+            page.set_default_timeout(120_000)
+            page.goto(base)
+            page.fill("#token", TOKEN)
+            page.click("#login button[type=submit]")
+            page.wait_for_selector("#loops tbody tr")
+            time.sleep(3)  # a few monitor samples before the experiment
+            page.goto(f"{base}/#/loop/TIC-101")
+            page.select_option("#f-apply", "false")
+            page.click("#tune:enabled")
+            page.wait_for_selector("#badge:has-text('OK')")
+            page.wait_for_selector("#step-load path[data-series='PV new']")
+            time.sleep(4)  # the loop settling back after the experiment
+            page.screenshot(path=outdir / "loop-page.png", full_page=True)
+
+            api.post("/loops/FIC-301/tune").raise_for_status()
+            time.sleep(2)
+            api.post("/loops/FIC-301/break").raise_for_status()
+            while api.get("/loops/FIC-301").json()["tbsy"]:
+                time.sleep(0.2)
+            api.post("/loops/LIC-201/tune", json={"controller": "PID"}).raise_for_status()
+            page.set_viewport_size({"width": 1360, "height": 400})
+            page.goto(f"{base}/#/")
+            page.wait_for_function("() => { const r = document.querySelector('tr[data-loop=LIC-201] .progress');"
+                                   " return r && Number(r.getAttribute('aria-valuenow')) >= 30; }")
+            page.screenshot(path=outdir / "overview.png", full_page=False)
+            browser.close()
+    finally:
+        api.close()
+        proc.terminate()
+        proc.wait(60)
+    print(f"wrote {outdir / 'overview.png'} and {outdir / 'loop-page.png'}")
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parent.parent / "docs")
