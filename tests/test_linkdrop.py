@@ -1,0 +1,104 @@
+"""A loop whose link drops in the middle of a session, in a daemon tuning another loop at the same time.
+
+Two simulated PLCs, each behind its own real Modbus TCP server on localhost,
+tuned together by one :class:`LoopManager`. The server of the first stops
+mid-experiment for longer than its link's retries and comes back: that
+session ends with the link fault (code 7) and its loop is put back (the
+restore is retried until the device answers again); the other loop keeps
+sampling on schedule through the outage and its tuning succeeds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Any
+
+from autotuner.config import DaemonConfig, TuneRequest
+from autotuner.daemon import LoopManager
+from autotuner.expr import parse_process
+from autotuner.history import History
+from autotuner.relay import Code
+from autotuner.remote import PLANT_TICKS_PER_SAMPLE, served
+from drivers.link import Mode
+from drivers.modbus_server import serve_modbus
+from drivers.simplc import SimulatedPlc
+
+PLANT = "exp(-s)/(2*s+1)"
+TS = 0.1
+SPEED = 5.0  # 20 ms of wall time per sample
+OUTAGE = 4.0  # wall seconds: longer than a Modbus call's retries (timeout 1 s, 2 retries)
+
+
+class Stamped:
+    """A link whose PV reads are time-stamped (wall, monotonic); everything else forwarded."""
+
+    def __init__(self, link: Any, stamps: list[float]) -> None:
+        self._link = link
+        self._stamps = stamps
+
+    async def read_pv(self) -> float:
+        pv = await self._link.read_pv()
+        self._stamps.append(time.monotonic())
+        return pv
+
+    async def write_mv(self, mv: float) -> None:
+        await self._link.write_mv(mv)
+
+    @property
+    def pv_age(self) -> float | None:
+        return self._link.pv_age
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._link, name)
+
+
+async def scenario() -> dict[str, Any]:
+    process = parse_process(PLANT)
+    plcs = {name: SimulatedPlc(process, ts=TS / PLANT_TICKS_PER_SAMPLE) for name in ("A", "B")}
+    async with served(plcs["A"], "modbus", SPEED) as (url_a, server_a), \
+            served(plcs["B"], "modbus", SPEED) as (url_b, _):
+        config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
+            {"id": name, "link": url, "ts": TS, "speed": SPEED, "monitor_period": 0.5,
+             "tuning": {"amp": 5.0, "time_limit": 600.0}}
+            for name, url in (("A", url_a), ("B", url_b))]})
+        history = History(config.history)
+        manager = LoopManager(config, history)
+        stamps: list[float] = []
+        loop_b = manager.loops["B"]
+        loop_b.connect = (lambda connect: lambda: Stamped(connect(), stamps))(loop_b.connect)
+        await manager.start()
+        replacement = None
+        try:
+            manager.tune("A", TuneRequest(), "test")
+            manager.tune("B", TuneRequest(), "test")
+            await asyncio.sleep(2.0)
+            port = server_a.port
+            await server_a.close()
+            down = time.monotonic()
+            await asyncio.sleep(OUTAGE)
+            replacement = await serve_modbus(plcs["A"], "127.0.0.1", port)
+            up = time.monotonic()
+            await manager.wait("A")
+            await manager.wait("B")
+        finally:
+            await manager.stop()
+            history.close()
+            if replacement is not None:
+                await replacement.close()
+    return {"a": manager.loops["A"].result, "b": manager.loops["B"].result, "plc_a": plcs["A"],
+            "stamps": stamps, "down": down, "up": up}
+
+
+def test_a_link_dropping_mid_session_fails_that_loop_safely_and_never_blocks_the_other():
+    out = asyncio.run(scenario())
+    a, b = out["a"], out["b"]
+    assert a["ite"] == Code.LINK_FAULT and a["te"] is True, a["message"]
+    assert "NOT RESTORED" not in a["message"]  # the restore came through once the device answered
+    assert out["plc_a"].mode is Mode.AUTO  # put back in its mode once the device answered again
+    assert b["ite"] == Code.OK and b["te"] is False, b["message"]
+    # B sampled on through A's outage: reads during it, never a gap near the outage's length.
+    during = [t for t in out["stamps"] if out["down"] <= t <= out["up"]]
+    assert len(during) >= 0.5 * OUTAGE * SPEED / TS
+    gaps = [later - earlier for earlier, later in zip(out["stamps"], out["stamps"][1:])]
+    assert max(gaps) < 1.0
