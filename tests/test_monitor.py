@@ -13,13 +13,14 @@ import time
 
 import pytest
 
-from autotuner.config import ConfigError, DaemonConfig, TuneRequest, parse_config
-from autotuner.daemon import LoopManager
+from autotuner.config import ConfigError, TuneRequest, parse_config
 from autotuner.expr import parse_process
-from autotuner.history import History
 from autotuner.tuning import default_sample_time
 from drivers.link import LinkError, Mode
 from drivers.simlink import SimLink
+
+from test_daemon import manager
+from test_handshake import until
 
 PLANT = "exp(-s)/(2*s+1)"
 SPEED = 10.0
@@ -30,18 +31,6 @@ PERIOD = 0.05
 def loop(loop_id: str, **extra) -> dict:
     return {"id": loop_id, "sim": {"plant": PLANT}, "ts": TS, "speed": SPEED, "monitor_period": PERIOD,
             "tuning": {"amp": 5.0, "time_limit": 500.0}, **extra}
-
-
-def manager(*loops: dict) -> LoopManager:
-    return LoopManager(DaemonConfig.model_validate({"history": ":memory:", "loops": list(loops)}),
-                       History(":memory:"))
-
-
-async def until(predicate, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        assert time.monotonic() < deadline, f"no {what} within {timeout} s"
-        await asyncio.sleep(0.01)
 
 
 def drain(queue: asyncio.Queue) -> list[dict]:
