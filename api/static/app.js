@@ -448,7 +448,7 @@ function loopView(id) {
     $("#trend-info").textContent = n ? `${n} samples · last ${clock(trend.time[n - 1])}` : "waiting for samples…";
     if (!n) return;
     const x1 = trend.time[n - 1];
-    const x0 = Math.min(trend.time[0], x1 - 30);
+    const x0 = Math.min(trend.time[0], x1 - 10);
     const hasRelay = trend.relay.some((r) => r !== null);
     const panels = [
       { height: 190, label: "PV, SP", series: [
@@ -478,6 +478,8 @@ function loopView(id) {
       state(data) {
         const startedNew = data.tbsy && (!loop || !loop.tbsy || loop.session !== data.session);
         if (startedNew) for (const k of Object.keys(trend)) trend[k].length = 0;
+        // The experiment's samples end here and the monitor's resume later: no line drawn across the pause.
+        if (loop?.tbsy && !data.tbsy) gap();
         // A state event lacks nothing the page needs; keep the live values the samples brought meanwhile.
         loop = { ...loop, ...data };
         update();
@@ -683,7 +685,7 @@ function historyView(id) {
       fill(box, h("div", { class: "card-head" }, h("h2", {}, `${sessions.length} session${sessions.length === 1 ? "" : "s"}`)),
         sessions.length ? h("table", { class: "history", id: "history" },
           h("thead", {}, h("tr", {}, h("th", {}, "Started"), h("th", {}, "Who"), h("th", {}, "Outcome"), h("th", {}, "Type"),
-            h("th", {}, "Point ω · |F| ∠F"), h("th", {}, "Gains before"), h("th", {}, "Gains designed"), h("th", {}, "Applied"))),
+            h("th", {}, "Identified point"), h("th", {}, "Gains before"), h("th", {}, "Gains designed"), h("th", {}, "Applied"))),
           tbody) : h("p", { class: "muted" }, "No sessions yet."));
     } catch (err) {
       notify(err, box);

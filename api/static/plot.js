@@ -149,8 +149,10 @@ export function timeChart(svg, opts) {
   });
   const axisY = y - gap;
   for (const v of xt) {
-    el("text", { class: "tick", x: sx(v), y: axisY + 15, "text-anchor": "middle" }, svg,
-       opts.xTick ? opts.xTick(v) : label(v));
+    const text = opts.xTick ? opts.xTick(v) : label(v);
+    const half = 3.4 * text.length; // about half the label's width: keep it inside the chart
+    const x = Math.min(Math.max(sx(v), left + half), width - right - half);
+    el("text", { class: "tick", x, y: axisY + 15, "text-anchor": "middle" }, svg, text);
   }
   if (opts.xLabel) el("text", { class: "axis-label", x: left + plotW, y: axisY + 30, "text-anchor": "end" }, svg, opts.xLabel);
   svg.dataset.points = points;
