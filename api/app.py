@@ -32,7 +32,8 @@ from autotuner.history import History
 from . import errors
 from .auth import Principal, Tokens, require
 from .events import stream
-from .models import Accepted, Analysis, Applied, ApplyRequest, Health, LoopStatus, Session, SessionSummary
+from .models import (Accepted, Analysis, Applied, ApplyRequest, Health, LoopStatus, Session, SessionSummary,
+                     Whoami)
 
 PREFIX = "/api/v1"
 # The operator page (issue 7): static files using only the public API below.
@@ -63,6 +64,12 @@ Manager = Annotated[LoopManager, Depends(_manager)]
 async def health(manager: Manager) -> dict[str, Any]:
     """Liveness (no token needed)."""
     return {"status": "ok", "loops": len(manager.loops)}
+
+
+@router.get("/whoami", response_model=Whoami, tags=["health"])
+async def whoami(who: Viewer) -> dict[str, str]:
+    """The caller's token: its name and role (what the operator page enables)."""
+    return {"name": who.name, "role": who.role}
 
 
 @router.get("/loops", response_model=list[LoopStatus], tags=["loops"])

@@ -33,6 +33,25 @@ class GainsOut(BaseModel):
     pc: float
 
 
+class TuneDefaults(BaseModel):
+    """What a TUNE without a body runs: the loop's configured controller, relay amplitude (MV units), hysteresis
+    (PV units; null: measured from the noise), phase lag (degrees), Ms, and whether the gains are applied."""
+
+    controller: Literal["PI", "PID"]
+    amp: float
+    hysteresis: float | None
+    phase: float
+    ms: float
+    apply: bool
+
+
+class Whoami(BaseModel):
+    """The caller: the token's name (recorded in the history as the user) and its role."""
+
+    name: str
+    role: Literal["viewer", "operator", "admin"]
+
+
 class LoopStatus(BaseModel):
     """A loop: the PIDAT outputs (tbsy, te, ite), the stage and progress (0–1), the last point and gains, and
     the live values.
@@ -43,6 +62,7 @@ class LoopStatus(BaseModel):
     last read. last_tuned_at, last_outcome: the newest finished session.
     pending_gains: idle, and that session succeeded with gains not applied.
     monitor_error: why the monitor cannot read the loop, null when fine.
+    defaults: the settings a TUNE without a body runs with.
     """
 
     id: str
@@ -69,6 +89,7 @@ class LoopStatus(BaseModel):
     last_outcome: Literal["success", "failure"] | None
     pending_gains: bool
     monitor_error: str | None
+    defaults: TuneDefaults
 
 
 class Accepted(BaseModel):

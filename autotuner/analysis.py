@@ -31,14 +31,12 @@ from typing import Any
 
 import numpy as np
 
-from .closedloop import DIVERGED
+from .closedloop import closed_loop_step
 from .design import fit_model
 from .gains import Gains
-from .pid import PidUnit
 from .process import Process
 from .relay import Point
 from .robustness import check_loop, log_grid, pid_frequency_response
-from .simulate import PlantSim
 
 # Points of a Nyquist curve and of a time response.
 NYQUIST_POINTS = 300
@@ -118,24 +116,12 @@ def nyquist(model: Process, gains: Gains, omega: float) -> dict[str, list[float]
 def step_response(model: Process, gains: Gains, step: str, ts: float, samples: int) -> tuple[np.ndarray, np.ndarray]:
     """(PV, MV) at ``samples`` samples ``ts`` seconds apart after a unit step at t = 0, from rest at 0.
 
-    ``step`` is "setpoint" (SP 0 → 1) or "load" (SP 0, a unit step added to
-    the MV at the process input). The controller kind follows the gains and
-    applies ``b`` and ``c``. PV at sample k is taken just before the MV of
-    sample k is applied. A diverging loop's samples after ``|PV| > 1e6``
-    repeat the last value.
+    As :func:`~autotuner.closedloop.closed_loop_step` ("setpoint" or "load"),
+    with a diverging loop's last values repeated to ``samples`` points.
     """
-    sim = PlantSim(model, ts, loads=[(0.0, 1.0)] if step == "load" else ())
-    pid = PidUnit(gains, kind=gains.controller_type)
-    sp = 1.0 if step == "setpoint" else 0.0
-    pv, mv = np.empty(samples), np.empty(samples)
-    for k in range(samples):
-        pv[k] = sim.true_pv()
-        if not abs(pv[k]) <= DIVERGED:
-            pv[k:], mv[k:] = pv[k - 1] if k else 0.0, mv[k - 1] if k else 0.0
-            break
-        mv[k] = pid.step(k * ts, sp, pv[k])
-        sim.advance(mv[k])
-    return pv, mv
+    pv, mv = closed_loop_step(model, gains, step, ts, samples)
+    pad = samples - len(pv)
+    return np.pad(pv, (0, pad), mode="edge"), np.pad(mv, (0, pad), mode="edge")
 
 
 def settling_time(pv: np.ndarray, ts: float) -> float:

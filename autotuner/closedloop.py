@@ -79,24 +79,27 @@ def margins(process: Process, gains: Gains, w_ref: float) -> Margins:
     return Margins(check.stable, check.ms, min(gm, default=math.inf), min(pm, default=math.inf))
 
 
-def simulate_errors(process: Process, gains: Gains, step: str, ts: float, samples: int) -> np.ndarray:
-    """Control errors ``sp − pv`` at the samples after a unit step at t = 0.
+def closed_loop_step(process: Process, gains: Gains, step: str, ts: float,
+                     samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """(PV, MV) at the samples (``ts`` seconds apart) after a unit step at t = 0, from rest at 0.
 
     ``step`` is "load" (unit load step at the process input, set point 0)
     or "setpoint" (unit set-point step). The controller kind follows the gains
-    (P, PI, PD, PID). The array is cut short if the loop diverges.
+    (P, PI, PD, PID) and applies ``b`` and ``c``. PV at sample k is taken just
+    before the MV of sample k is applied. The arrays are cut short after the
+    first error beyond :data:`DIVERGED` if the loop diverges.
     """
     sim = PlantSim(process, ts, loads=[(0.0, 1.0)] if step == "load" else ())
     pid = PidUnit(gains, kind=gains.controller_type)
     sp = 1.0 if step == "setpoint" else 0.0
-    errors = np.empty(samples)
+    pv, mv = np.empty(samples), np.empty(samples)
     for k in range(samples):
-        pv = sim.true_pv()
-        errors[k] = sp - pv
-        if abs(errors[k]) > DIVERGED:
-            return errors[: k + 1]
-        sim.advance(pid.step(k * ts, sp, pv))
-    return errors
+        pv[k] = sim.true_pv()
+        mv[k] = pid.step(k * ts, sp, pv[k])
+        if abs(sp - pv[k]) > DIVERGED:
+            return pv[: k + 1], mv[: k + 1]
+        sim.advance(mv[k])
+    return pv, mv
 
 
 def integrated_error(process: Process, gains: Gains, step: str, period: float,
@@ -109,7 +112,8 @@ def integrated_error(process: Process, gains: Gains, step: str, period: float,
     """
     ts = period / samples_per_period
     samples = int(round(horizon_periods * samples_per_period))
-    errors = simulate_errors(process, gains, step, ts, samples)
+    pv, _ = closed_loop_step(process, gains, step, ts, samples)
+    errors = (1.0 if step == "setpoint" else 0.0) - pv
     if len(errors) < samples:
         return math.inf, math.inf
     t = ts * np.arange(samples)

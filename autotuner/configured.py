@@ -12,15 +12,12 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable
 
-from drivers.link import Link
-from drivers.simlink import SimLink
-from drivers.simplc import SimulatedPlc, run
+from drivers.simplc import run
 
 from .config import DaemonConfig, LoopConfig, TuneRequest
-from .daemon import relay_config, settings_of
-from .expr import parse_process
+from .daemon import connector, relay_config, settings_of, simulated_plc
 from .relay import Status
-from .remote import PLANT_TICKS_PER_SAMPLE, open_link, tune_opened
+from .remote import tune_opened
 from .tuning import TuneResult
 
 
@@ -31,21 +28,6 @@ def find_loop(config: DaemonConfig, loop_id: str) -> LoopConfig:
             return loop
     known = ", ".join(loop.id for loop in config.loops) or "none"
     raise ValueError(f"no loop {loop_id!r} in the config (loops: {known})")
-
-
-def simulated_plc(loop: LoopConfig) -> SimulatedPlc | None:
-    """The simulated PLC of a ``sim:`` loop (its plant ticks ``PLANT_TICKS_PER_SAMPLE`` times per sample), else None."""
-    if loop.sim is None:
-        return None
-    return SimulatedPlc(parse_process(loop.sim.plant), ts=loop.ts / PLANT_TICKS_PER_SAMPLE,
-                        noise_std=loop.sim.noise, seed=loop.sim.seed)
-
-
-def connector(loop: LoopConfig, plc: SimulatedPlc | None) -> Callable[[], Link]:
-    """How to reach ``loop``: a new link to ``plc`` if it is simulated, else to its configured URL."""
-    if plc is not None:
-        return lambda: SimLink(plc)
-    return lambda: open_link(str(loop.link), _path(loop.map), _path(loop.dbc))
 
 
 async def tune_configured(
@@ -63,7 +45,3 @@ async def tune_configured(
         halt.set()
         if plant is not None:
             await plant
-
-
-def _path(path: object) -> str | None:
-    return None if path is None else str(path)

@@ -128,6 +128,21 @@ def settings_of(loop: LoopConfig, request: TuneRequest) -> Settings:
     )
 
 
+def simulated_plc(loop: LoopConfig) -> SimulatedPlc | None:
+    """The simulated PLC of a ``sim:`` loop (its plant ticks ``PLANT_TICKS_PER_SAMPLE`` times per sample), else None."""
+    if loop.sim is None:
+        return None
+    return SimulatedPlc(parse_process(loop.sim.plant), ts=loop.ts / PLANT_TICKS_PER_SAMPLE,
+                        noise_std=loop.sim.noise, seed=loop.sim.seed)
+
+
+def connector(loop: LoopConfig, plc: SimulatedPlc | None) -> Callable[[], Link]:
+    """How to reach ``loop``: a new link to ``plc`` if it is simulated, else to its configured URL."""
+    if plc is not None:
+        return lambda: SimLink(plc)
+    return lambda: open_link(str(loop.link), _str(loop.map), _str(loop.dbc))
+
+
 def relay_config(loop: LoopConfig, settings: Settings) -> RelayConfig:
     """The experiment's settings with the loop's safety limits and the field tolerances."""
     return field_config(RelayConfig(
@@ -248,6 +263,7 @@ class Loop:
             "last_outcome": None if self.latest is None else self.latest["outcome"],
             "pending_gains": self.pending_gains,
             "monitor_error": self.monitor_error,
+            "defaults": settings_of(c, TuneRequest()).as_json(),
         }
 
 
@@ -271,11 +287,8 @@ class LoopManager:
 
     @staticmethod
     def _loop(config: LoopConfig) -> Loop:
-        if config.sim is None:
-            return Loop(config, lambda: open_link(config.link, _str(config.map), _str(config.dbc)))
-        plc = SimulatedPlc(parse_process(config.sim.plant), ts=config.ts / PLANT_TICKS_PER_SAMPLE,
-                           noise_std=config.sim.noise, seed=config.sim.seed)
-        return Loop(config, lambda: SimLink(plc), plc=plc)
+        plc = simulated_plc(config)
+        return Loop(config, connector(config, plc), plc=plc)
 
     async def start(self) -> None:
         """Start the simulated plants and put back the loops of sessions a crash left running."""

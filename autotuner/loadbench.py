@@ -106,6 +106,14 @@ def lateness(starts: list[float], done: list[float], period: float) -> np.ndarra
     return t - (starts[0] + period * np.arange(len(t)))
 
 
+def _receive(conn: Any, child: Any) -> Any:
+    """The plant process's next message; RuntimeError if it dies first (it never answers then)."""
+    while not conn.poll(0.2):
+        if not child.is_alive():
+            raise RuntimeError(f"the plant process ended (exit code {child.exitcode}) before it answered")
+    return conn.recv()
+
+
 def _plants_main(n: int, plant: str, ts: float, speed: float, conn: Any) -> None:
     """Child process: N simulated PLCs behind N Modbus servers; sends the ports, runs until told, sends CPU."""
     from drivers.modbus_server import serve_modbus
@@ -138,7 +146,7 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
     child.start()
     loop = asyncio.get_running_loop()
     try:
-        ports = await loop.run_in_executor(None, ours.recv)
+        ports = await loop.run_in_executor(None, _receive, ours, child)
         config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
             {"id": f"L{i:03d}", "link": f"modbus://127.0.0.1:{port}/1", "ts": ts, "speed": speed, "apply": True,
              "tuning": {"amp": amp, "time_limit": time_limit}} for i, port in enumerate(ports)]})
@@ -159,7 +167,7 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
             await manager.stop()
             history.close()
         ours.send("stop")
-        cpu_plants = await loop.run_in_executor(None, ours.recv)
+        cpu_plants = await loop.run_in_executor(None, _receive, ours, child)
     finally:
         child.join(10)
         if child.is_alive():

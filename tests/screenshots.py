@@ -9,8 +9,6 @@ About 30 s. Needs Chromium (Debian: ``apt-get install chromium``; elsewhere set 
 from __future__ import annotations
 
 import os
-import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -19,15 +17,13 @@ from pathlib import Path
 import httpx
 from playwright.sync_api import sync_playwright
 
+from tests.test_browser import CHROMIUM_ARGS, chromium_path, free_port
+
 TOKEN = "screenshot-operator"
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-        "--disable-sync", "--no-first-run", "--disable-quic"]
 
 
 def main(outdir: Path) -> None:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--port", str(port)],
                             env={**os.environ, "AUTOTUNER_TOKEN": TOKEN}, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
@@ -43,9 +39,8 @@ def main(outdir: Path) -> None:
                 time.sleep(0.1)
             if time.monotonic() > deadline or proc.poll() is not None:
                 raise SystemExit("autotuner serve did not start")
-        chromium = os.environ.get("AUTOTUNER_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=chromium, args=ARGS)
+            browser = p.chromium.launch(executable_path=chromium_path(), args=CHROMIUM_ARGS)
             page = browser.new_page(viewport={"width": 1360, "height": 860})
             page.set_default_timeout(120_000)
             page.goto(base)

@@ -237,3 +237,15 @@ def test_tune_over_modbus_tcp_through_http_writes_the_gains():
     assert done["te"] is False and done["ite"] == 0, done["message"]
     assert record["gains_after"]["pk"] == pytest.approx(done["gains"]["pk"])  # read back over Modbus
     assert plc.gains.k == pytest.approx(done["gains"]["pk"], rel=1e-3) and plc.mode is Mode.AUTO
+
+
+def test_whoami_names_the_token_and_its_role_and_status_carries_the_loop_defaults(client):
+    assert client.get(f"{API}/whoami", headers=auth(VIEWER)).json() == {"name": "hmi", "role": "viewer"}
+    assert client.get(f"{API}/whoami", headers=auth(ADMIN)).json() == {"name": "root", "role": "admin"}
+    assert client.get(f"{API}/whoami", headers=auth(OPERATOR)).json()["role"] == "operator"
+    assert client.get(f"{API}/whoami").status_code == 401
+    loop = CONFIG.loops[0]
+    defaults = client.get(f"{API}/loops/{loop.id}", headers=auth(VIEWER)).json()["defaults"]
+    assert defaults == {"controller": loop.tuning.controller, "amp": loop.tuning.amp,
+                        "hysteresis": loop.tuning.hysteresis, "phase": loop.tuning.phase, "ms": loop.tuning.ms,
+                        "apply": loop.apply}

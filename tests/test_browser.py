@@ -24,10 +24,8 @@ import yaml
 
 from api.auth import token_hash
 from autotuner.demo import demo_config
+from playwright.sync_api import sync_playwright
 
-sync_api = pytest.importorskip("playwright.sync_api")
-
-CHROMIUM = os.environ.get("AUTOTUNER_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
                  "--disable-sync", "--no-first-run", "--disable-quic"]
 OPERATOR, VIEWER = "browser-operator-secret", "browser-viewer-secret"
@@ -35,8 +33,15 @@ SPEED = 12.0
 # Generous: the plants run in real time (scaled) on a machine shared with the rest of the suite.
 TIMEOUT_MS = 90_000
 
-pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists() and shutil.which("chromium") is None,
-                                reason="Chromium is not installed (apt-get install chromium)")
+
+
+def chromium_path() -> str:
+    """The distribution's Chromium ($AUTOTUNER_CHROMIUM, else ``chromium`` on PATH); a clear failure without it."""
+    path = os.environ.get("AUTOTUNER_CHROMIUM") or shutil.which("chromium")
+    if path is None or not Path(path).exists():
+        pytest.fail("the browser tests need Chromium: apt-get install chromium (Debian), or set AUTOTUNER_CHROMIUM "
+                    "to its executable", pytrace=False)
+    return path
 
 
 def free_port() -> int:
@@ -177,9 +182,8 @@ def daemon(tmp_path_factory) -> Iterator[Daemon]:
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[object]:
-    with sync_api.sync_playwright() as p:
-        path = CHROMIUM if Path(CHROMIUM).exists() else shutil.which("chromium")
-        b = p.chromium.launch(executable_path=path, args=CHROMIUM_ARGS)
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=chromium_path(), args=CHROMIUM_ARGS)
         yield b
         b.close()
 
@@ -243,6 +247,10 @@ def test_operator_tunes_from_the_page_applies_the_gains_and_finds_the_session_in
     page.click("tr[data-loop=TIC-101] a.loop-id")
     page.wait_for_selector("#tune:enabled")
     assert page.is_disabled("#tbrk")
+    # The TUNE form shows the loop's configured defaults (the demo's amp 5, phase 135°, Ms 1.4).
+    assert float(page.input_value("#f-amp")) == 5.0
+    assert float(page.input_value("#f-phase")) == 135.0 and float(page.input_value("#f-ms")) == 1.4
+    assert page.input_value("#f-controller") == "PI" and page.input_value("#f-apply") == "false"
     page.select_option("#f-controller", "PI")
     page.select_option("#f-apply", "false")
     page.click("#tune")

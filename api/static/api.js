@@ -79,25 +79,8 @@ export async function api(method, path, body, token) {
 export const get = (path) => api("GET", path);
 export const post = (path, body) => api("POST", path, body);
 
-// Who the token is: {name, role}. Uses GET /whoami when the daemon has it; otherwise probes the role with a
-// request that changes nothing (TBRK of a loop that does not exist: 403 for a viewer, 404 for an operator).
-export async function whoami(token) {
-  try {
-    const me = await api("GET", "/whoami", undefined, token);
-    if (me && me.role) return me;
-  } catch (exc) {
-    if (exc.status === 401) throw exc;
-  }
-  await api("GET", "/loops", undefined, token); // 401 for an unknown token
-  try {
-    await api("POST", "/loops/%20role-probe%20/break", undefined, token);
-  } catch (exc) {
-    if (exc.status === 403) return { name: null, role: "viewer" };
-    if (exc.status === 404 || exc.status === 409) return { name: null, role: "operator" };
-    throw exc;
-  }
-  return { name: null, role: "operator" };
-}
+// Who the token is: {name, role} (401 for a token the daemon does not know).
+export const whoami = (token) => api("GET", "/whoami", undefined, token);
 
 // The SSE stream of a loop, read with fetch() and parsed here; reconnects by itself.
 // handlers: {state(data), sample(data), status(connected: bool, detail)}. Returns {close()}.

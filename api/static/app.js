@@ -559,18 +559,13 @@ function tuneForm(id, getLoop) {
     for (const f of Object.values(fields)) f.disabled = !canOperate();
   };
   obj.setDefaults = (loop) => {
-    const d = loop.tuning || loop.defaults || null;
-    if (!d) {
-      for (const k of ["amp", "phase", "ms"]) fields[k].placeholder = "loop default";
-      return;
-    }
-    if (d.controller) fields.controller.value = d.controller;
-    if (d.amp !== undefined && d.amp !== null) fields.amp.value = d.amp;
-    if (d.hysteresis !== undefined && d.hysteresis !== null) fields.hysteresis.value = d.hysteresis;
-    if (d.phase !== undefined && d.phase !== null) fields.phase.value = d.phase;
-    if (d.ms !== undefined && d.ms !== null) fields.ms.value = d.ms;
-    const ap = d.apply ?? loop.apply;
-    if (ap !== undefined && ap !== null) fields.apply.value = ap ? "true" : "false";
+    const d = loop.defaults;
+    fields.controller.value = d.controller;
+    fields.amp.value = d.amp;
+    fields.hysteresis.value = d.hysteresis ?? "";
+    fields.phase.value = d.phase;
+    fields.ms.value = d.ms;
+    fields.apply.value = d.apply ? "true" : "false";
   };
   return obj;
 }
