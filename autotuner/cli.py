@@ -489,12 +489,17 @@ def serve_command(
     from api.auth import new_token
 
     from .demo import demo_config
+    from .history import History
 
     if (ssl_certfile is None) != (ssl_keyfile is None):
         _bad_input("--ssl-certfile and --ssl-keyfile go together")
     try:
         daemon_config = demo_config() if config is None else load_config(config)
     except ConfigError as exc:
+        _bad_input(str(exc))
+    try:  # a database that cannot be opened is a clear error now, not a failed start inside uvicorn
+        History(daemon_config.history).close()
+    except ValueError as exc:
         _bad_input(str(exc))
     token = os.environ.get("AUTOTUNER_TOKEN") or None
     if config is None and token is None:

@@ -146,11 +146,31 @@ class Token(Strict):
 
 
 class DaemonConfig(Strict):
-    """The whole file: the history database (an SQLite file, or ``:memory:``), the tokens and the loops."""
+    """The whole file: the history database, the tokens and the loops.
+
+    ``history``: an SQLite file (relative to the config file), ``:memory:``,
+    or an SQLAlchemy database URL such as ``postgresql+psycopg://user:pw@host/db``
+    (the ``postgres`` extra installs the driver).
+    """
 
     history: str = "autotuner-history.db"
     tokens: list[Token] = []
     loops: list[LoopConfig]
+
+    @field_validator("history")
+    @classmethod
+    def _database(cls, history: str) -> str:
+        if "://" in history:
+            import sqlalchemy  # only here: the rest of the config does not need it
+
+            try:
+                sqlalchemy.engine.make_url(history)
+            except (sqlalchemy.exc.ArgumentError, ValueError):
+                raise ValueError(f"not a database URL (dialect+driver://user:password@host/database): "
+                                 f"{history!r}") from None
+        elif not history:
+            raise ValueError("empty: give an SQLite file, ':memory:' or a database URL")
+        return history
 
     @model_validator(mode="after")
     def _unique_ids(self) -> DaemonConfig:
@@ -210,5 +230,6 @@ def load_config(path: Path) -> DaemonConfig:
 
     loops = [loop.model_copy(update={"map": resolve(loop.map) or loop.map, "dbc": resolve(loop.dbc) or loop.dbc})
              for loop in config.loops]
-    history = config.history if config.history == ":memory:" else str(base / config.history)
+    plain_file = config.history != ":memory:" and "://" not in config.history
+    history = str(base / config.history) if plain_file else config.history
     return config.model_copy(update={"loops": loops, "history": history})

@@ -23,9 +23,9 @@ from .tuning import TuneResult
 
 def find_loop(config: DaemonConfig, loop_id: str) -> LoopConfig:
     """The loop ``loop_id`` of ``config``; ValueError listing the configured ids if there is none."""
-    for loop in config.loops:
-        if loop.id == loop_id:
-            return loop
+    loop = config.loop(loop_id)
+    if loop is not None:
+        return loop
     known = ", ".join(loop.id for loop in config.loops) or "none"
     raise ValueError(f"no loop {loop_id!r} in the config (loops: {known})")
 

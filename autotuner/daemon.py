@@ -68,7 +68,7 @@ from .gains import Gains
 from .history import History, downsample
 from .relay import MESSAGES, Code, RelayConfig, Stage, Status
 from .remote import PLANT_TICKS_PER_SAMPLE, field_config, open_link
-from .session import tune_link
+from .session import close_design_pool, tune_link
 from .tuning import Trace, TuneResult
 
 # Events kept per subscriber before the oldest are dropped.
@@ -320,6 +320,7 @@ class LoopManager:
             await asyncio.wait(tasks, timeout=STOP_WAIT)
         self._halt.set()
         await asyncio.gather(*self._plants)
+        await asyncio.to_thread(close_design_pool)
 
     def get(self, loop_id: str) -> Loop:
         """The loop ``loop_id``; Refused('not_found') if there is none."""

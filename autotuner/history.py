@@ -1,4 +1,4 @@
-"""History of tuning sessions in SQLite (the standard library's ``sqlite3``; one file, kept across restarts).
+"""History of tuning sessions: an SQLite file by default, or any SQLAlchemy database URL (PostgreSQL, ...).
 
 A session is written when it is requested (state ``running``), again when
 the loop's state — mode, MV, SP, gains — has been saved, before the
@@ -10,18 +10,22 @@ controller are recorded as applied (``applied_at``, ``applied_by``): at the
 end of a session asked to apply them, or later by ``POST /loops/{id}/apply``
 (:meth:`History.applied`), which also replaces the gains after.
 
-Records are plain JSON-able dicts; times are UTC ISO 8601 strings.
+Records are plain JSON-able dicts; times are UTC ISO 8601 strings (they sort
+as text). JSON is stored as text, so the one table works on every database
+SQLAlchemy Core speaks.
 """
 
 from __future__ import annotations
 
 import json
-import sqlite3
 import threading
 from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
+import sqlalchemy as sa
+from sqlalchemy.engine import Engine, RowMapping
+from sqlalchemy.pool import StaticPool
 
 from autotuner.gains import Gains
 from drivers.link import LoopState, Mode
@@ -31,26 +35,35 @@ from .tuning import Trace
 # Largest number of points of a stored trace.
 TRACE_POINTS = 500
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS sessions (
-    id TEXT PRIMARY KEY,
-    loop TEXT NOT NULL,
-    user TEXT NOT NULL,
-    started_at TEXT NOT NULL,
-    finished_at TEXT,
-    state TEXT NOT NULL,
-    request TEXT NOT NULL,
-    saved TEXT,
-    result TEXT,
-    gains_after TEXT,
-    trace TEXT,
-    applied_at TEXT,
-    applied_by TEXT
-);
-CREATE INDEX IF NOT EXISTS sessions_by_loop ON sessions (loop, started_at);
-"""
-# Columns added since the first schema, added to an older file when it is opened.
-_ADDED = (("applied_at", "TEXT"), ("applied_by", "TEXT"))
+_META = sa.MetaData()
+_SESSIONS = sa.Table(
+    "sessions", _META,
+    sa.Column("id", sa.String(64), primary_key=True),
+    sa.Column("loop", sa.String(64), nullable=False),
+    sa.Column("user", sa.Text, nullable=False),
+    sa.Column("started_at", sa.String(40), nullable=False),
+    sa.Column("finished_at", sa.String(40)),
+    sa.Column("state", sa.String(16), nullable=False),
+    sa.Column("request", sa.Text, nullable=False),
+    sa.Column("saved", sa.Text),
+    sa.Column("result", sa.Text),
+    sa.Column("gains_after", sa.Text),
+    sa.Column("trace", sa.Text),
+    sa.Column("applied_at", sa.String(40)),
+    sa.Column("applied_by", sa.Text),
+    sa.Index("sessions_by_loop", "loop", "started_at"),
+)
+# Columns added since the first schema, added to an older database when it is opened.
+_ADDED = ("applied_at", "applied_by")
+# Newest first; the id breaks a tie of two sessions started in the same microsecond.
+_NEWEST_FIRST = (_SESSIONS.c.started_at.desc(), _SESSIONS.c.id.desc())
+
+
+def database_url(history: str) -> str:
+    """The SQLAlchemy URL of a config's ``history``: a URL as given, ``:memory:``, else the path of an SQLite file."""
+    if "://" in history:
+        return history
+    return "sqlite://" if history == ":memory:" else f"sqlite:///{history}"
 
 
 def now() -> str:
@@ -76,36 +89,52 @@ def downsample(trace: Trace, points: int = TRACE_POINTS) -> dict[str, list[float
 
 
 class History:
-    """Sessions in the SQLite database ``path`` (``:memory:`` for a throw-away one); safe across threads."""
+    """Sessions in the database of ``history`` (see :func:`database_url`); safe across threads.
 
-    def __init__(self, path: str) -> None:
-        self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
-        self._db.row_factory = sqlite3.Row
+    Raises ValueError naming the database if it cannot be opened.
+    """
+
+    def __init__(self, history: str) -> None:
+        url = database_url(history)
+        memory = url == "sqlite://"
+        try:
+            # One shared connection for an in-memory SQLite (each new one would be another, empty database).
+            self._engine: Engine = sa.create_engine(
+                url, poolclass=StaticPool if memory else None,
+                connect_args={"check_same_thread": False} if url.startswith("sqlite") else {})
+            with self._engine.begin() as db:
+                _META.create_all(db)
+                columns = {c["name"] for c in sa.inspect(db).get_columns("sessions")}
+                for name in _ADDED:
+                    if name not in columns:
+                        db.execute(sa.text(f"ALTER TABLE sessions ADD COLUMN {name} {_SESSIONS.c[name].type}"))
+        except (sa.exc.SQLAlchemyError, ImportError) as exc:
+            shown = sa.engine.make_url(url).render_as_string(hide_password=True) if "://" in url else url
+            raise ValueError(f"history database {shown}: {exc}") from None
         self._lock = threading.Lock()
-        with self._lock:
-            self._db.executescript(_SCHEMA)
-            columns = {row["name"] for row in self._db.execute("PRAGMA table_info(sessions)")}
-            for name, kind in _ADDED:
-                if name not in columns:
-                    self._db.execute(f"ALTER TABLE sessions ADD COLUMN {name} {kind}")
 
     def close(self) -> None:
-        """Close the database."""
+        """Close the database connections."""
         with self._lock:
-            self._db.close()
+            self._engine.dispose()
+
+    def _write(self, sid: str, **values: Any) -> None:
+        with self._lock, self._engine.begin() as db:
+            db.execute(_SESSIONS.update().where(_SESSIONS.c.id == sid).values(**values))
+
+    def _read(self, query: sa.Select[Any]) -> list[RowMapping]:
+        with self._lock, self._engine.connect() as db:
+            return list(db.execute(query).mappings())
 
     def begin(self, sid: str, loop: str, user: str, request: dict[str, Any]) -> None:
         """Record a session that starts now on ``loop``, asked by ``user`` with ``request`` (settings in force)."""
-        with self._lock:
-            self._db.execute(
-                "INSERT INTO sessions (id, loop, user, started_at, state, request) VALUES (?, ?, ?, ?, 'running', ?)",
-                (sid, loop, user, now(), json.dumps(request)),
-            )
+        with self._lock, self._engine.begin() as db:
+            db.execute(_SESSIONS.insert().values(id=sid, loop=loop, user=user, started_at=now(), state="running",
+                                                 request=json.dumps(request)))
 
     def saved(self, sid: str, saved: LoopState) -> None:
         """Record the loop's state before session ``sid`` touches it (what a restart after a crash restores)."""
-        with self._lock:
-            self._db.execute("UPDATE sessions SET saved = ? WHERE id = ?", (json.dumps(state_json(saved)), sid))
+        self._write(sid, saved=json.dumps(state_json(saved)))
 
     def finish(self, sid: str, result: dict[str, Any], gains_after: Gains | None,
                trace: dict[str, list[float]] | None, state: str = "finished", applied_by: str | None = None) -> None:
@@ -116,57 +145,44 @@ class History:
         were written); None if they were not.
         """
         at = now()
-        with self._lock:
-            self._db.execute(
-                "UPDATE sessions SET finished_at = ?, state = ?, result = ?, gains_after = ?, trace = ?, "
-                "applied_at = ?, applied_by = ? WHERE id = ?",
-                (at, state, json.dumps(result, allow_nan=False),
-                 None if gains_after is None else json.dumps(gains_after.as_json()),
-                 None if trace is None else json.dumps(trace, allow_nan=False),
-                 None if applied_by is None else at, applied_by, sid),
-            )
+        self._write(sid, finished_at=at, state=state, result=json.dumps(result, allow_nan=False),
+                    gains_after=None if gains_after is None else json.dumps(gains_after.as_json()),
+                    trace=None if trace is None else json.dumps(trace, allow_nan=False),
+                    applied_at=None if applied_by is None else at, applied_by=applied_by)
 
     def applied(self, sid: str, user: str, gains_after: Gains) -> None:
         """Record that ``user`` had the gains of session ``sid`` written now; ``gains_after``: read back."""
-        with self._lock:
-            self._db.execute("UPDATE sessions SET applied_at = ?, applied_by = ?, gains_after = ? WHERE id = ?",
-                             (now(), user, json.dumps(gains_after.as_json()), sid))
+        self._write(sid, applied_at=now(), applied_by=user, gains_after=json.dumps(gains_after.as_json()))
 
     def latest(self, loop: str) -> dict[str, Any] | None:
         """The newest finished (or interrupted) session of ``loop``, without its trace, or None."""
-        with self._lock:
-            row = self._db.execute(
-                "SELECT * FROM sessions WHERE loop = ? AND finished_at IS NOT NULL "
-                "ORDER BY started_at DESC, rowid DESC LIMIT 1", (loop,)
-            ).fetchone()
-        return None if row is None else _record(row, with_trace=False)
+        rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.loop == loop, _SESSIONS.c.finished_at.is_not(None))
+                          .order_by(*_NEWEST_FIRST).limit(1))
+        return _record(rows[0], with_trace=False) if rows else None
 
     def running(self) -> list[dict[str, Any]]:
         """Sessions recorded as running (after a crash: the ones whose loops must be put back)."""
-        with self._lock:
-            rows = self._db.execute("SELECT * FROM sessions WHERE state = 'running' ORDER BY started_at").fetchall()
+        rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.state == "running")
+                          .order_by(_SESSIONS.c.started_at))
         return [_record(row, with_trace=False) for row in rows]
 
     def of_loop(self, loop: str, limit: int = 100) -> list[dict[str, Any]]:
         """The latest ``limit`` sessions of ``loop``, newest first, without their traces."""
-        with self._lock:
-            rows = self._db.execute(
-                "SELECT * FROM sessions WHERE loop = ? ORDER BY started_at DESC, rowid DESC LIMIT ?", (loop, limit)
-            ).fetchall()
+        rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.loop == loop).order_by(*_NEWEST_FIRST)
+                          .limit(limit))
         return [_record(row, with_trace=False) for row in rows]
 
     def get(self, sid: str) -> dict[str, Any] | None:
         """Session ``sid`` in full, or None."""
-        with self._lock:
-            row = self._db.execute("SELECT * FROM sessions WHERE id = ?", (sid,)).fetchone()
-        return None if row is None else _record(row, with_trace=True)
+        rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.id == sid))
+        return _record(rows[0], with_trace=True) if rows else None
 
 
 def _load(text: str | None) -> Any:
     return None if text is None else json.loads(text)
 
 
-def _record(row: sqlite3.Row, with_trace: bool) -> dict[str, Any]:
+def _record(row: RowMapping, with_trace: bool) -> dict[str, Any]:
     saved = _load(row["saved"])
     result = _load(row["result"])
     record = {

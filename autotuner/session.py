@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import multiprocessing
 import os
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -35,6 +36,8 @@ from .tuning import Trace, TuneResult, result_of
 RESTORE_WINDOW = 30.0
 # Handshake bits (TBSY, ite) are refreshed this often, wall seconds.
 FLAGS_PERIOD = 0.5
+# How often a design worker checks that the process that started it still lives, seconds.
+PARENT_CHECK = 0.5
 # Worker processes of the design (see _designed), started on first use, and the CPU seconds they spent.
 _pool: ProcessPoolExecutor | None = None
 _design_cpu = 0.0
@@ -170,9 +173,9 @@ async def _designed(experiment: RelayExperiment, controller: str, ms: float, tra
     """
     global _pool, _design_cpu
     if _pool is None:
-        # forkserver: a worker does not inherit the daemon's sockets and event loop; one core left for sampling.
-        _pool = ProcessPoolExecutor(max(1, (os.cpu_count() or 2) - 1),
-                                    mp_context=multiprocessing.get_context("forkserver"))
+        # spawn: a worker inherits none of the daemon's sockets or its event loop; one core left for sampling.
+        _pool = ProcessPoolExecutor(max(1, (os.cpu_count() or 2) - 1), mp_context=multiprocessing.get_context("spawn"),
+                                    initializer=_follow_parent, initargs=(os.getpid(),))
     args = (experiment, controller, ms, trace, restore_error)
     try:
         result, cpu = await asyncio.get_running_loop().run_in_executor(_pool, _timed_result, *args)
@@ -181,6 +184,25 @@ async def _designed(experiment: RelayExperiment, controller: str, ms: float, tra
         return await asyncio.to_thread(_result, *args)
     _design_cpu += cpu
     return result
+
+
+def _follow_parent(parent: int) -> None:
+    """In a design worker: exit when the daemon is gone (killed by a signal, it never shuts its pool down)."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_CHECK)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="follow-parent", daemon=True).start()
+
+
+def close_design_pool() -> None:
+    """Stop the design's worker processes (a daemon that stops; the next design starts them again)."""
+    global _pool
+    if _pool is not None:
+        _pool.shutdown(wait=True)
+        _pool = None
 
 
 def design_cpu() -> float:
