@@ -32,7 +32,7 @@ import numpy as np
 from drivers.simplc import SimulatedPlc, run
 
 from .config import DaemonConfig, TuneRequest
-from .daemon import LoopManager
+from .daemon import Loop, LoopManager
 from .expr import parse_process
 from .history import History
 from .remote import PLANT_TICKS_PER_SAMPLE
@@ -60,7 +60,7 @@ class LoadResult:
     failures: dict[str, str]
 
 
-class _Timed:
+class TimedLink:
     """A link whose ``read_pv`` calls are time-stamped (start and completion); everything else forwarded.
 
     The daemon also monitors idle loops through links of its own (reads, no
@@ -92,10 +92,15 @@ class _Timed:
         return getattr(self._link, name)
 
 
-def _timed(link: Any, links: list[_Timed]) -> _Timed:
-    timed = _Timed(link)
-    links.append(timed)
-    return timed
+def stamp_reads(loop: Loop, links: list[TimedLink]) -> None:
+    """Make every link ``loop`` opens from now on a :class:`TimedLink`, appended to ``links``."""
+    connect = loop.connect
+
+    def timed() -> TimedLink:
+        links.append(TimedLink(connect()))
+        return links[-1]
+
+    loop.connect = timed
 
 
 def lateness(starts: list[float], done: list[float], period: float) -> np.ndarray:
@@ -152,9 +157,9 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
              "tuning": {"amp": amp, "time_limit": time_limit}} for i, port in enumerate(ports)]})
         history = History(config.history)
         manager = LoopManager(config, history)
-        links: list[_Timed] = []
+        links: list[TimedLink] = []
         for item in manager.loops.values():
-            item.connect = (lambda connect: lambda: _timed(connect(), links))(item.connect)
+            stamp_reads(item, links)
         await manager.start()
         try:
             cpu0, wall0 = time.process_time() + design_cpu(), time.monotonic()

@@ -18,6 +18,7 @@ from autotuner.config import DaemonConfig, TuneRequest
 from autotuner.daemon import LoopManager
 from autotuner.expr import parse_process
 from autotuner.history import History
+from autotuner.loadbench import TimedLink, stamp_reads
 from autotuner.relay import Code
 from autotuner.remote import PLANT_TICKS_PER_SAMPLE, served
 from drivers.link import Mode
@@ -28,29 +29,6 @@ PLANT = "exp(-s)/(2*s+1)"
 TS = 0.1
 SPEED = 5.0  # 20 ms of wall time per sample
 OUTAGE = 4.0  # wall seconds: longer than a Modbus call's retries (timeout 1 s, 2 retries)
-
-
-class Stamped:
-    """A link whose PV reads are time-stamped (wall, monotonic); everything else forwarded."""
-
-    def __init__(self, link: Any, stamps: list[float]) -> None:
-        self._link = link
-        self._stamps = stamps
-
-    async def read_pv(self) -> float:
-        pv = await self._link.read_pv()
-        self._stamps.append(time.monotonic())
-        return pv
-
-    async def write_mv(self, mv: float) -> None:
-        await self._link.write_mv(mv)
-
-    @property
-    def pv_age(self) -> float | None:
-        return self._link.pv_age
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._link, name)
 
 
 async def scenario() -> dict[str, Any]:
@@ -64,9 +42,8 @@ async def scenario() -> dict[str, Any]:
             for name, url in (("A", url_a), ("B", url_b))]})
         history = History(config.history)
         manager = LoopManager(config, history)
-        stamps: list[float] = []
-        loop_b = manager.loops["B"]
-        loop_b.connect = (lambda connect: lambda: Stamped(connect(), stamps))(loop_b.connect)
+        links: list[TimedLink] = []
+        stamp_reads(manager.loops["B"], links)
         await manager.start()
         replacement = None
         try:
@@ -87,7 +64,7 @@ async def scenario() -> dict[str, Any]:
             if replacement is not None:
                 await replacement.close()
     return {"a": manager.loops["A"].result, "b": manager.loops["B"].result, "plc_a": plcs["A"],
-            "stamps": stamps, "down": down, "up": up}
+            "stamps": [t for link in links if link.session for t in link.done], "down": down, "up": up}
 
 
 def test_a_link_dropping_mid_session_fails_that_loop_safely_and_never_blocks_the_other():
