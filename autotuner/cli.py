@@ -509,8 +509,9 @@ def serve_command(
         stderr.print("warning: no tokens in the config and AUTOTUNER_TOKEN unset: every request except "
                      f"{PREFIX}/health will be refused", highlight=False)
     scheme = "http" if ssl_certfile is None else "https"
-    print(f"autotuner API at {scheme}://{host}:{port}{PREFIX}  (OpenAPI: {PREFIX}/docs); "
-          f"{len(daemon_config.loops)} loops: {', '.join(loop.id for loop in daemon_config.loops)}", flush=True)
+    print(f"autotuner API at {scheme}://{host}:{port}{PREFIX}  (OpenAPI: {PREFIX}/docs; operator page: "
+          f"{scheme}://{host}:{port}/); {len(daemon_config.loops)} loops: "
+          f"{', '.join(loop.id for loop in daemon_config.loops)}", flush=True)
     uvicorn.run(create_app(daemon_config, env_token=token or ""), host=host, port=port, log_level="info",
                 ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
                 ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))
