@@ -20,8 +20,9 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Body, Depends, FastAPI, Path, Query, Request
 from fastapi.responses import StreamingResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.datastructures import MutableHeaders
 from starlette.routing import Match, Mount
-from starlette.types import Scope
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from autotuner import __version__
 from autotuner.analysis import analyse
@@ -38,6 +39,9 @@ from .models import (Accepted, Analysis, Applied, ApplyRequest, Health, LoopStat
 PREFIX = "/api/v1"
 # The operator page (issue 7): static files using only the public API below.
 STATIC = pathlib.Path(__file__).parent / "static"
+# The page loads only its own files and talks only to this API; nobody may frame it (clickjacking of TUNE).
+PAGE_POLICY = ("default-src 'self'; img-src 'self' data:; connect-src 'self'; frame-ancestors 'none'; "
+               "base-uri 'none'; form-action 'self'; object-src 'none'")
 _ERRORS: dict[int | str, dict[str, Any]] = {
     status: {"model": errors.ErrorBody, "description": text}
     for status, text in ((400, "a body that is not JSON"), (401, "no valid token"), (403, "role too low"),
@@ -187,6 +191,34 @@ class _Page(Mount):
         return super().matches(scope)
 
 
+class SecurityHeaders:
+    """ASGI middleware adding security headers to every response; the page's also get :data:`PAGE_POLICY`.
+
+    Plain ASGI rather than ``@app.middleware``: the event streams pass through untouched.
+    """
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        page = not scope["path"].startswith(PREFIX)  # /api/v1/docs loads Swagger UI from its CDN: no policy there
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = MutableHeaders(scope=message)
+                headers["X-Content-Type-Options"] = "nosniff"
+                headers["Referrer-Policy"] = "no-referrer"
+                if page:
+                    headers["Content-Security-Policy"] = PAGE_POLICY
+                    headers["X-Frame-Options"] = "DENY"
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
 def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
     """The API over the loops of ``config``; ``env_token`` (default: $AUTOTUNER_TOKEN) is an extra operator token."""
 
@@ -208,6 +240,8 @@ def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
     app.state.analyses = {}
     app.state.tokens = Tokens(config.tokens, os.environ.get("AUTOTUNER_TOKEN") if env_token is None else env_token)
     errors.install(app)
+
+    app.add_middleware(SecurityHeaders)
     app.include_router(router)
     app.router.routes.append(_Page("/", StaticFiles(directory=STATIC, html=True), name="page"))
     return app

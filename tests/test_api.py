@@ -249,3 +249,14 @@ def test_whoami_names_the_token_and_its_role_and_status_carries_the_loop_default
     assert defaults == {"controller": loop.tuning.controller, "amp": loop.tuning.amp,
                         "hysteresis": loop.tuning.hysteresis, "phase": loop.tuning.phase, "ms": loop.tuning.ms,
                         "apply": loop.apply}
+
+
+def test_the_page_is_served_with_a_strict_content_security_policy_and_the_api_with_nosniff(client):
+    page = client.get("/")
+    assert page.status_code == 200 and "<main" in page.text
+    policy = page.headers["Content-Security-Policy"]
+    assert "default-src 'self'" in policy and "frame-ancestors 'none'" in policy and "unsafe" not in policy
+    assert page.headers["X-Frame-Options"] == "DENY" and page.headers["X-Content-Type-Options"] == "nosniff"
+    assert client.get("/app.js").headers["Content-Security-Policy"] == policy
+    api = client.get(f"{API}/loops", headers=auth(VIEWER))
+    assert api.headers["X-Content-Type-Options"] == "nosniff" and "Content-Security-Policy" not in api.headers
