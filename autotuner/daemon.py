@@ -55,7 +55,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 
 from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags
 from drivers.simlink import SimLink
@@ -69,7 +68,7 @@ from .history import History, downsample
 from .relay import MESSAGES, Code, RelayConfig, Stage, Status
 from .remote import PLANT_TICKS_PER_SAMPLE, field_config, open_link
 from .session import close_design_pool, tune_link
-from .tuning import Trace, TuneResult
+from .tuning import TuneResult
 
 # Events kept per subscriber before the oldest are dropped.
 QUEUE_EVENTS = 1000
@@ -271,10 +270,6 @@ def _finite(x: float | None) -> float | None:
     return x if x is not None and math.isfinite(x) else None
 
 
-def _empty_trace() -> Trace:
-    return Trace(np.zeros(0), np.zeros(0), np.zeros(0))
-
-
 class LoopManager:
     """All loops of ``config``; sessions recorded in ``history``."""
 
@@ -453,16 +448,14 @@ class LoopManager:
                                      speed, loop.stop, on_status)
             gains_after = await _gains(link, saved, result, settings.apply)
         except LinkError as exc:
-            result = TuneResult(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", settings.controller, None,
-                                None, _empty_trace())
+            result = TuneResult.failed(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", settings.controller)
         except asyncio.CancelledError:
             state = "interrupted"
             raise
         finally:
             await link.close()
             if result is None:  # cancelled: tune_link has restored the loop
-                result = TuneResult(Code.ABORTED, "aborted: the daemon stopped", settings.controller, None, None,
-                                    _empty_trace())
+                result = TuneResult.failed(Code.ABORTED, "aborted: the daemon stopped", settings.controller)
             loop.result = result.as_json()
             applied_by = user if result.ok and settings.apply else None
             self.history.finish(sid, loop.result, gains_after, downsample(result.trace), state, applied_by)
@@ -591,8 +584,7 @@ class LoopManager:
             message += await _restore(loop.connect(), record["saved"])
         elif record["saved"] is not None:
             message += f"; loop {record['loop']!r} is no longer configured: check it by hand"
-        result = TuneResult(Code.ABORTED, message, record["request"].get("controller", "PI"), None, None,
-                            _empty_trace()).as_json()
+        result = TuneResult.failed(Code.ABORTED, message, record["request"].get("controller", "PI")).as_json()
         self.history.finish(record["id"], result, None, None, "interrupted")
         if loop is not None:
             loop.session, loop.result = record["id"], result

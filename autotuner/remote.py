@@ -25,7 +25,7 @@ from drivers.simplc import SimulatedPlc, run
 from .process import Process
 from .relay import MESSAGES, Code, RelayConfig, Status
 from .session import deadlines, tune_link
-from .tuning import Trace, TuneResult
+from .tuning import TuneResult
 
 # Sampling a PLC through a link scatters the per-period estimates by about
 # ±0.5°, ±0.4 % and ±0.03 in |F|/K0 (the PLC's clock and the session's are
@@ -97,8 +97,7 @@ async def tune_opened(
     try:
         await link.open()
     except LinkError as exc:
-        return TuneResult(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", controller, None, None,
-                          Trace(np.zeros(0), np.zeros(0), np.zeros(0)))
+        return TuneResult.failed(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", controller)
     try:
         return await tune_link(link, config, ts, controller, ms, apply, speed, on_status=on_status)
     finally:

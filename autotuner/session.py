@@ -104,7 +104,7 @@ async def tune_link(
     try:
         saved = await link.read_state()
     except LinkError as exc:
-        return TuneResult(Code.LINK_FAULT, f"cannot read the loop: {exc}", controller, None, None, _trace([], [], []))
+        return TuneResult.failed(Code.LINK_FAULT, f"cannot read the loop: {exc}", controller)
 
     experiment = RelayExperiment(config, mv0=saved.mv)
     times: list[float] = []
@@ -172,11 +172,13 @@ async def _designed(experiment: RelayExperiment, controller: str, ms: float, tra
     together would stall every other loop's sampling.
     """
     global _pool, _design_cpu
+    args = (experiment, controller, ms, trace, restore_error)
+    if experiment.result is None:  # nothing identified, nothing to design: no worker needed
+        return _result(*args)
     if _pool is None:
         # spawn: a worker inherits none of the daemon's sockets or its event loop; one core left for sampling.
         _pool = ProcessPoolExecutor(max(1, (os.cpu_count() or 2) - 1), mp_context=multiprocessing.get_context("spawn"),
                                     initializer=_follow_parent, initargs=(os.getpid(),))
-    args = (experiment, controller, ms, trace, restore_error)
     try:
         result, cpu = await asyncio.get_running_loop().run_in_executor(_pool, _timed_result, *args)
     except BrokenProcessPool:  # a worker was killed: the result still comes, from a thread

@@ -43,6 +43,11 @@ class TuneResult:
     design: Design | None
     trace: Trace
 
+    @classmethod
+    def failed(cls, code: Code, message: str, controller: str) -> TuneResult:
+        """A tuning that ended before anything was identified (no point, no gains, no samples)."""
+        return cls(code, message, controller, None, None, Trace(np.zeros(0), np.zeros(0), np.zeros(0)))
+
     @property
     def ok(self) -> bool:
         """True when the experiment succeeded and gains were computed."""
