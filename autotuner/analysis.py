@@ -31,12 +31,12 @@ from typing import Any
 
 import numpy as np
 
-from .closedloop import closed_loop_step
+from .closedloop import check_gains, closed_loop_step, controller_response
 from .design import fit_model
 from .gains import Gains
 from .process import Process
 from .relay import Point
-from .robustness import check_loop, log_grid, pid_frequency_response
+from .robustness import log_grid
 
 # Points of a Nyquist curve and of a time response.
 NYQUIST_POINTS = 300
@@ -86,28 +86,22 @@ def model_json(model: Process) -> dict[str, Any]:
 
 def loop_check(model: Process, gains: Gains, omega: float) -> tuple[bool, float | None]:
     """(stable, Ms) of ``C·F`` on the model, Ms None when unstable; ``omega`` (rad/s) centres the grid."""
-    controller_integrators = 1 if gains.has_integral else 0
-    check = check_loop(model.freqresp, lambda w: _controller(gains, w), log_grid(omega),
-                       model.integrator_count + controller_integrators)
+    check = check_gains(model, gains, log_grid(omega))
     return check.stable, (check.ms if check.stable and math.isfinite(check.ms) else None)
-
-
-def _controller(gains: Gains, w: np.ndarray) -> np.ndarray:
-    return pid_frequency_response(w, gains.k, gains.ti, gains.td, gains.nd)
 
 
 def nyquist(model: Process, gains: Gains, omega: float) -> dict[str, list[float]]:
     """``L(jω) = C(jω)F(jω)`` on :data:`NYQUIST_POINTS` log-spaced frequencies (rad/s) around ``omega``, plus
     ``omega`` itself; the window keeps ``NYQUIST_TAIL ≤ |L| ≤ NYQUIST_RADIUS`` (and always ω/3 … 3ω)."""
     dense = log_grid(omega, 1e-3, 1e3, 4000)
-    size = np.abs(_controller(gains, dense) * model.freqresp(dense))
+    size = np.abs(controller_response(gains, dense) * model.freqresp(dense))
     big = np.nonzero(~(size <= NYQUIST_RADIUS))[0]  # NaN (ω = 0 of an integrator) counts as big
     lo = dense[min(big[-1] + 1, len(dense) - 1)] if len(big) else dense[0]
     above_tail = np.nonzero(size >= NYQUIST_TAIL)[0]
     hi = dense[above_tail[-1]] if len(above_tail) else dense[-1]
     lo, hi = min(lo, omega / NYQUIST_SPAN), max(hi, omega * NYQUIST_SPAN)
     w = np.union1d(np.logspace(math.log10(lo), math.log10(hi), NYQUIST_POINTS), [omega])
-    loop = _controller(gains, w) * model.freqresp(w)
+    loop = controller_response(gains, w) * model.freqresp(w)
     keep = np.abs(loop) <= NYQUIST_RADIUS
     keep[np.searchsorted(w, omega)] = True
     return {"omega": w[keep].tolist(), "re": loop.real[keep].tolist(), "im": loop.imag[keep].tolist()}

@@ -29,12 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .closedloop import check_gains
 from .design import DEFAULT_ND, TD_RATIOS, design, fit_model
 from .expr import parse_process
 from .gains import Gains
+from .identify import exact_point
 from .process import Process
-from .relay import Point, RelayConfig
-from .robustness import Plant, check_loop, log_grid, migo, pid_frequency_response
+from .relay import RelayConfig
+from .robustness import Plant, log_grid, migo
 from .simulate import PlantSim
 from .tuning import SAMPLES_PER_PERIOD, phase_frequency, tune
 
@@ -100,13 +102,7 @@ def ideal_relay(process: Process, ts: float, amp: float, periods: int = 8) -> tu
 
 
 def _judge(process: Process, gains: Gains, w: np.ndarray) -> float:
-    check = check_loop(
-        process.freqresp,
-        lambda x: pid_frequency_response(x, gains.k, gains.ti, gains.td, gains.nd),
-        w,
-        integrators=process.integrator_count + (1 if math.isfinite(gains.ti) else 0),
-    )
-    return check.ms
+    return check_gains(process, gains, w).ms
 
 
 def run_one(row: dict[str, str]) -> Row:
@@ -186,14 +182,13 @@ class DesignRow:
 def design_one(row: dict[str, str]) -> DesignRow:
     """Design from the exact 135° point: FOPDT-only MIGO (the starting derivation) against the project's rule."""
     process = parse_process(row["expr"])
-    w135 = phase_frequency(process, 135.0)
-    assert w135 is not None
-    point = Point(w135, complex(process.freqresp(w135)))
+    point = exact_point(process, 135.0)
+    assert point is not None
     static = process.static_gain()
-    w = log_grid(w135)
-    limit = migo([Plant(process.freqresp, integrators=process.integrator_count)], w135, 1.4)
+    w = log_grid(point.omega)
+    limit = migo([Plant(process.freqresp, integrators=process.integrator_count)], point.omega, 1.4)
     model = fit_model(point, static)
-    start = migo([Plant(model.freqresp, integrators=model.integrator_count)], w135, 1.4)
+    start = migo([Plant(model.freqresp, integrators=model.integrator_count)], point.omega, 1.4)
     pi = design(point, static, "PI").gains
     pid = design(point, static, "PID").gains
     return DesignRow(

@@ -27,6 +27,7 @@ elapsed yet). ``t`` must increase strictly from sample to sample.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -81,11 +82,17 @@ class _Validated:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.init}  # type: ignore[arg-type]
 
     def __setattr__(self, name: str, value: Any) -> None:
-        if self.__dict__.get("_ready", False) and name in self._params():
+        # The step functions assign their state every sample: only a parameter's assignment is checked.
+        if self.__dict__.get("_ready", False) and name in _param_names(type(self)):
             cfg = self._params()
             cfg[name] = value
             self._check(cfg)
         object.__setattr__(self, name, value)
+
+
+@functools.cache
+def _param_names(cls: type) -> frozenset[str]:
+    return frozenset(f.name for f in fields(cls) if f.init)
 
 
 class _TimeBase:

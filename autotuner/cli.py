@@ -22,7 +22,6 @@ from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
-import numpy as np
 import typer
 from pydantic import ValidationError
 from rich.console import Console
@@ -35,6 +34,7 @@ from drivers.simplc import run as run_plc
 
 from . import __version__
 from .bench import default_batch, format_table, load_batch, run_batch
+from .closedloop import check_gains
 from .compare import METHOD_NOTE, Row, compare
 from .config import ConfigError, LoopConfig, TuneRequest, load_config
 from .configured import find_loop, tune_configured
@@ -42,7 +42,7 @@ from .expr import parse_process
 from .identify import ProcessData, from_fopdt, from_plant, from_point
 from .gains import FormError, Gains, to_parallel, to_series
 from .process import Process
-from .robustness import check_loop, log_grid, pid_frequency_response
+from .robustness import log_grid
 from .relay import Point, RelayConfig, Status
 from .rules import RULES, Options, RuleError, Tuning, tune as tune_rule
 from .remote import PLANT_TICKS_PER_SAMPLE, measure_jitter, tune_url, tune_via
@@ -204,13 +204,7 @@ def _model_text(model: Process) -> str:
 
 def _plant_ms(process: Process, gains: Gains, w_ref: float) -> str:
     """Ms of the designed loop on the simulated plant itself (inf: unstable)."""
-    check = check_loop(
-        process.freqresp,
-        lambda w: pid_frequency_response(w, gains.k, gains.ti, gains.td, gains.nd),
-        log_grid(w_ref),
-        integrators=process.integrator_count + 1,
-        rhp_poles=int(np.sum(process.poles.real > 1e-12)),
-    )
+    check = check_gains(process, gains, log_grid(w_ref))
     return "unstable" if math.isinf(check.ms) else f"{check.ms:.3f}"
 
 

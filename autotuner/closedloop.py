@@ -20,7 +20,7 @@ from .gains import Gains
 from .identify import exact_point
 from .pid import PidUnit
 from .process import Process
-from .robustness import check_loop, log_grid, pid_frequency_response
+from .robustness import LoopCheck, check_loop, closed_loop_stable, log_grid, max_sensitivity, pid_frequency_response
 from .simulate import PlantSim
 
 SAMPLES_PER_PERIOD = 50
@@ -38,10 +38,15 @@ def reference_period(process: Process) -> float:
     return 2.0 * math.pi * max(scales)
 
 
-def rhp_poles(process: Process) -> int:
-    """Number of open right-half-plane poles of the process (origin excluded)."""
-    poles = process.poles
-    return int(np.sum(poles.real > 1e-7 * np.abs(poles)))
+def check_gains(process: Process, gains: Gains, w: np.ndarray) -> LoopCheck:
+    """Ms and stability of ``gains`` (standard form) on ``process`` over the grid ``w`` (rad/s)."""
+    return check_loop(process.freqresp, lambda x: controller_response(gains, x), w,
+                      process.integrator_count + (1 if gains.has_integral else 0), process.rhp_pole_count)
+
+
+def controller_response(gains: Gains, w: np.ndarray) -> np.ndarray:
+    """C(jω) of ``gains`` (standard form) at the frequencies ``w`` (rad/s)."""
+    return pid_frequency_response(w, gains.k, gains.ti, gains.td, gains.nd)
 
 
 @dataclass(frozen=True)
@@ -67,16 +72,13 @@ def margins(process: Process, gains: Gains, w_ref: float) -> Margins:
     Phase margin: the smallest ``180° + arg L`` where ``|L| = 1`` (inf if never).
     """
     w = log_grid(w_ref, 1e-5, 1e3, 6000)
-
-    def controller(x: np.ndarray) -> np.ndarray:
-        return pid_frequency_response(x, gains.k, gains.ti, gains.td, gains.nd)
-
-    integrators = process.integrator_count + (1 if gains.has_integral else 0)
-    check = check_loop(process.freqresp, controller, w, integrators, rhp_poles(process))
-    loop = controller(w) * process.freqresp(w)
+    loop = controller_response(gains, w) * process.freqresp(w)
+    stable = closed_loop_stable(loop, w, process.integrator_count + (1 if gains.has_integral else 0),
+                                process.rhp_pole_count)
+    ms = max_sensitivity(loop) if stable else math.inf
     gm = [1.0 / abs(loop[i]) for i in _crossings(loop.imag) if loop[i].real < 0 and abs(loop[i]) < 1.0]
     pm = [math.degrees(np.angle(-loop[i])) for i in _crossings(np.abs(loop) - 1.0)]
-    return Margins(check.stable, check.ms, min(gm, default=math.inf), min(pm, default=math.inf))
+    return Margins(stable, ms, min(gm, default=math.inf), min(pm, default=math.inf))
 
 
 def closed_loop_step(process: Process, gains: Gains, step: str, ts: float,

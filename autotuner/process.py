@@ -137,14 +137,16 @@ class Process:
         return self.integrator_count > 0
 
     @property
+    def rhp_pole_count(self) -> int:
+        """Number of poles with a positive real part (poles at the origin excluded)."""
+        k = _trailing_zeros(self.den)
+        poles = np.roots(self.den[: len(self.den) - k])
+        return int(np.sum(poles.real > _UNSTABLE_TOL * np.abs(poles)))
+
+    @property
     def is_unstable(self) -> bool:
         """True if a pole has a positive real part (poles at the origin excluded)."""
-        k = _trailing_zeros(self.den)
-        reduced = self.den[: len(self.den) - k]
-        if len(reduced) < 2:
-            return False
-        poles = np.roots(reduced)
-        return bool(np.any(poles.real > _UNSTABLE_TOL * np.abs(poles)))
+        return self.rhp_pole_count > 0
 
     def static_gain(self) -> float:
         """F(0). For integrating processes ``±math.inf``, signed like the low-frequency gain."""

@@ -147,12 +147,8 @@ async def tune_via(
     """Serve ``process`` over ``transport`` ("modbus" or "can") and tune it through the real link."""
     plc = SimulatedPlc(process, ts=ts / PLANT_TICKS_PER_SAMPLE, noise_std=noise, seed=seed)
     async with served(plc, transport, speed) as (url, _):
-        link = open_link(url)
-        await link.open()
-        try:
-            return await tune_link(link, field_config(config), ts, controller, ms, speed=speed, on_status=on_status)
-        finally:
-            await link.close()
+        return await tune_opened(open_link(url), field_config(config), ts, controller, ms, speed=speed,
+                                 on_status=on_status)
 
 
 @dataclass(frozen=True)

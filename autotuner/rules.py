@@ -22,12 +22,11 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .closedloop import integrated_error, margins, reference_period
-from .design import design
+from .design import DEFAULT_ND, design
 from .gains import Gains
 from .identify import Fopdt, ProcessData, Tangent
 from .unstable import SynthesisError, design_unstable
 
-DEFAULT_ND = 10.0
 # itae-optimal: simulation samples per T135 and horizon in T135; Ms penalty weight;
 # accepted excess of Ms over the limit (the penalty is soft).
 OPT_SAMPLES = 20

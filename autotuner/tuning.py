@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from .design import Design, design
+from .identify import exact_point
 from .process import Process
 from .relay import MESSAGES, Code, Identification, RelayConfig, RelayExperiment, Status
 from .simulate import PlantSim
@@ -81,14 +82,8 @@ class TuneResult:
 
 def phase_frequency(process: Process, phase_deg: float) -> float | None:
     """Lowest frequency (rad/s) where the process lags by ``phase_deg`` degrees, or None if it never does."""
-    w = np.logspace(-6, 6, 24001)
-    lag = -np.unwrap(np.angle(process.freqresp(w)))
-    above = np.nonzero(lag >= math.radians(phase_deg))[0]
-    if len(above) == 0 or above[0] == 0:
-        return None
-    i = above[0]
-    x = (math.radians(phase_deg) - lag[i - 1]) / (lag[i] - lag[i - 1])
-    return float(np.exp(np.log(w[i - 1]) + x * (np.log(w[i]) - np.log(w[i - 1]))))
+    point = exact_point(process, phase_deg)
+    return None if point is None else point.omega
 
 
 def default_sample_time(process: Process, phase_deg: float = 135.0) -> float:

@@ -21,13 +21,13 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
-import math
 import time
 from pathlib import Path
 from typing import Any
 
 import can
 
+from autotuner.checks import finite
 from autotuner.gains import Gains
 
 from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, GAINS, PROCESS, REQUEST,
@@ -38,11 +38,6 @@ from .simplc import SimulatedPlc
 log = logging.getLogger(__name__)
 
 _RX_POLL = 0.05
-
-
-def _finite(x: Any) -> float | None:
-    v = float(x)
-    return v if math.isfinite(v) else None
 
 
 class CanPlcNode:
@@ -161,22 +156,14 @@ class CanPlcNode:
     def _apply(self, name: str, v: dict[str, Any]) -> None:
         plc = self.plc
         if name == CMD_MV:
-            hv = _finite(v["HV"])
-            if hv is None:
-                raise ValueError(f"manual MV {v['HV']}")
-            plc.hv = hv
+            plc.hv = finite("manual MV", v["HV"])
         elif name == CMD_MODE:
             plc.mode = Mode(int(v["Mode"]))
         elif name == CMD_SP:
-            sp = _finite(v["SP"])
-            if sp is None:
-                raise ValueError(f"SP {v['SP']}")
-            plc.sp = sp
+            plc.sp = finite("SP", v["SP"])
         elif name == CMD_FLAGS:
-            ite = _finite(v["ITE"])
-            if ite is None:
-                raise ValueError(f"ite {v['ITE']}")
-            plc.flags = dataclasses.replace(plc.flags, tbsy=bool(v["TBSY"]), te=bool(v["TE"]), ite=ite)
+            plc.flags = dataclasses.replace(plc.flags, tbsy=bool(v["TBSY"]), te=bool(v["TE"]),
+                                            ite=finite("ite", v["ITE"]))
         elif name in CMD_GAINS:
             self._staged[name] = v
         elif name == CMD_APPLY:

@@ -21,19 +21,19 @@ from autotuner.design import design
 from autotuner.gains import Gains
 from autotuner.pid import PidUnit
 from autotuner.process import Process
-from autotuner.relay import Point
 from autotuner.simulate import PlantSim
-from autotuner.tuning import default_sample_time, phase_frequency
+from autotuner.identify import exact_point
+from autotuner.tuning import default_sample_time
 
 from .link import Mode, TuneFlags
 
 
 def safe_gains(process: Process) -> Gains:
     """A cautious PI for the simulated plant's starting state (designed from the exact 135° point at Ms 1.2)."""
-    w = phase_frequency(process, 135.0)
-    if w is None:
+    point = exact_point(process, 135.0)
+    if point is None:
         return Gains(k=0.1, ti=10.0)
-    g = design(Point(w, complex(process.freqresp(w))), process.static_gain(), "PI", ms=1.2).gains
+    g = design(point, process.static_gain(), "PI", ms=1.2).gains
     return Gains(k=g.k, ti=g.ti, b=1.0)
 
 
