@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 from playwright.sync_api import sync_playwright
 
-from tests.test_browser import CHROMIUM_ARGS, chromium_path, free_port
+from tests.helpers import CHROMIUM_ARGS, chromium_path, free_port
 
 TOKEN = "screenshot-operator"
 

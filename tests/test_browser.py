@@ -9,14 +9,12 @@ that the page says the live stream is lost and reconnects by itself.
 from __future__ import annotations
 
 import os
-import shutil
 import socket
 import subprocess
 import sys
 import threading
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import httpx
 import pytest
@@ -24,30 +22,13 @@ import yaml
 
 from api.auth import token_hash
 from autotuner.demo import demo_config
+from helpers import CHROMIUM_ARGS, chromium_path, free_port
 from playwright.sync_api import sync_playwright
 
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run", "--disable-quic"]
 OPERATOR, VIEWER = "browser-operator-secret", "browser-viewer-secret"
 SPEED = 12.0
 # Generous: the plants run in real time (scaled) on a machine shared with the rest of the suite.
 TIMEOUT_MS = 90_000
-
-
-
-def chromium_path() -> str:
-    """The distribution's Chromium ($AUTOTUNER_CHROMIUM, else ``chromium`` on PATH); a clear failure without it."""
-    path = os.environ.get("AUTOTUNER_CHROMIUM") or shutil.which("chromium")
-    if path is None or not Path(path).exists():
-        pytest.fail("the browser tests need Chromium: apt-get install chromium (Debian), or set AUTOTUNER_CHROMIUM "
-                    "to its executable", pytrace=False)
-    return path
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Proxy:

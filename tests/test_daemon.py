@@ -14,6 +14,7 @@ from autotuner.history import History
 from autotuner.relay import Code
 from autotuner.tuning import default_sample_time
 from drivers.link import LoopState, Mode
+from helpers import until
 
 PLANT = "exp(-s)/(2*s+1)"
 SPEED = 10.0
@@ -97,8 +98,7 @@ def test_tbrk_aborts_restores_and_keeps_gains():
         with pytest.raises(Refused) as idle:
             m.abort("TIC1")
         m.tune("TIC1", TuneRequest(apply=True), user="bob")
-        await asyncio.sleep(0.5)
-        assert plc.mode is Mode.MAN  # taken over
+        await until(lambda: plc.mode is Mode.MAN, 5.0, "the loop taken over")
         m.abort("TIC1")
         await m.wait("TIC1")
         return idle.value, plc, before, m.loops["TIC1"].as_json()

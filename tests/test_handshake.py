@@ -34,6 +34,7 @@ from drivers.link import Mode
 from drivers.modbus_map import DEFAULT_MAP
 from drivers.modbus_server import ModbusPlcServer, serve_modbus
 from drivers.simplc import SimulatedPlc, run
+from helpers import until
 
 PLANT = "exp(-s)/(2*s+1)"
 SPEED = 20.0
@@ -114,14 +115,6 @@ async def daemon(*loops: dict) -> AsyncIterator[LoopManager]:
         yield m
     finally:
         await m.stop()
-
-
-async def until(predicate, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.02)
 
 
 def step_response(plc: SimulatedPlc, step: float, seconds: float) -> tuple[np.ndarray, np.ndarray]:
@@ -375,7 +368,8 @@ def test_handshake_link_errors_are_logged_and_retried_without_blocking_other_loo
             dead = loop("DEAD", "modbus://127.0.0.1:1/1")  # nothing listens: connection refused
             async with daemon(loop("TIC-1", plant.url), dead, sim) as m:
                 m.tune("SIM", TuneRequest(), user="u")
-                await asyncio.sleep(0.5)
+                await until(lambda: all(m.loops[i].handshake_error for i in ("TIC-1", "DEAD")), 5.0,
+                            "both handshake links to fail")
                 errors = (m.loops["TIC-1"].handshake_error, m.loops["DEAD"].handshake_error)
                 sim_running = m.loops["SIM"].busy and m.loops["SIM"].status is not None
                 m.abort("SIM")

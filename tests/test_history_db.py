@@ -25,8 +25,8 @@ from autotuner.gains import Gains
 from autotuner.history import History, database_url
 from autotuner.relay import Code
 from drivers.link import LoopState, Mode
-from tests.test_browser import free_port
-from tests.test_daemon import loop, manager, running
+from helpers import free_port
+from test_daemon import loop, manager, running
 
 SAVED = LoopState(mode=Mode.AUTO, mv=50.0, sp=50.0, gains=Gains(k=0.7, ti=3.0))
 

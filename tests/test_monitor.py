@@ -20,7 +20,7 @@ from drivers.link import LinkError, Mode
 from drivers.simlink import SimLink
 
 from test_daemon import manager
-from test_handshake import until
+from helpers import until
 
 PLANT = "exp(-s)/(2*s+1)"
 SPEED = 10.0

@@ -16,6 +16,7 @@ from autotuner.tuning import default_sample_time
 from drivers.link import Mode
 from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc, run
+from helpers import until
 
 PLANT = "exp(-s)/(2*s+1)"
 SPEED = 5.0
@@ -127,8 +128,7 @@ def test_cancellation_restores_before_propagating():
         halt = asyncio.Event()
         plant = asyncio.create_task(run(plc, SPEED, halt))
         task = asyncio.create_task(tune_link(SimLink(plc), RelayConfig(amp=5.0), ts, speed=SPEED))
-        await asyncio.sleep(0.3)
-        assert plc.mode is Mode.MAN  # the experiment holds the loop
+        await until(lambda: plc.mode is Mode.MAN, 5.0, "the experiment to take the loop over")
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task

@@ -21,7 +21,7 @@ from autotuner.expr import parse_process
 from autotuner.remote import PLANT_TICKS_PER_SAMPLE
 from drivers.link import Mode
 from drivers.simplc import SimulatedPlc
-from tests.test_api import modbus_plant
+from test_api import modbus_plant
 
 runner = CliRunner()
 PLANT = "exp(-s)/(2*s+1)"
