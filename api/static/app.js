@@ -3,7 +3,7 @@
 
 import { ApiError, clearToken, eventStream, get, getToken, onUnauthorized, post, setToken, whoami } from "./api.js";
 import { ROWS, cell, fmt } from "./gains.js";
-import { nyquist, timeChart } from "./plot.js";
+import { el, nyquist, timeChart } from "./plot.js";
 
 // ---------------------------------------------------------------- helpers
 
@@ -24,13 +24,7 @@ function h(tag, attrs = {}, ...children) {
   return node;
 }
 
-function svgNode(cls, label) {
-  const node = document.createElementNS("http://www.w3.org/2000/svg", "svg");
-  node.setAttribute("class", cls);
-  node.setAttribute("role", "img");
-  node.setAttribute("aria-label", label);
-  return node;
-}
+const svgNode = (cls, label) => el("svg", { class: cls, role: "img", "aria-label": label });
 
 // append / replaceChildren without the nulls of conditional children (the DOM would print "null").
 const clean = (children) => children.flat().filter((c) => c !== null && c !== undefined && c !== false);
@@ -368,8 +362,8 @@ function loopView(id) {
     form.setEnabled(operate && !loop.tbsy, !operate ? "needs an operator token" : loop.tbsy ? "the loop is tuning" : "");
     tbrk.disabled = !(operate && loop.tbsy);
     tbrk.title = !operate ? "needs an operator token" : loop.tbsy ? "abort the experiment and restore the loop" : "nothing runs";
-    const pending = loop.pending_gains === undefined ? Boolean(loop.gains && !loop.te) : loop.pending_gains;
-    apply.disabled = !(operate && !loop.tbsy && pending && loop.gains);
+    const pending = loop.pending_gains;
+    apply.disabled = !(operate && !loop.tbsy && pending);
     apply.title = !operate ? "needs an operator token" : loop.tbsy ? "the loop is tuning"
       : !pending ? "no new gains to apply" : "write the new gains to the controller";
     if (apply.disabled) fill(applyBox);

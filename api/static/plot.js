@@ -91,7 +91,7 @@ function pathOf(points, sx, sy, step) {
 }
 
 // Stacked panels sharing the x axis.
-// opts: {width, xRange:[a,b]?, xLabel, xTick(v)→text, legend:bool,
+// opts: {width, xRange:[a,b]?, xLabel, xTick(v)→text,
 //        panels:[{height, label, yRange?, series:[{name, cls, x:[], y:[], step?}]}]}
 export function timeChart(svg, opts) {
   clear(svg);
@@ -113,7 +113,6 @@ export function timeChart(svg, opts) {
   const xt = ticks(x0, x1, Math.max(3, Math.round(plotW / 110)));
   let y = top;
   const clipId = `clip${Math.random().toString(36).slice(2, 8)}`;
-  let points = 0;
   panels.forEach((panel, index) => {
     const h = panel.height;
     y += headH;
@@ -132,7 +131,6 @@ export function timeChart(svg, opts) {
     const lines = el("g", { "clip-path": `url(#${cid})` }, g);
     for (const s of panel.series) {
       const pts = decimate(s.x, s.y, x0, x1, plotW);
-      points += pts.length;
       const d = pathOf(pts, sx, sy, s.step);
       if (d) el("path", { class: `line ${s.cls}`, d, "data-series": s.name, "data-points": pts.length }, lines);
     }
@@ -155,8 +153,6 @@ export function timeChart(svg, opts) {
     el("text", { class: "tick", x, y: axisY + 15, "text-anchor": "middle" }, svg, text);
   }
   if (opts.xLabel) el("text", { class: "axis-label", x: left + plotW, y: axisY + 30, "text-anchor": "end" }, svg, opts.xLabel);
-  svg.dataset.points = points;
-  return points;
 }
 
 // Nyquist plot of open loops with the identified point, the critical point and the Ms circle.
@@ -209,14 +205,12 @@ export function nyquist(svg, opts) {
                    r: opts.circle.radius * scale }, g);
   }
   for (const c of opts.curves) {
-    const pts = c.re.map((r, i) => [r, c.im[i]]);
-    let d = "";
-    let pen = false;
-    for (const [r, i] of pts) {
-      if (!Number.isFinite(r) || !Number.isFinite(i) || Math.abs(r) > 1e3 * span || Math.abs(i) > 1e3 * span) { pen = false; continue; }
-      d += `${pen ? "L" : "M"}${sx(r).toFixed(1)},${sy(i).toFixed(1)}`;
-      pen = true;
-    }
+    // A point far outside the window (or not finite) breaks the line, as a missing sample does.
+    const pts = c.re.map((r, i) => {
+      const far = !Number.isFinite(r) || Math.abs(r) > 1e3 * span || Math.abs(c.im[i]) > 1e3 * span;
+      return [r, far ? null : c.im[i]];
+    });
+    const d = pathOf(pts, sx, sy, false);
     if (d) el("path", { class: `line ${c.cls}`, d, "data-series": c.name }, g);
   }
   // The critical point −1.
