@@ -438,9 +438,10 @@ class RelayExperiment:
 
     def _succeed(self, point: Point, inverse_gain: float) -> None:
         # Within the resolution of the mean MV shift, a vanishing |F|/K0 is an
-        # integrator; a negative one (unstable process, or a load change during
-        # the experiment) is reported as it is and refused by the design.
-        # A negative |F|/K0 within the tolerance of its estimate is an integrator seen through noise.
+        # integrator, and so is a slightly negative one (within its estimate's
+        # tolerance: an integrator seen through noise); a clearly negative one
+        # (unstable process, or a load change during the experiment) is reported
+        # as it is and refused by the design.
         integrating = inverse_gain * _INTEGRATING_RATIO <= 1.0 and inverse_gain > -self.config.static_tol
         static = math.inf if integrating else point.gain / inverse_gain
         duration = self._t[-1] - self._t[0]

@@ -303,8 +303,8 @@ def itae_integral(data: ProcessData, controller: str, options: Options) -> Tunin
                   {"data": {"ki_kr": kikr, "omega_osc": w, "K": k, "T": t, "theta0": theta0}})
 
 
-def _penalised_itae(data: ProcessData, step: str, period: float, ms_max: float, w_ref: float,
-                    controller: str) -> Callable[[np.ndarray], float]:
+def _penalised_itae(data: ProcessData, step: str, period: float, ms_max: float,
+                    w_ref: float) -> Callable[[np.ndarray], float]:
     """Cost of log-parameters (ln k, ln ti[, ln td]): simulated ITAE, times a quadratic penalty above ms_max."""
 
     def cost(x: np.ndarray) -> float:
@@ -335,11 +335,10 @@ def itae_optimal(data: ProcessData, controller: str, options: Options) -> Tuning
     ms_max = options.ms or 1.4
     period = reference_period(data.process)
     w_ref = 2.0 * math.pi / period
-    cost = _penalised_itae(data, options.step, period, ms_max, w_ref, controller)
+    cost = _penalised_itae(data, options.step, period, ms_max, w_ref)
     starts = [zn_step(data, controller, options).gains, amigo(data, controller, options).gains]
     x0s = [np.log([g.k, g.ti] + ([g.td] if controller == "PID" else [])) for g in starts]
-    x0 = min(x0s, key=cost)
-    scale = cost(x0)  # the optimisers see a cost of about 1 at the start
+    scale, x0 = min(((cost(x), x) for x in x0s), key=lambda pair: pair[0])  # the optimisers start at about 1
 
     def relative(x: np.ndarray) -> float:
         return cost(x) / scale
