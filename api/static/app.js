@@ -513,7 +513,8 @@ function tuneForm(id, getLoop) {
     apply: h("select", { name: "apply", id: "f-apply" }, h("option", { value: "" }, "loop default"),
       h("option", { value: "true" }, "yes, on success"), h("option", { value: "false" }, "no, I apply them")),
   };
-  const button = h("button", { type: "submit", class: "primary", id: "tune" }, "TUNE");
+  // Disabled until the loop's status is known (and the form holds its defaults): see setEnabled.
+  const button = h("button", { type: "submit", class: "primary", id: "tune", disabled: true }, "TUNE");
   const row = (label, field, unit, hint) => h("label", { class: "field", "data-field": field.name },
     h("span", { class: "label" }, label), field, h("span", { class: "unit" }, unit || ""), hint ? h("span", { class: "hint" }, hint) : null);
   const obj = { onError: null, onStart: null };
