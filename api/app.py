@@ -1,7 +1,7 @@
 """The FastAPI application of the daemon: the REST API of design.md under ``/api/v1``.
 
 ``create_app(config)`` builds it; its lifespan opens the history, starts the
-:class:`~autotuner.daemon.LoopManager` (simulated plants, crash recovery) and
+:class:`~autotuner.service.daemon.LoopManager` (simulated plants, crash recovery) and
 on shutdown (SIGTERM/SIGINT through uvicorn) aborts running experiments and
 restores their loops. Reads need a viewer token, TUNE/TBRK/apply an operator;
 ``GET /api/v1/health`` needs none. The OpenAPI description is at
@@ -25,10 +25,10 @@ from starlette.routing import Match, Mount
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from autotuner import __version__
-from autotuner.analysis import analyse
-from autotuner.config import DaemonConfig, Tuning, TuneRequest
-from autotuner.daemon import LoopManager, Refused
-from autotuner.history import History
+from autotuner.engine.design.analysis import analyse
+from autotuner.service.config import DaemonConfig, Tuning, TuneRequest
+from autotuner.service.daemon import LoopManager, Refused
+from autotuner.service.history import History
 
 from . import errors
 from .auth import Principal, Tokens, require

@@ -17,7 +17,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from autotuner.config import Role, Token
+from autotuner.service.config import Role, Token
 
 from .errors import ApiError
 

@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException
 
-from autotuner.daemon import Refused
+from autotuner.service.daemon import Refused
 
 log = logging.getLogger("autotuner.api")
 

@@ -16,7 +16,7 @@ import math
 from collections.abc import AsyncIterator
 from typing import Any
 
-from autotuner.daemon import LoopManager
+from autotuner.service.daemon import LoopManager
 
 # Seconds between keep-alive comments on an idle stream.
 KEEPALIVE = 15.0

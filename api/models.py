@@ -1,4 +1,4 @@
-"""Response bodies of the API (they make the OpenAPI description; the request body is autotuner.config.TuneRequest).
+"""Response bodies of the API (they make the OpenAPI description; the request body is autotuner.service.config.TuneRequest).
 
 Units: ``ite`` plant seconds left while busy, the code when done; ``point.omega``
 rad/s, ``phase_deg`` degrees (negative for lag); gains in the standard (ISA)

@@ -34,7 +34,7 @@ from urllib.parse import parse_qsl, urlsplit
 import can
 import cantools
 
-from autotuner.gains import Gains
+from autotuner.engine.control.gains import Gains
 
 from .link import LinkError, LoopState, Mode, TuneFlags, checked
 

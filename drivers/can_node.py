@@ -27,8 +27,8 @@ from typing import Any
 
 import can
 
-from autotuner.checks import finite
-from autotuner.gains import Gains
+from autotuner.engine.checks import finite
+from autotuner.engine.control.gains import Gains
 
 from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, GAINS, PROCESS, REQUEST,
                        SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire, load_dbc, open_bus)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any, Protocol
 
-from autotuner.gains import Gains
+from autotuner.engine.control.gains import Gains
 
 
 class LinkError(Exception):

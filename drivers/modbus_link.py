@@ -30,7 +30,7 @@ from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusException
 
-from autotuner.gains import Gains
+from autotuner.engine.control.gains import Gains
 
 from .link import LinkError, LoopState, Mode, TuneFlags
 from .modbus_map import (

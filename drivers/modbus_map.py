@@ -16,7 +16,7 @@ mv        actual controller output (MV) as the PLC applies it   read
 hv        manual MV: the value the tuner writes, used in MAN    read/write
 sp        set point                                             read
 mode      0 = MAN, 1 = AUTO (:class:`drivers.link.Mode`)        read/write
-k .. c    PID gains, standard form (:class:`autotuner.gains`)   read/write
+k .. c    PID gains, standard form (:class:`autotuner.engine.control.gains`)   read/write
 tune      TUNE: the operator asks for a tuning                  read
 tbrk      TBRK: the operator breaks the tuning                  read
 tbsy      TBSY: the tuner is busy                               write
@@ -26,7 +26,7 @@ ite       seconds left while busy, error code when done         write
 
 ``ti`` has no infinity on the wire: a raw integral time of 0 means "no
 integral action" (:func:`ti_to_wire` / :func:`ti_from_wire`), the usual PLC
-convention; the tuner's :class:`~autotuner.gains.Gains` use ``math.inf``.
+convention; the tuner's :class:`~autotuner.engine.control.gains.Gains` use ``math.inf``.
 
 Data types: ``int16, uint16, int32, uint32, float32, float64`` in register
 tables; ``bool`` in the bit tables (coils, discrete inputs). ``word_order``

@@ -16,7 +16,7 @@ in place. The action here
   bumpless), ``tune``, ``tbrk``, ``tbsy``, ``te``, ``ite``. ``pv`` and ``mv``
   are the PLC's own and writes to them (if a map puts them in a holding
   register) are ignored. A mode other than 0/1 or gains that
-  :class:`~autotuner.gains.Gains` rejects are refused with exception 3
+  :class:`~autotuner.engine.control.gains.Gains` rejects are refused with exception 3
   (illegal data value), like a PLC refusing a bad parameter.
 
 Addresses outside the map answer exception 2 (illegal data address).

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from autotuner.gains import Gains
+from autotuner.engine.control.gains import Gains
 
 from .link import LinkError, LoopState, Mode, TuneFlags, checked
 from .simplc import SimulatedPlc

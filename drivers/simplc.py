@@ -17,13 +17,13 @@ import math
 import time
 from dataclasses import dataclass, field
 
-from autotuner.design import design
-from autotuner.gains import Gains
-from autotuner.pid import PidUnit
-from autotuner.process import Process
-from autotuner.simulate import PlantSim
-from autotuner.identify import exact_point
-from autotuner.tuning import default_sample_time
+from autotuner.engine.design.point_design import design
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.control.pid import PidUnit
+from autotuner.engine.plant.process import Process
+from autotuner.engine.plant.simulation import PlantSim
+from autotuner.engine.design.process_data import exact_point
+from autotuner.engine.simulated_tuning import default_sample_time
 
 from .link import Mode, TuneFlags
 

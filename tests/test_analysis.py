@@ -16,11 +16,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from autotuner.analysis import CLIP, analyse
-from autotuner.design import design
-from autotuner.expr import parse_process
-from autotuner.gains import Gains
-from autotuner.identify import exact_point
+from autotuner.engine.design.analysis import CLIP, analyse
+from autotuner.engine.design.point_design import design
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.design.process_data import exact_point
 from drivers.simplc import safe_gains
 
 from test_api import CONFIG, OPERATOR, VIEWER, auth, wait_idle

@@ -17,13 +17,13 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.auth import token_hash
-from autotuner.config import DaemonConfig, Token
-from autotuner.demo import demo_config
-from autotuner.expr import parse_process
-from autotuner.gains import Gains
-from autotuner.relay import Code
-from autotuner.remote import PLANT_TICKS_PER_SAMPLE, served
-from autotuner.tuning import default_sample_time
+from autotuner.service.config import DaemonConfig, Token
+from autotuner.service.demo import demo_config
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.experiment.relay import Code
+from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, served
+from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import Mode
 from drivers.simplc import SimulatedPlc
 

@@ -14,11 +14,11 @@ import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from autotuner.config import DaemonConfig
-from autotuner.expr import parse_process
-from autotuner.gains import Gains
-from autotuner.history import History
-from autotuner.remote import PLANT_TICKS_PER_SAMPLE
+from autotuner.service.config import DaemonConfig
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.control.gains import Gains
+from autotuner.service.history import History
+from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE
 from drivers.link import LoopState, Mode
 from drivers.simplc import SimulatedPlc
 

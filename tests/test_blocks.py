@@ -5,11 +5,11 @@ import random
 
 import pytest
 
-from autotuner.blocks import ManualControlUnit, SaturationUnit, SelectorUnit, SwitchUnit
-from autotuner.gains import Gains
-from autotuner.pid import PidUnit
-from autotuner.process import Process
-from autotuner.simulate import PlantSim
+from autotuner.engine.control.blocks import ManualControlUnit, SaturationUnit, SelectorUnit, SwitchUnit
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.control.pid import PidUnit
+from autotuner.engine.plant.process import Process
+from autotuner.engine.plant.simulation import PlantSim
 
 
 def times(h, n, t0=0.0):

@@ -21,7 +21,7 @@ import pytest
 import yaml
 
 from api.auth import token_hash
-from autotuner.demo import demo_config
+from autotuner.service.demo import demo_config
 from helpers import CHROMIUM_ARGS, chromium_path, free_port
 from playwright.sync_api import sync_playwright
 

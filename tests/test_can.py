@@ -13,12 +13,12 @@ import time
 import cantools
 import pytest
 
-from autotuner.expr import parse_process
-from autotuner.gains import Gains
-from autotuner.relay import Code, RelayConfig
-from autotuner.remote import field_config
-from autotuner.session import tune_link
-from autotuner.tuning import default_sample_time
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.experiment.relay import Code, RelayConfig
+from autotuner.service.remote_tuning import field_config
+from autotuner.service.link_session import tune_link
+from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.can_link import (REQUIRED, CanLink, default_dbc, gains_from_wire, gains_to_wire, load_dbc,
                               ti_from_wire, ti_to_wire)
 from drivers.can_node import serve_can

@@ -6,13 +6,13 @@ import asyncio
 
 import pytest
 
-from autotuner.config import DaemonConfig, TuneRequest
-from autotuner.daemon import LoopManager, Refused
-from autotuner.expr import parse_process
-from autotuner.gains import Gains
-from autotuner.history import History
-from autotuner.relay import Code
-from autotuner.tuning import default_sample_time
+from autotuner.service.config import DaemonConfig, TuneRequest
+from autotuner.service.daemon import LoopManager, Refused
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.control.gains import Gains
+from autotuner.service.history import History
+from autotuner.engine.experiment.relay import Code
+from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import LoopState, Mode
 from helpers import until
 

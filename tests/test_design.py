@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from autotuner.design import INTEGRATING_RATIO, design, fit_model
-from autotuner.expr import parse_process
-from autotuner.relay import Point
-from autotuner.robustness import Plant, closed_loop_stable, migo
+from autotuner.engine.design.point_design import INTEGRATING_RATIO, design, fit_model
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.experiment.relay import Point
+from autotuner.engine.design.robustness import Plant, closed_loop_stable, migo
 
 BATCH = Path("/work/shared/bench/amigo-batch.csv")
 with BATCH.open() as _fh:

@@ -7,7 +7,7 @@ import pytest
 from typer.testing import CliRunner
 
 from autotuner.cli import app
-from autotuner.rules import RULES
+from autotuner.engine.design.rules import RULES
 
 runner = CliRunner()
 
@@ -70,8 +70,8 @@ def test_list_names_every_rule():
 @pytest.fixture
 def fast_rules(monkeypatch):
     """The registry without itae-optimal (seconds of simulation; tested on its own in test_itae_optimal)."""
-    import autotuner.compare
-    monkeypatch.setattr(autotuner.compare, "RULES", {k: v for k, v in RULES.items() if k != "itae-optimal"})
+    import autotuner.benchmarks.rule_comparison
+    monkeypatch.setattr(autotuner.benchmarks.rule_comparison, "RULES", {k: v for k, v in RULES.items() if k != "itae-optimal"})
 
 
 def test_compare_on_fopdt(fast_rules):

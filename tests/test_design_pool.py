@@ -12,11 +12,11 @@ import time
 
 import pytest
 
-from autotuner import session
-from autotuner.expr import parse_process
-from autotuner.relay import RelayConfig
-from autotuner.simulate import PlantSim
-from autotuner.tuning import result_of, run_experiment
+from autotuner.service import link_session as session
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.experiment.relay import RelayConfig
+from autotuner.engine.plant.simulation import PlantSim
+from autotuner.engine.simulated_tuning import result_of, run_experiment
 
 PLANT = "exp(-s)/(s+1)"
 
@@ -36,11 +36,11 @@ def test_workers_exit_when_the_daemon_is_killed(ending, tmp_path):
     # A daemon that designs once, reports its workers and dies by a signal (no atexit, no pool shutdown).
     script = textwrap.dedent(f"""
         import asyncio, os, signal
-        from autotuner import session
-        from autotuner.expr import parse_process
-        from autotuner.relay import RelayConfig
-        from autotuner.simulate import PlantSim
-        from autotuner.tuning import run_experiment
+        from autotuner.service import link_session as session
+        from autotuner.engine.plant.expression import parse_process
+        from autotuner.engine.experiment.relay import RelayConfig
+        from autotuner.engine.plant.simulation import PlantSim
+        from autotuner.engine.simulated_tuning import run_experiment
 
         experiment, trace = run_experiment(PlantSim(parse_process({PLANT!r}), 0.05), RelayConfig(amp=1.0))
         assert asyncio.run(session._designed(experiment, "PI", 1.4, trace, "")).ok

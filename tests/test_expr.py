@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from autotuner.expr import ExpressionError, parse_process
+from autotuner.engine.plant.expression import ExpressionError, parse_process
 
 BENCH = Path("/work/shared/bench/amigo-batch.csv")
 

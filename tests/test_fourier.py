@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from autotuner.fourier import held_coefficient, sampled_coefficient
+from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
 
 
 # --------------------------------------------------------------------------- helpers (independent of the module)

@@ -45,8 +45,8 @@ from schemathesis.specs.openapi.checks import content_type_conformance, response
 
 from api.app import PREFIX, create_app
 from api.auth import token_hash
-from autotuner.config import DaemonConfig, Token
-from autotuner.relay import Code
+from autotuner.service.config import DaemonConfig, Token
+from autotuner.engine.experiment.relay import Code
 
 OPERATOR, VIEWER = "fuzz-operator", "fuzz-viewer"
 LOOP_IDS = ("TIC-1", "LIC-2", "FIC-3")

@@ -7,7 +7,7 @@ import math
 import pytest
 from hypothesis import given, strategies as st
 
-from autotuner.gains import (
+from autotuner.engine.control.gains import (
     FormError,
     Gains,
     ParallelGains,

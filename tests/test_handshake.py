@@ -21,15 +21,15 @@ import numpy as np
 import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
-from autotuner.config import ConfigError, DaemonConfig, TuneRequest, parse_config
-from autotuner.demo import demo_config
-from autotuner.daemon import GROUP_BUSY_CODE, PLC_USER, LoopManager
-from autotuner.expr import parse_process
-from autotuner.gains import Gains
-from autotuner.history import History
-from autotuner.relay import Code
-from autotuner.remote import PLANT_TICKS_PER_SAMPLE
-from autotuner.tuning import default_sample_time
+from autotuner.service.config import ConfigError, DaemonConfig, TuneRequest, parse_config
+from autotuner.service.demo import demo_config
+from autotuner.service.daemon import GROUP_BUSY_CODE, PLC_USER, LoopManager
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.control.gains import Gains
+from autotuner.service.history import History
+from autotuner.engine.experiment.relay import Code
+from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE
+from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import Mode
 from drivers.modbus_map import DEFAULT_MAP
 from drivers.modbus_server import ModbusPlcServer, serve_modbus
@@ -357,7 +357,7 @@ def test_a_tune_bit_already_set_when_the_daemon_starts_is_no_edge():
 
 
 def test_handshake_link_errors_are_logged_and_retried_without_blocking_other_loops(caplog):
-    caplog.set_level(logging.INFO, logger="autotuner.daemon")
+    caplog.set_level(logging.INFO, logger="autotuner.service.daemon")
 
     async def body():
         async with plants(1) as [plant]:

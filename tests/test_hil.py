@@ -12,12 +12,12 @@ import math
 
 import pytest
 
-from autotuner.expr import parse_process
-from autotuner.relay import Code, RelayConfig
-from autotuner.remote import field_config, open_link, served, tune_via
-from autotuner.session import tune_link
-from autotuner.simulate import PlantSim
-from autotuner.tuning import default_sample_time, tune
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.experiment.relay import Code, RelayConfig
+from autotuner.service.remote_tuning import field_config, open_link, served, tune_via
+from autotuner.service.link_session import tune_link
+from autotuner.engine.plant.simulation import PlantSim
+from autotuner.engine.simulated_tuning import default_sample_time, tune
 from drivers.link import Mode
 from drivers.simplc import SimulatedPlc
 

@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from autotuner.expr import parse_process
-from autotuner.identify import exact_point, from_fopdt, from_plant
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.design.process_data import exact_point, from_fopdt, from_plant
 
 
 def test_tangent_of_four_equal_lags():

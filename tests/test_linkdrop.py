@@ -14,13 +14,13 @@ import asyncio
 import time
 from typing import Any
 
-from autotuner.config import DaemonConfig, TuneRequest
-from autotuner.daemon import LoopManager
-from autotuner.expr import parse_process
-from autotuner.history import History
-from autotuner.loadbench import TimedLink, stamp_reads
-from autotuner.relay import Code
-from autotuner.remote import PLANT_TICKS_PER_SAMPLE, served
+from autotuner.service.config import DaemonConfig, TuneRequest
+from autotuner.service.daemon import LoopManager
+from autotuner.engine.plant.expression import parse_process
+from autotuner.service.history import History
+from autotuner.benchmarks.load import TimedLink, stamp_reads
+from autotuner.engine.experiment.relay import Code
+from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, served
 from drivers.link import Mode
 from drivers.modbus_server import serve_modbus
 from drivers.simplc import SimulatedPlc

@@ -6,7 +6,7 @@ import pytest
 from typer.testing import CliRunner
 
 from autotuner.cli import app
-from autotuner.loadbench import lateness
+from autotuner.benchmarks.load import lateness
 
 
 def test_lateness_is_measured_against_the_deadline_schedule():

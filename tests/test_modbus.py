@@ -16,8 +16,8 @@ import time
 import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
-from autotuner.expr import parse_process
-from autotuner.gains import Gains
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.control.gains import Gains
 from drivers.link import LinkError, LoopState, Mode, TuneFlags
 from drivers.modbus_link import ModbusLink
 from drivers.modbus_map import (

@@ -13,9 +13,9 @@ import time
 
 import pytest
 
-from autotuner.config import ConfigError, TuneRequest, parse_config
-from autotuner.expr import parse_process
-from autotuner.tuning import default_sample_time
+from autotuner.service.config import ConfigError, TuneRequest, parse_config
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import LinkError, Mode
 from drivers.simlink import SimLink
 
@@ -138,7 +138,7 @@ def test_the_monitor_does_not_read_a_loop_while_its_session_runs():
 
 
 def test_monitor_link_errors_are_kept_logged_once_and_retried_without_reaching_other_loops(caplog):
-    caplog.set_level(logging.INFO, logger="autotuner.daemon")
+    caplog.set_level(logging.INFO, logger="autotuner.service.daemon")
 
     async def body():
         m = manager(loop("A"), loop("B"))

@@ -5,8 +5,8 @@ import random
 
 import pytest
 
-from autotuner.gains import Gains
-from autotuner.pid import PidUnit
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.control.pid import PidUnit
 
 
 def times(h, n, t0=0.0):

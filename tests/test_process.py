@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from autotuner.expr import parse_process
-from autotuner.process import Process
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.plant.process import Process
 
 
 def test_normalises_den_and_strips_leading_zeros():

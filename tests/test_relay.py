@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from autotuner.expr import parse_process
-from autotuner.relay import Code, RelayConfig, RelayExperiment, Stage
-from autotuner.simulate import PlantSim
-from autotuner.tuning import phase_frequency, run_experiment
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.experiment.relay import Code, RelayConfig, RelayExperiment, Stage
+from autotuner.engine.plant.simulation import PlantSim
+from autotuner.engine.simulated_tuning import phase_frequency, run_experiment
 
 
 def analytic(expr_fn, w: float) -> complex:

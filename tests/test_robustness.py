@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from autotuner.expr import parse_process
-from autotuner.robustness import (
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.design.robustness import (
     Plant,
     check_loop,
     closed_loop_stable,

@@ -8,12 +8,12 @@ import math
 
 import pytest
 
-from autotuner.bench import default_batch, load_batch
-from autotuner.expr import parse_process
-from autotuner.identify import from_fopdt, from_plant, from_point
-from autotuner.relay import Point
-from autotuner.robustness import check_loop, log_grid, pid_frequency_response
-from autotuner.rules import RULES, Options, RuleError, tune
+from autotuner.benchmarks.design_bench import default_batch, load_batch
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.design.process_data import from_fopdt, from_plant, from_point
+from autotuner.engine.experiment.relay import Point
+from autotuner.engine.design.robustness import check_loop, log_grid, pid_frequency_response
+from autotuner.engine.design.rules import RULES, Options, RuleError, tune
 
 REL = 1e-9
 
@@ -130,7 +130,7 @@ def test_itae_integral_recovers_fopdt_and_applies_itae_table():
 
 
 def test_robust_is_the_project_design():
-    from autotuner.design import design
+    from autotuner.engine.design.point_design import design
     point = Point(0.5, 0.3 * complex(math.cos(math.radians(-135)), math.sin(math.radians(-135))))
     data = from_point(point, 1.2)
     assert tune("robust", data, "PI").gains == design(point, 1.2, "PI").gains

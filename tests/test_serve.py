@@ -12,7 +12,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from autotuner.config import ConfigError, load_config
+from autotuner.service.config import ConfigError, load_config
 from helpers import free_port
 
 

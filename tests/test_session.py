@@ -8,11 +8,11 @@ import math
 
 import pytest
 
-from autotuner.expr import parse_process
-from autotuner.relay import Code, RelayConfig
-from autotuner.remote import field_config
-from autotuner.session import tune_link
-from autotuner.tuning import default_sample_time
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.experiment.relay import Code, RelayConfig
+from autotuner.service.remote_tuning import field_config
+from autotuner.service.link_session import tune_link
+from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import Mode
 from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc, run
@@ -96,7 +96,7 @@ def test_link_loss_ends_with_link_fault_and_the_loop_is_restored_when_it_returns
 
 
 def test_a_link_that_never_returns_is_reported_as_not_restored(monkeypatch):
-    monkeypatch.setattr("autotuner.session.RESTORE_WINDOW", 1.0)
+    monkeypatch.setattr("autotuner.service.link_session.RESTORE_WINDOW", 1.0)
     result, _, _ = asyncio.run(session({"outage": (60, 10**9)}))
     assert result.code is Code.LINK_FAULT
     assert "LOOP NOT RESTORED" in result.message

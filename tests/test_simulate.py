@@ -3,8 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from autotuner.expr import parse_process
-from autotuner.simulate import PlantSim, simulate_open_loop
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.plant.simulation import PlantSim, simulate_open_loop
 
 
 def step(text, ts, n):

@@ -17,8 +17,8 @@ import yaml
 from typer.testing import CliRunner
 
 from autotuner.cli import app
-from autotuner.expr import parse_process
-from autotuner.remote import PLANT_TICKS_PER_SAMPLE
+from autotuner.engine.plant.expression import parse_process
+from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE
 from drivers.link import Mode
 from drivers.simplc import SimulatedPlc
 from test_api import modbus_plant

@@ -7,12 +7,12 @@ import math
 
 import pytest
 
-from autotuner.bench import default_batch, load_batch
-from autotuner.expr import parse_process
-from autotuner.relay import Code, RelayConfig
-from autotuner.robustness import Plant, check_loop, log_grid, migo, pid_frequency_response
-from autotuner.simulate import PlantSim
-from autotuner.tuning import default_sample_time, phase_frequency, tune
+from autotuner.benchmarks.design_bench import default_batch, load_batch
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.experiment.relay import Code, RelayConfig
+from autotuner.engine.design.robustness import Plant, check_loop, log_grid, migo, pid_frequency_response
+from autotuner.engine.plant.simulation import PlantSim
+from autotuner.engine.simulated_tuning import default_sample_time, phase_frequency, tune
 
 ROWS = {row["id"]: row for row in load_batch(default_batch())}
 # One process per family, the lag-dominant and dead-time-dominant ends included.

@@ -2,8 +2,8 @@
 
 The contract (options, JSON shape, exit codes) is in docs/design.md. This
 module only parses options, builds the engine's objects, shows progress and
-prints results; all the work is done by :mod:`autotuner.tuning` and
-:mod:`autotuner.bench`.
+prints results; all the work is done by :mod:`autotuner.engine.simulated_tuning` and
+:mod:`autotuner.benchmarks.design_bench`.
 
 Exit codes: 0 success, 1 the experiment or the design failed, 2 bad input.
 """
@@ -32,22 +32,22 @@ from rich.table import Table
 from drivers.simplc import SimulatedPlc
 from drivers.simplc import run as run_plc
 
-from . import __version__
-from .bench import default_batch, format_table, load_batch, run_batch
-from .closedloop import check_gains
-from .compare import METHOD_NOTE, Row, compare
-from .config import ConfigError, LoopConfig, TuneRequest, load_config
-from .configured import find_loop, tune_configured
-from .expr import parse_process
-from .identify import ProcessData, from_fopdt, from_plant, from_point
-from .gains import FormError, Gains, to_parallel, to_series
-from .process import Process
-from .robustness import log_grid
-from .relay import Point, RelayConfig, Status
-from .rules import RULES, Options, RuleError, Tuning, tune as tune_rule
-from .remote import PLANT_TICKS_PER_SAMPLE, measure_jitter, tune_url, tune_via
-from .simulate import PlantSim
-from .tuning import TuneResult, default_sample_time, phase_frequency, tune
+from autotuner import __version__
+from autotuner.benchmarks.design_bench import default_batch, format_table, load_batch, run_batch
+from autotuner.engine.design.closed_loop import check_gains
+from autotuner.benchmarks.rule_comparison import METHOD_NOTE, Row, compare
+from autotuner.service.config import ConfigError, LoopConfig, TuneRequest, load_config
+from autotuner.service.configured_loop import find_loop, tune_configured
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.design.process_data import ProcessData, from_fopdt, from_plant, from_point
+from autotuner.engine.control.gains import FormError, Gains, to_parallel, to_series
+from autotuner.engine.plant.process import Process
+from autotuner.engine.design.robustness import log_grid
+from autotuner.engine.experiment.relay import Point, RelayConfig, Status
+from autotuner.engine.design.rules import RULES, Options, RuleError, Tuning, tune as tune_rule
+from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, measure_jitter, tune_url, tune_via
+from autotuner.engine.plant.simulation import PlantSim
+from autotuner.engine.simulated_tuning import TuneResult, default_sample_time, phase_frequency, tune
 
 DEMO_PLANT = "1.5*exp(-0.7*s)/(4*s+1)^2"
 # Time limit of a simulated experiment: this many expected periods of the
@@ -482,8 +482,8 @@ def serve_command(
     from api.app import PREFIX, create_app
     from api.auth import new_token
 
-    from .demo import demo_config
-    from .history import History
+    from autotuner.service.demo import demo_config
+    from autotuner.service.history import History
 
     if (ssl_certfile is None) != (ssl_keyfile is None):
         _bad_input("--ssl-certfile and --ssl-keyfile go together")
@@ -736,7 +736,7 @@ def loadbench_command(
 
     Not a test: it takes about a minute per run at the defaults (docs/daemon.md, "Load benchmark").
     """
-    from .loadbench import HEADERS, markdown, run_load, table_rows
+    from autotuner.benchmarks.load import HEADERS, markdown, run_load, table_rows
 
     try:
         parse_process(plant)
@@ -767,6 +767,3 @@ def main() -> Any:
     """Console-script entry point."""
     return app()
 
-
-if __name__ == "__main__":
-    main()

@@ -8,9 +8,9 @@ at speed 20). The history is kept in memory.
 
 from __future__ import annotations
 
-from .config import DaemonConfig
-from .expr import parse_process
-from .tuning import default_sample_time
+from autotuner.service.config import DaemonConfig
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.simulated_tuning import default_sample_time
 
 # (id, description, plant) — a lag with dead time, an integrating level, a lag-dominant loop.
 DEMO_LOOPS = (

@@ -27,10 +27,10 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Engine, RowMapping
 from sqlalchemy.pool import StaticPool
 
-from autotuner.gains import Gains
+from autotuner.engine.control.gains import Gains
 from drivers.link import LoopState, Mode
 
-from .tuning import Trace
+from autotuner.engine.simulated_tuning import Trace
 
 # Largest number of points of a stored trace.
 TRACE_POINTS = 500

@@ -1,6 +1,6 @@
 """The classical tuning rules of methods.md §4 as plain functions, and a registry of them.
 
-Every rule takes the :class:`autotuner.identify.ProcessData` of one process,
+Every rule takes the :class:`autotuner.engine.design.process_data.ProcessData` of one process,
 the controller type and the :class:`Options`, and returns a :class:`Tuning`
 in the standard (ISA) form ``K[bW − Y + E/(Ti s) + Td s/(Td s/N + 1)(cW − Y)]``
 (``c = 0``, ``N = 10`` unless the rule says otherwise), plus its native form
@@ -21,11 +21,11 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
-from .closedloop import integrated_error, margins, reference_period
-from .design import DEFAULT_ND, design
-from .gains import Gains
-from .identify import Fopdt, ProcessData, Tangent
-from .unstable import SynthesisError, design_unstable
+from autotuner.engine.design.closed_loop import integrated_error, margins, reference_period
+from autotuner.engine.design.point_design import DEFAULT_ND, design
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.design.process_data import Fopdt, ProcessData, Tangent
+from autotuner.engine.design.direct_synthesis import SynthesisError, design_unstable
 
 # itae-optimal: simulation samples per T135 and horizon in T135; Ms penalty weight;
 # accepted excess of Ms over the limit (the penalty is soft).

@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from .expr import parse_process
+from autotuner.engine.plant.expression import parse_process
 
 
 class ConfigError(ValueError):

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from autotuner.process import Process
+from autotuner.engine.plant.process import Process
 
 _EPS = np.finfo(float).eps
 _MAX_EXPONENT = 64  # beyond this the expanded coefficients lose all accuracy

@@ -1,17 +1,17 @@
 """What a session's gains will do, on the model the design was made on.
 
 A successful session identifies one point ``F(jω*)`` and the static gain; the
-design (:mod:`autotuner.design`) fits a three-parameter model through them —
+design (:mod:`autotuner.engine.design.point_design`) fits a three-parameter model through them —
 first order plus dead time ``K·e^{−Ls}/(Ts + 1)`` or, for an integrating
 process, ``Kv·e^{−Ls}/s`` — and designs the gains on it. This module puts
 gains on that model and reports, for the operator page:
 
 * the maximum sensitivity ``Ms`` and the closed loop's stability (Nyquist,
-  :func:`autotuner.robustness.check_loop`);
+  :func:`autotuner.engine.design.robustness.check_loop`);
 * the Nyquist curve ``L(jω) = C(jω)·F(jω)`` near the point's frequency;
 * the unit set-point step and the unit load step (at the process input),
-  simulated with the project's ZOH plant (:class:`autotuner.simulate.PlantSim`)
-  in feedback with its PID unit (:class:`autotuner.pid.PidUnit`), with the
+  simulated with the project's ZOH plant (:class:`autotuner.engine.plant.simulation.PlantSim`)
+  in feedback with its PID unit (:class:`autotuner.engine.control.pid.PidUnit`), with the
   set-point weights ``b`` and ``c``.
 
 Old gains (the controller's before the session) and new gains are put on the
@@ -31,12 +31,12 @@ from typing import Any
 
 import numpy as np
 
-from .closedloop import check_gains, closed_loop_step, controller_response
-from .design import fit_model
-from .gains import Gains
-from .process import Process
-from .relay import Point
-from .robustness import log_grid
+from autotuner.engine.design.closed_loop import check_gains, closed_loop_step, controller_response
+from autotuner.engine.design.point_design import fit_model
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.plant.process import Process
+from autotuner.engine.experiment.relay import Point
+from autotuner.engine.design.robustness import log_grid
 
 # Points of a Nyquist curve and of a time response.
 NYQUIST_POINTS = 300
@@ -110,7 +110,7 @@ def nyquist(model: Process, gains: Gains, omega: float) -> dict[str, list[float]
 def step_response(model: Process, gains: Gains, step: str, ts: float, samples: int) -> tuple[np.ndarray, np.ndarray]:
     """(PV, MV) at ``samples`` samples ``ts`` seconds apart after a unit step at t = 0, from rest at 0.
 
-    As :func:`~autotuner.closedloop.closed_loop_step` ("setpoint" or "load"),
+    As :func:`~autotuner.engine.design.closed_loop.closed_loop_step` ("setpoint" or "load"),
     with a diverging loop's last values repeated to ``samples`` points.
     """
     pv, mv = closed_loop_step(model, gains, step, ts, samples)

@@ -32,8 +32,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from .checks import finite
-from .gains import Gains
+from autotuner.engine.checks import finite
+from autotuner.engine.control.gains import Gains
 
 __all__ = ["PidUnit", "KINDS"]
 
@@ -68,7 +68,7 @@ def _check_config(gains: Any, kind: Any, reverse: Any, lolim: Any, hilim: Any, t
 class PidUnit:
     """PID controller unit (PIDU semantics). Times in seconds.
 
-    gains:   standard-form gains (:class:`autotuner.gains.Gains`).
+    gains:   standard-form gains (:class:`autotuner.engine.control.gains.Gains`).
     kind:    which terms act: "P", "I", "PI", "PD", "PID". A term whose
              parameter switches it off (ti = inf, td = 0) is absent whatever
              the kind, so "PID" with ti = inf behaves as "PD". "I" is the pure

@@ -3,9 +3,9 @@
 For each rule that defines the controller type and applies to the data: the
 gains, then on the plant (the exact process for ``--plant``/``--fopdt``, the
 model through the point for ``--point`` with static gain) the maximum
-sensitivity, gain and phase margins (:func:`autotuner.closedloop.margins`)
+sensitivity, gain and phase margins (:func:`autotuner.engine.design.closed_loop.margins`)
 and the IAE of a unit load step at the process input, simulated with the
-exact ZOH plant and the engine's PID unit (:func:`autotuner.closedloop.integrated_error`).
+exact ZOH plant and the engine's PID unit (:func:`autotuner.engine.design.closed_loop.integrated_error`).
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from .closedloop import HORIZON_PERIODS, SAMPLES_PER_PERIOD, integrated_error, margins, reference_period
-from .identify import ProcessData
-from .rules import RULES, Options, RuleError, Tuning, tune
+from autotuner.engine.design.closed_loop import HORIZON_PERIODS, SAMPLES_PER_PERIOD, integrated_error, margins, reference_period
+from autotuner.engine.design.process_data import ProcessData
+from autotuner.engine.design.rules import RULES, Options, RuleError, Tuning, tune
 
 
 @dataclass(frozen=True)

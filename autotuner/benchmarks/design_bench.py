@@ -29,16 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .closedloop import check_gains
-from .design import DEFAULT_ND, TD_RATIOS, design, fit_model
-from .expr import parse_process
-from .gains import Gains
-from .identify import exact_point
-from .process import Process
-from .relay import RelayConfig
-from .robustness import Plant, log_grid, migo
-from .simulate import PlantSim
-from .tuning import SAMPLES_PER_PERIOD, phase_frequency, tune
+from autotuner.engine.design.closed_loop import check_gains
+from autotuner.engine.design.point_design import DEFAULT_ND, TD_RATIOS, design, fit_model
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.design.process_data import exact_point
+from autotuner.engine.plant.process import Process
+from autotuner.engine.experiment.relay import RelayConfig
+from autotuner.engine.design.robustness import Plant, log_grid, migo
+from autotuner.engine.plant.simulation import PlantSim
+from autotuner.engine.simulated_tuning import SAMPLES_PER_PERIOD, phase_frequency, tune
 
 NOISE_FRACTION = 0.01
 AH_RADIUS = 0.5
@@ -47,7 +47,7 @@ AH_PHASE = math.radians(45.0)
 
 def default_batch() -> Path:
     """The batch shipped with the package (a copy of shared/bench/amigo-batch.csv)."""
-    return Path(str(resources.files("autotuner") / "data" / "amigo-batch.csv"))
+    return Path(str(resources.files("autotuner.benchmarks") / "data" / "amigo-batch.csv"))
 
 
 def load_batch(path: Path) -> list[dict[str, str]]:

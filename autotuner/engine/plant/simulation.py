@@ -25,7 +25,7 @@ import numpy as np
 import scipy.linalg
 import scipy.signal
 
-from autotuner.process import Process
+from autotuner.engine.plant.process import Process
 
 # A dead time within this fraction of a sample of a whole number of samples is
 # taken as exactly that number (L/Ts carries rounding error, e.g. 0.3/0.1).

@@ -5,7 +5,7 @@ while the loop, or another loop of its exclusion group, is busy); while it
 runs ``tbsy`` is true and ``ite`` counts down the estimated plant seconds
 left; at the end ``ite`` becomes the code (0 ok, see :class:`Code`) and
 ``te`` tells failure; TBRK aborts. The session itself is
-:func:`autotuner.session.tune_link`: it saves the loop, restores it in every
+:func:`autotuner.service.link_session.tune_link`: it saves the loop, restores it in every
 outcome and writes gains only on success when asked. Each session is an
 asyncio task, so loops tune concurrently and none waits for another's I/O.
 
@@ -60,15 +60,15 @@ from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags
 from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc, run
 
-from .analysis import usable_gains
-from .config import DaemonConfig, LoopConfig, TuneRequest
-from .expr import parse_process
-from .gains import Gains
-from .history import History, downsample
-from .relay import MESSAGES, Code, RelayConfig, Stage, Status
-from .remote import PLANT_TICKS_PER_SAMPLE, field_config, open_link
-from .session import close_design_pool, tune_link
-from .tuning import TuneResult
+from autotuner.engine.design.analysis import usable_gains
+from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.control.gains import Gains
+from autotuner.service.history import History, downsample
+from autotuner.engine.experiment.relay import MESSAGES, Code, RelayConfig, Stage, Status
+from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, field_config, open_link
+from autotuner.service.link_session import close_design_pool, tune_link
+from autotuner.engine.simulated_tuning import TuneResult
 
 # Events kept per subscriber before the oldest are dropped.
 QUEUE_EVENTS = 1000
@@ -77,12 +77,12 @@ STOP_WAIT = 40.0
 # Who the history records for sessions started by the device's TUNE bit.
 PLC_USER = "plc"
 # ``ite`` (with TE set) when the device's TUNE is refused because another loop of the exclusion group
-# tunes; outside the experiment's codes (autotuner.relay.Code, 0–8).
+# tunes; outside the experiment's codes (autotuner.engine.experiment.relay.Code, 0–8).
 GROUP_BUSY_CODE = 10
 # Longest pause between two tries of a watch task whose link fails, wall seconds.
 LINK_RETRY_MAX = 5.0
 
-log = logging.getLogger("autotuner.daemon")
+log = logging.getLogger("autotuner.service.daemon")
 
 
 class Refused(Exception):

@@ -6,13 +6,13 @@ Three sources (methods.md §1, §4):
   exactly (tangent ``D = L``, ``R = K/T``; 63 % time ``L + T``; the ultimate
   point from the frequency response);
 * any plant expression: the unit step response is simulated exactly (ZOH,
-  :mod:`autotuner.simulate`) and the rules get the tangent at the point of
+  :mod:`autotuner.engine.plant.simulation`) and the rules get the tangent at the point of
   steepest slope (``D``, ``R``), the 63 % time, a least-squares FOPDT fit
   (static gain fixed at the exact ``F(0)``, ``T`` and ``L`` fitted), and the
   exact frequency-response points (root of the unwrapped phase);
 * a measured point ``F(jω)`` (the relay experiment), with the static gain if
   known, which then fixes the FOPDT or IPDT model through the point
-  (:func:`autotuner.design.fit_model`).
+  (:func:`autotuner.engine.design.point_design.fit_model`).
 
 Times are in seconds, frequencies in rad/s, gains in PV units per MV unit.
 """
@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq, least_squares
 
-from .design import fit_model
-from .process import Process
-from .relay import Point
-from .simulate import simulate_open_loop
+from autotuner.engine.design.point_design import fit_model
+from autotuner.engine.plant.process import Process
+from autotuner.engine.experiment.relay import Point
+from autotuner.engine.plant.simulation import simulate_open_loop
 
 # Samples of each of the two step-response simulations (whole horizon, then
 # a fine one up to just past the steepest point).
@@ -145,7 +145,7 @@ def from_plant(process: Process) -> ProcessData:
 def from_point(point: Point, static_gain: float | None) -> ProcessData:
     """Data of a measured point; with the static gain, the FOPDT (or IPDT) model through it.
 
-    Raises DataError when the model cannot be fitted (see :func:`autotuner.design.fit_model`).
+    Raises DataError when the model cannot be fitted (see :func:`autotuner.engine.design.point_design.fit_model`).
     """
     if static_gain is None:
         return ProcessData("point", None, None, None, None, point)

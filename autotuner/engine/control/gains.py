@@ -16,7 +16,7 @@ Conventions chosen here:
   reverse the action is the ``reverse`` (RACT) flag of the PID unit.
 * A pure integral ("I") controller is not a set of standard-form gains (its
   proportional term would have to vanish while K/Ti stays finite). It is a
-  *kind* of :class:`autotuner.pid.PidUnit` that uses these same gains with only
+  *kind* of :class:`autotuner.engine.control.pid.PidUnit` that uses these same gains with only
   the integral term, integral gain ``k/ti``.
 * The series form here is the ideal interacting form
   ``K'(1 + 1/(Ti' s))(1 + Td' s)``; the derivative filter ``N`` and the weights
@@ -29,7 +29,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from .checks import finite, real
+from autotuner.engine.checks import finite, real
 
 __all__ = [
     "FormError",

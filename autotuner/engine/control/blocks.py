@@ -1,7 +1,7 @@
 """Auxiliary function blocks around the PID unit: MCU, SAT, SWU, SELU (methods.md §3.4).
 
 Every block is a pure, sample-driven object in the style of
-:class:`autotuner.pid.PidUnit`: the caller supplies the time stamp ``t``
+:class:`autotuner.engine.control.pid.PidUnit`: the caller supplies the time stamp ``t``
 (seconds) of every sample; there is no clock and no I/O. Parameters are
 dataclass fields, validated on construction and on every later assignment
 (a ``ValueError`` names the offending parameter). Inputs of one sample are
@@ -32,7 +32,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from .checks import finite, real
+from autotuner.engine.checks import finite, real
 
 __all__ = [
     "ManualControlUnit",
@@ -400,7 +400,7 @@ class SeluOutput:
     is not selected and must track. tv[i]: the value to feed to controller
     i+1's tracking input — ``y`` for the non-selected ones, None for the
     selected one (it tracks its own limited output), which is exactly what
-    :meth:`autotuner.pid.PidUnit.step` takes as ``tv``.
+    :meth:`autotuner.engine.control.pid.PidUnit.step` takes as ``tv``.
     """
 
     y: float

@@ -32,8 +32,8 @@ from enum import Enum, IntEnum
 
 import numpy as np
 
-from .fourier import held_coefficient, sampled_coefficient
-from .phase_filter import PhaseFilter
+from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
+from autotuner.engine.experiment.phase_filter import PhaseFilter
 
 
 class Code(IntEnum):

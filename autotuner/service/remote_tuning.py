@@ -22,10 +22,10 @@ import numpy as np
 from drivers.link import Link, LinkError
 from drivers.simplc import SimulatedPlc, run
 
-from .process import Process
-from .relay import MESSAGES, Code, RelayConfig, Status
-from .session import deadlines, tune_link
-from .tuning import TuneResult
+from autotuner.engine.plant.process import Process
+from autotuner.engine.experiment.relay import MESSAGES, Code, RelayConfig, Status
+from autotuner.service.link_session import deadlines, tune_link
+from autotuner.engine.simulated_tuning import TuneResult
 
 # Sampling a PLC through a link scatters the per-period estimates by about
 # ±0.5°, ±0.4 % and ±0.03 in |F|/K0 (the PLC's clock and the session's are
@@ -93,7 +93,7 @@ async def tune_opened(
     speed: float = 1.0,
     on_status: Callable[[Status], None] | None = None,
 ) -> TuneResult:
-    """Open ``link``, tune its loop (:func:`~autotuner.session.tune_link`), close it; code 7 if it cannot open."""
+    """Open ``link``, tune its loop (:func:`~autotuner.service.link_session.tune_link`), close it; code 7 if it cannot open."""
     try:
         await link.open()
     except LinkError as exc:

@@ -15,11 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from .design import Design, design
-from .identify import exact_point
-from .process import Process
-from .relay import MESSAGES, Code, Identification, RelayConfig, RelayExperiment, Status
-from .simulate import PlantSim
+from autotuner.engine.design.point_design import Design, design
+from autotuner.engine.design.process_data import exact_point
+from autotuner.engine.plant.process import Process
+from autotuner.engine.experiment.relay import MESSAGES, Code, Identification, RelayConfig, RelayExperiment, Status
+from autotuner.engine.plant.simulation import PlantSim
 
 SAMPLES_PER_PERIOD = 100
 

@@ -4,13 +4,13 @@ The plants are N :class:`~drivers.simplc.SimulatedPlc`, each behind its own
 Modbus TCP server (:func:`drivers.modbus_server.serve_modbus`, an ephemeral
 port), all in a child process — the field devices, kept off the daemon's
 event loop and its CPU account. The daemon side is a
-:class:`~autotuner.daemon.LoopManager` with N loops whose links are
+:class:`~autotuner.service.daemon.LoopManager` with N loops whose links are
 ``modbus://127.0.0.1:PORT/1``; the benchmark starts all N tunings at once and
 waits for them to end.
 
 Measured from outside the session: each loop's link is wrapped so every
 ``read_pv`` is time-stamped (``time.monotonic()``). A session samples on a
-deadline schedule (:func:`autotuner.session.deadlines`: sample k is due at
+deadline schedule (:func:`autotuner.service.link_session.deadlines`: sample k is due at
 ``start + k·ts/speed``, one PV read per sample, the first one due at once), so
 the k-th read of a session is due at its first read + k·ts/speed. Lateness is
 when the read *completed* behind that due time (the Modbus round trip
@@ -31,12 +31,12 @@ import numpy as np
 
 from drivers.simplc import SimulatedPlc, run
 
-from .config import DaemonConfig, TuneRequest
-from .daemon import Loop, LoopManager
-from .expr import parse_process
-from .history import History
-from .remote import PLANT_TICKS_PER_SAMPLE
-from .session import design_cpu
+from autotuner.service.config import DaemonConfig, TuneRequest
+from autotuner.service.daemon import Loop, LoopManager
+from autotuner.engine.plant.expression import parse_process
+from autotuner.service.history import History
+from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE
+from autotuner.service.link_session import design_cpu
 
 # A fast plant: one tuning is about a minute of plant time (ts 0.1 s: about 60 samples per period).
 DEFAULT_PLANT = "exp(-0.5*s)/(s+1)"

@@ -31,8 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .process import Process
-from .robustness import closed_loop_stable, log_grid, max_sensitivity
+from autotuner.engine.plant.process import Process
+from autotuner.engine.design.robustness import closed_loop_stable, log_grid, max_sensitivity
 
 W0, W1 = 0.01, 0.1
 LAMBDA_GRID = np.logspace(math.log10(0.2), math.log10(20.0), 60)

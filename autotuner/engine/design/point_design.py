@@ -12,7 +12,7 @@ process lies in between; designing for the first model alone overshoots the
 Ms of lag-dominant higher-order processes by up to 10 %. So the gains are
 those with the largest integral gain ``ki = k/ti`` for which the loop keeps
 ``Ms`` on the first model and ``1.05·Ms`` on the second (MIGO on both, see
-:mod:`autotuner.robustness`). PID fixes ``td`` as a fraction of ``ti``
+:mod:`autotuner.engine.design.robustness`). PID fixes ``td`` as a fraction of ``ti``
 (at most ¼, so a series form always exists) and takes the fraction with the
 largest ``ki``; PI is the fraction 0, so PID never has less integral gain on
 the model. The set-point weight ``b`` is the largest in [0, 1] whose
@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .gains import Gains
-from .process import Process
-from .relay import Point
-from .robustness import Plant, log_grid, max_sensitivity, migo, pid_frequency_response
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.plant.process import Process
+from autotuner.engine.experiment.relay import Point
+from autotuner.engine.design.robustness import Plant, log_grid, max_sensitivity, migo, pid_frequency_response
 
 # A static gain this many times |F(jω*)| or more is designed as an integrator.
 INTEGRATING_RATIO = 200.0

@@ -1,8 +1,8 @@
 """Closed-loop figures of a controller on a plant: Ms, margins, and simulated IAE/ITAE.
 
 The time responses are simulated with the exact ZOH plant simulator
-(:class:`autotuner.simulate.PlantSim`) in feedback with the engine's PID unit
-(:class:`autotuner.pid.PidUnit`, the same discrete law the tuner runs:
+(:class:`autotuner.engine.plant.simulation.PlantSim`) in feedback with the engine's PID unit
+(:class:`autotuner.engine.control.pid.PidUnit`, the same discrete law the tuner runs:
 Tustin integral, filtered backward-difference derivative). The sample time is
 ``T135/SAMPLES_PER_PERIOD`` (``T135 = 2π/ω135``, the period of the 135° point),
 and the integrals are rectangle sums over the samples:
@@ -16,12 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .gains import Gains
-from .identify import exact_point
-from .pid import PidUnit
-from .process import Process
-from .robustness import LoopCheck, check_loop, closed_loop_stable, log_grid, max_sensitivity, pid_frequency_response
-from .simulate import PlantSim
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.design.process_data import exact_point
+from autotuner.engine.control.pid import PidUnit
+from autotuner.engine.plant.process import Process
+from autotuner.engine.design.robustness import LoopCheck, check_loop, closed_loop_stable, log_grid, max_sensitivity, pid_frequency_response
+from autotuner.engine.plant.simulation import PlantSim
 
 SAMPLES_PER_PERIOD = 50
 HORIZON_PERIODS = 30.0

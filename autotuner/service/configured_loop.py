@@ -14,11 +14,11 @@ from collections.abc import Callable
 
 from drivers.simplc import run
 
-from .config import DaemonConfig, LoopConfig, TuneRequest
-from .daemon import connector, relay_config, settings_of, simulated_plc
-from .relay import Status
-from .remote import tune_opened
-from .tuning import TuneResult
+from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
+from autotuner.service.daemon import connector, relay_config, settings_of, simulated_plc
+from autotuner.engine.experiment.relay import Status
+from autotuner.service.remote_tuning import tune_opened
+from autotuner.engine.simulated_tuning import TuneResult
 
 
 def find_loop(config: DaemonConfig, loop_id: str) -> LoopConfig:
