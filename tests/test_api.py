@@ -21,7 +21,7 @@ from autotuner.service.config import DaemonConfig, Token
 from autotuner.service.demo import demo_config
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
-from autotuner.engine.experiment.relay import Code
+from autotuner.engine.outcome import Code
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, served
 from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import Mode

@@ -15,7 +15,8 @@ import pytest
 
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
-from autotuner.engine.experiment.relay import Code, RelayConfig
+from autotuner.engine.outcome import Code
+from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config
 from autotuner.service.link_session import tune_link
 from autotuner.engine.simulated_tuning import default_sample_time

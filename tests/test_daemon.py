@@ -11,7 +11,7 @@ from autotuner.service.daemon import LoopManager, Refused
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
 from autotuner.service.history import History
-from autotuner.engine.experiment.relay import Code
+from autotuner.engine.outcome import Code
 from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import LoopState, Mode
 from helpers import until

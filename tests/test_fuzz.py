@@ -46,7 +46,7 @@ from schemathesis.specs.openapi.checks import content_type_conformance, response
 from api.app import PREFIX, create_app
 from api.auth import token_hash
 from autotuner.service.config import DaemonConfig, Token
-from autotuner.engine.experiment.relay import Code
+from autotuner.engine.outcome import Code
 
 OPERATOR, VIEWER = "fuzz-operator", "fuzz-viewer"
 LOOP_IDS = ("TIC-1", "LIC-2", "FIC-3")

@@ -23,11 +23,11 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from autotuner.service.config import ConfigError, DaemonConfig, TuneRequest, parse_config
 from autotuner.service.demo import demo_config
-from autotuner.service.daemon import GROUP_BUSY_CODE, PLC_USER, LoopManager
+from autotuner.service.daemon import PLC_USER, LoopManager
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
 from autotuner.service.history import History
-from autotuner.engine.experiment.relay import Code
+from autotuner.engine.outcome import Code
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE
 from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import Mode
@@ -329,7 +329,7 @@ def test_tune_from_the_hmi_while_a_group_member_tunes_is_refused_with_te():
             return refused, state, state_after, b_busy, a_flags, same_session, running
 
     refused, state, state_after, b_busy, a_flags, same_session, running = asyncio.run(body())
-    assert refused["te"] is True and refused["tbsy"] is False and refused["ite"] == float(GROUP_BUSY_CODE)
+    assert refused["te"] is True and refused["tbsy"] is False and refused["ite"] == float(Code.GROUP_BUSY)
     assert state_after == state and state[0] is Mode.AUTO and not b_busy
     assert same_session and a_flags["tbsy"] is True and a_flags["te"] is False
     assert running["tbsy"] is True and running["te"] is False

@@ -13,7 +13,8 @@ import math
 import pytest
 
 from autotuner.engine.plant.expression import parse_process
-from autotuner.engine.experiment.relay import Code, RelayConfig
+from autotuner.engine.outcome import Code
+from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config, open_link, served, tune_via
 from autotuner.service.link_session import tune_link
 from autotuner.engine.plant.simulation import PlantSim

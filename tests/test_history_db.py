@@ -23,7 +23,7 @@ import sqlalchemy as sa
 from autotuner.service.config import ConfigError, load_config
 from autotuner.engine.control.gains import Gains
 from autotuner.service.history import History, database_url
-from autotuner.engine.experiment.relay import Code
+from autotuner.engine.outcome import Code
 from drivers.link import LoopState, Mode
 from helpers import free_port
 from test_daemon import loop, manager, running

@@ -19,7 +19,7 @@ from autotuner.service.daemon import LoopManager
 from autotuner.engine.plant.expression import parse_process
 from autotuner.service.history import History
 from autotuner.benchmarks.load import TimedLink, stamp_reads
-from autotuner.engine.experiment.relay import Code
+from autotuner.engine.outcome import Code
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, served
 from drivers.link import Mode
 from drivers.modbus_server import serve_modbus

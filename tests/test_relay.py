@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from autotuner.engine.plant.expression import parse_process
-from autotuner.engine.experiment.relay import Code, RelayConfig, RelayExperiment, Stage
+from autotuner.engine.outcome import Code
+from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Stage
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.simulated_tuning import phase_frequency, run_experiment
 

@@ -9,7 +9,8 @@ import pytest
 
 from autotuner.benchmarks.design_bench import default_batch, load_batch
 from autotuner.engine.plant.expression import parse_process
-from autotuner.engine.experiment.relay import Code, RelayConfig
+from autotuner.engine.outcome import Code
+from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.engine.design.robustness import Plant, check_loop, log_grid, migo, pid_frequency_response
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.simulated_tuning import default_sample_time, phase_frequency, tune

@@ -18,7 +18,8 @@ import numpy as np
 from autotuner.engine.design.point_design import Design, design
 from autotuner.engine.design.process_data import exact_point
 from autotuner.engine.plant.process import Process
-from autotuner.engine.experiment.relay import MESSAGES, Code, Identification, RelayConfig, RelayExperiment, Status
+from autotuner.engine.outcome import MESSAGES, Code
+from autotuner.engine.experiment.relay import Identification, RelayConfig, RelayExperiment, Status
 from autotuner.engine.plant.simulation import PlantSim
 
 SAMPLES_PER_PERIOD = 100

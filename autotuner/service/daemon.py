@@ -33,7 +33,7 @@ edge of TUNE is a TUNE from user ``plc`` with the loop's defaults, a rising
 edge of TBRK aborts the running session. A TUNE the state does not allow is
 not run: while the loop's own session runs it is ignored (TBSY and ``ite``
 are that session's); while another loop of the exclusion group tunes, TE is
-set and ``ite`` shows :data:`GROUP_BUSY_CODE`, the loop untouched.
+set and ``ite`` shows :attr:`Code.GROUP_BUSY`, the loop untouched.
 
 Link errors of the watch task are logged once per outage, kept in the
 status (``monitor_error``) and retried with a growing pause; they never
@@ -65,7 +65,8 @@ from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
 from autotuner.service.history import History, downsample
-from autotuner.engine.experiment.relay import MESSAGES, Code, RelayConfig, Stage, Status
+from autotuner.engine.outcome import MESSAGES, Code
+from autotuner.engine.experiment.relay import RelayConfig, Stage, Status
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, field_config, open_link
 from autotuner.service.link_session import close_design_pool, tune_link
 from autotuner.engine.simulated_tuning import TuneResult
@@ -76,9 +77,6 @@ QUEUE_EVENTS = 1000
 STOP_WAIT = 40.0
 # Who the history records for sessions started by the device's TUNE bit.
 PLC_USER = "plc"
-# ``ite`` (with TE set) when the device's TUNE is refused because another loop of the exclusion group
-# tunes; outside the experiment's codes (autotuner.engine.experiment.relay.Code, 0–8).
-GROUP_BUSY_CODE = 10
 # Longest pause between two tries of a watch task whose link fails, wall seconds.
 LINK_RETRY_MAX = 5.0
 
@@ -572,7 +570,7 @@ class LoopManager:
         except Refused as refused:
             log.info("loop %s: TUNE from the device refused: %s", loop_id, refused.message)
             if refused.code == "group_busy":
-                await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(GROUP_BUSY_CODE)))
+                await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(Code.GROUP_BUSY)))
             return
         log.info("loop %s: TUNE from the device started session %s", loop_id, sid)
 

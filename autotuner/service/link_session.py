@@ -29,7 +29,8 @@ import numpy as np
 
 from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags
 
-from autotuner.engine.experiment.relay import MESSAGES, Code, RelayConfig, RelayExperiment, Status
+from autotuner.engine.outcome import MESSAGES, Code
+from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Status
 from autotuner.engine.simulated_tuning import Trace, TuneResult, result_of
 
 # How long a failing link is retried to put the loop back, wall seconds.

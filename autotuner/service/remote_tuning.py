@@ -23,7 +23,8 @@ from drivers.link import Link, LinkError
 from drivers.simplc import SimulatedPlc, run
 
 from autotuner.engine.plant.process import Process
-from autotuner.engine.experiment.relay import MESSAGES, Code, RelayConfig, Status
+from autotuner.engine.outcome import MESSAGES, Code
+from autotuner.engine.experiment.relay import RelayConfig, Status
 from autotuner.service.link_session import deadlines, tune_link
 from autotuner.engine.simulated_tuning import TuneResult
 

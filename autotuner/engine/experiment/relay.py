@@ -28,39 +28,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import Enum, IntEnum
+from enum import Enum
 
 import numpy as np
 
+from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
 from autotuner.engine.experiment.phase_filter import PhaseFilter
-
-
-class Code(IntEnum):
-    """Outcome of an experiment; the value is what ``ite`` shows when it has ended."""
-
-    OK = 0
-    ABORTED = 1
-    PV_OUT_OF_LIMITS = 2
-    NO_OSCILLATION = 3
-    NOT_CONVERGED = 4
-    BAD_SAMPLE = 5
-    MV_RANGE = 6
-    LINK_FAULT = 7
-    NO_DESIGN = 8
-
-
-MESSAGES: dict[Code, str] = {
-    Code.OK: "ok",
-    Code.ABORTED: "aborted (TBRK)",
-    Code.PV_OUT_OF_LIMITS: "PV left its safety limits",
-    Code.NO_OSCILLATION: "no oscillation: the relay did not make the PV cross the set point repeatedly",
-    Code.NOT_CONVERGED: "the identified point did not converge within the time limit",
-    Code.BAD_SAMPLE: "invalid sample (non-finite PV or timestamps not increasing)",
-    Code.MV_RANGE: "the relay cannot move the MV within its limits",
-    Code.LINK_FAULT: "link to the loop failed",
-    Code.NO_DESIGN: "no robust PI/PID design from the identified data",
-}
 
 
 class Stage(str, Enum):

@@ -1,0 +1,49 @@
+"""The outcome codes of a tuning: the value ``ite`` shows once a session has ended.
+
+Defined here once, for the engine, the service, the API (served to the operator page
+at ``GET /api/v1/codes``) and the CLI. Ranges: 0–10 the original block's outcomes,
+11–19 the field-grade experiment and design (warnings and refusals), 20–29 the
+hand-back. A *warning* code comes with ``te`` false: the gains are usable but the
+result missed something it was asked for, and the message says what.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class Code(IntEnum):
+    """Outcome of a tuning; the value is what ``ite`` shows when it has ended."""
+
+    OK = 0
+    ABORTED = 1
+    PV_OUT_OF_LIMITS = 2
+    NO_OSCILLATION = 3
+    NOT_CONVERGED = 4
+    BAD_SAMPLE = 5
+    MV_RANGE = 6
+    LINK_FAULT = 7
+    NO_DESIGN = 8
+    GROUP_BUSY = 10
+
+
+MESSAGES: dict[Code, str] = {
+    Code.OK: "ok",
+    Code.ABORTED: "aborted (TBRK)",
+    Code.PV_OUT_OF_LIMITS: "PV left its safety limits",
+    Code.NO_OSCILLATION: "no oscillation: the relay did not make the PV cross the set point repeatedly",
+    Code.NOT_CONVERGED: "the identified point did not converge within the time limit",
+    Code.BAD_SAMPLE: "invalid sample (non-finite PV or timestamps not increasing)",
+    Code.MV_RANGE: "the relay cannot move the MV within its limits",
+    Code.LINK_FAULT: "link to the loop failed",
+    Code.NO_DESIGN: "no robust PI/PID design from the identified data",
+    Code.GROUP_BUSY: "refused: another loop of the exclusion group is tuning (the loop is untouched)",
+}
+
+# Codes reported with te false: gains computed, but a target was missed (the message names it).
+WARNINGS: frozenset[Code] = frozenset()
+
+
+def is_failure(code: Code) -> bool:
+    """True when the outcome carries no usable gains (``te`` true)."""
+    return code is not Code.OK and code not in WARNINGS
