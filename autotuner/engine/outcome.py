@@ -25,6 +25,9 @@ class Code(IntEnum):
     LINK_FAULT = 7
     NO_DESIGN = 8
     GROUP_BUSY = 10
+    # Field-grade experiment (refusals, te true): 11, 12.
+    DISTURBANCE = 11
+    NOISE_TOO_HIGH = 12
 
 
 MESSAGES: dict[Code, str] = {
@@ -38,6 +41,11 @@ MESSAGES: dict[Code, str] = {
     Code.LINK_FAULT: "link to the loop failed",
     Code.NO_DESIGN: "no robust PI/PID design from the identified data",
     Code.GROUP_BUSY: "refused: another loop of the exclusion group is tuning (the loop is untouched)",
+    Code.DISTURBANCE: (
+        "a load disturbance or drift too large for the experiment: following it needs more than ±amp "
+        "of MV shift, or it never settled within the time limit"
+    ),
+    Code.NOISE_TOO_HIGH: "the measurement noise is too high for this amp (the message says by how much to raise amp)",
 }
 
 # Codes reported with te false: gains computed, but a target was missed (the message names it).

@@ -126,10 +126,22 @@ class Point:
 class Identification:
     """What a successful experiment found.
 
-    static_gain: ``F(0)`` estimate; ``inf`` when the data cannot tell it from
-        an integrating process (the mean MV shift is too small to measure).
+    static_gain: ``F(0)`` estimate (PV units per MV unit); ``inf`` when the
+        data cannot tell it from an integrating process (the mean MV shift is
+        too small to measure); negative for an open-loop unstable process.
     duration: seconds from the first sample to the end; periods: ``duration``
-        in oscillation periods; hysteresis and noise_std in PV units.
+        in oscillation periods; hysteresis and noise_std in PV units
+        (noise_std: standard deviation of the measurement noise, estimated
+        from the whole experiment).
+    phase_target_deg: the process phase lag the phase filter aimed at,
+        degrees: the requested one, or a reachable one when the requested
+        phase was out of reach (``phase_moved`` then says so).
+    static_gain_std: standard error of ``static_gain`` (same units; ``inf``
+        for an integrating process or when unknown).
+    disturbance: a load step, drift or non-steady start was detected and
+        estimated through or discarded; periods_discarded: whole periods left
+        out of the estimates because of it; load_estimate: the load at the
+        process input at the end, in MV units (relative to the start).
     """
 
     point: Point
@@ -139,6 +151,12 @@ class Identification:
     samples: int
     hysteresis: float
     noise_std: float
+    phase_target_deg: float = 135.0
+    phase_moved: bool = False
+    static_gain_std: float = math.inf
+    disturbance: bool = False
+    periods_discarded: int = 0
+    load_estimate: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -427,6 +445,7 @@ class RelayExperiment:
             samples=len(self._t),
             hysteresis=self._eps,
             noise_std=self._noise,
+            phase_target_deg=self.config.phase_deg,
         )
         self._finish(Code.OK, MESSAGES[Code.OK])
 
