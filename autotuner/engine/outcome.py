@@ -28,6 +28,12 @@ class Code(IntEnum):
     # Field-grade experiment (refusals, te true): 11, 12.
     DISTURBANCE = 11
     NOISE_TOO_HIGH = 12
+    # Field-grade design (taken from 19 downwards): 15, 18, 19 warnings (te false), 16, 17 refusals.
+    DERIVATIVE_LIMITED = 15
+    NOT_STABILISABLE = 16
+    UNSTABLE_DEAD_TIME_TOO_LONG = 17
+    DERIVATIVE_DROPPED = 18
+    ROBUSTNESS_MISSED = 19
 
 
 MESSAGES: dict[Code, str] = {
@@ -46,10 +52,15 @@ MESSAGES: dict[Code, str] = {
         "of MV shift, or it never settled within the time limit"
     ),
     Code.NOISE_TOO_HIGH: "the measurement noise is too high for this amp (the message says by how much to raise amp)",
+    Code.DERIVATIVE_LIMITED: "warning: derivative action reduced so the measured noise stays within the MV noise budget",
+    Code.NOT_STABILISABLE: "refused: no PI/PID stabilises this process robustly",
+    Code.UNSTABLE_DEAD_TIME_TOO_LONG: "refused: the dead time is too long for this controller on an unstable process",
+    Code.DERIVATIVE_DROPPED: "warning: PID was asked for but the design has no derivative action",
+    Code.ROBUSTNESS_MISSED: "warning: the design misses its Ms target on the model",
 }
 
 # Codes reported with te false: gains computed, but a target was missed (the message names it).
-WARNINGS: frozenset[Code] = frozenset()
+WARNINGS: frozenset[Code] = frozenset({Code.DERIVATIVE_LIMITED, Code.DERIVATIVE_DROPPED, Code.ROBUSTNESS_MISSED})
 
 
 def is_failure(code: Code) -> bool:
