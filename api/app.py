@@ -26,6 +26,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from autotuner import __version__
 from autotuner.engine.design.analysis import analyse
+from autotuner.engine.outcome import MESSAGES, WARNINGS, Code
 from autotuner.service.config import DaemonConfig, Tuning, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
 from autotuner.service.history import History
@@ -33,8 +34,8 @@ from autotuner.service.history import History
 from . import errors
 from .auth import Principal, Tokens, require
 from .events import stream
-from .models import (Accepted, Analysis, Applied, ApplyRequest, Health, LoopStatus, Session, SessionSummary,
-                     Whoami)
+from .models import (Accepted, Analysis, Applied, ApplyRequest, CodeOut, Health, LoopStatus, Session,
+                     SessionSummary, Whoami)
 
 PREFIX = "/api/v1"
 # The operator page (issue 7): static files using only the public API below.
@@ -68,6 +69,12 @@ Manager = Annotated[LoopManager, Depends(_manager)]
 async def health(manager: Manager) -> dict[str, Any]:
     """Liveness (no token needed)."""
     return {"status": "ok", "loops": len(manager.loops)}
+
+
+@router.get("/codes", response_model=list[CodeOut], tags=["health"])
+async def codes() -> list[dict[str, Any]]:
+    """Every outcome code ``ite`` can show once a session has ended (no token needed: it holds no plant data)."""
+    return [{"value": int(c), "name": c.name, "message": MESSAGES[c], "warning": c in WARNINGS} for c in Code]
 
 
 @router.get("/whoami", response_model=Whoami, tags=["health"])

@@ -45,6 +45,16 @@ class TuneDefaults(BaseModel):
     apply: bool
 
 
+class CodeOut(BaseModel):
+    """One outcome code: ``value`` is what ``ite`` shows when a session has ended; ``warning``: reported with
+    ``te`` false (gains usable, a target missed)."""
+
+    value: int
+    name: str
+    message: str
+    warning: bool
+
+
 class Whoami(BaseModel):
     """The caller: the token's name (recorded in the history as the user) and its role."""
 

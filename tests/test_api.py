@@ -260,3 +260,13 @@ def test_the_page_is_served_with_a_strict_content_security_policy_and_the_api_wi
     assert client.get("/app.js").headers["Content-Security-Policy"] == policy
     api = client.get(f"{API}/loops", headers=auth(VIEWER))
     assert api.headers["X-Content-Type-Options"] == "nosniff" and "Content-Security-Policy" not in api.headers
+
+
+def test_codes_lists_every_outcome_code_for_the_page(client):
+    from autotuner.engine.outcome import MESSAGES, WARNINGS
+
+    codes = client.get(f"{API}/codes").json()
+    assert [c["value"] for c in codes] == [int(c) for c in Code]
+    for c in codes:
+        code = Code(c["value"])
+        assert c == {"value": int(code), "name": code.name, "message": MESSAGES[code], "warning": code in WARNINGS}

@@ -271,14 +271,32 @@ def test_operator_tunes_from_the_page_applies_the_gains_and_finds_the_session_in
         assert close(number(page.inner_text(f"#gains tr[data-gain={key}] td.old")), before[key]), key
     assert "series (interacting)" in page.text_content("#gains") and "parallel" in page.text_content("#gains")
 
-    # Apply: confirm, then the controller has the new gains and nothing is pending.
+    # The controller's gains now, read from the device, on the loop page.
+    assert close(number(page.inner_text("#current-gains [data-current=pk]")), before["pk"])
+    assert page.inner_text("#result #applied") == "NOT APPLIED YET"
+    # Apply: the dialog lists every parameter that changes, now → new; confirm, then the controller has the new
+    # gains, nothing is pending, and the result card says applied.
     page.click("#apply:enabled")
+    changed = {k for k in ("pk", "pti", "ptd", "pnd", "pb", "pc")
+               if before[k] is None or gains[k] is None or abs(before[k] - gains[k]) > 1e-9 * max(1, abs(gains[k]))}
+    assert {"pk", "pti", "pb"} <= changed
+    shown = set(page.eval_on_selector_all("#apply-changes tr[data-param]", "rows => rows.map(r => r.dataset.param)"))
+    assert shown == changed
+    for key in changed:
+        row = page.inner_text(f"#apply-changes tr[data-param={key}]")
+        assert "→" in row
+        assert close(number(page.inner_text(f"#apply-changes tr[data-param={key}] td.new").removesuffix(" s")), gains[key])
     page.click("#apply-confirm")
     page.wait_for_selector("#apply-done")
     status = daemon.get("/loops/TIC-101")
     assert status["pending_gains"] is False
     assert close(status["current_gains"]["pk"], gains["pk"]) and close(status["current_gains"]["pti"], gains["pti"])
     page.wait_for_selector("#apply:disabled")
+    page.wait_for_selector("#result #applied:has-text('applied')")
+    assert "by AUTOTUNER_TOKEN" in page.text_content("#result #applied")
+    page.wait_for_function("(k) => { const e = document.querySelector('#current-gains [data-current=pk]');"
+                           " return e && Math.abs(Number(e.textContent.replace('−', '-')) - k) <= 1e-3 * Math.abs(k); }",
+                           arg=gains["pk"])
 
     # History: the session with who, outcome, point and gains; then in full with its trace.
     sid = status["session"]
@@ -324,6 +342,12 @@ def test_tbrk_from_the_page_restores_the_loop(page, daemon):
     page.wait_for_selector("#badge:has-text('FAILED')")
     assert "code 1" in page.inner_text("#stage") and "aborted" in page.inner_text("#stage")
     assert page.inner_text("#status [data-flag=te]") == "TE 1"
+    # A failed session shows what it identified (nothing here) and why; no success colour, no progress bar.
+    page.wait_for_selector("#result.failed #why")
+    assert "code 1" in page.inner_text("#result #why")
+    assert page.locator("#result [data-identified]").count() == 1
+    assert page.locator("#status .progress, #status .badge.ok, #result .badge.ok").count() == 0
+    assert "FAILURE" in page.inner_text("#result .summary").upper()
     status = daemon.get("/loops/FIC-301")
     assert status["tbsy"] is False and status["te"] is True and status["ite"] == 1
     saved = daemon.get("/loops/FIC-301/history?limit=1")[0]["saved"]

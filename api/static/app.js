@@ -2,7 +2,7 @@
 // Plain ES modules, no build step; routes in the URL's hash: #/, #/loop/ID, #/loop/ID/history, #/session/SID.
 
 import { ApiError, clearToken, eventStream, get, getToken, onUnauthorized, post, setToken, whoami } from "./api.js";
-import { ROWS, cell, fmt } from "./gains.js";
+import { PARAMS, ROWS, cell, changes, fmt, paramText } from "./gains.js";
 import { el, nyquist, timeChart } from "./plot.js";
 
 // ---------------------------------------------------------------- helpers
@@ -17,7 +17,7 @@ function h(tag, attrs = {}, ...children) {
     else if (k === "style") node.style.cssText = v; // CSSOM: allowed by the page's Content-Security-Policy
     else node.setAttribute(k, v === true ? "" : v);
   }
-  for (const c of children.flat()) {
+  for (const c of children.flat(Infinity)) {
     if (c === null || c === undefined || c === false) continue;
     node.appendChild(typeof c === "string" || typeof c === "number" ? document.createTextNode(String(c)) : c);
   }
@@ -27,7 +27,7 @@ function h(tag, attrs = {}, ...children) {
 const svgNode = (cls, label) => el("svg", { class: cls, role: "img", "aria-label": label });
 
 // append / replaceChildren without the nulls of conditional children (the DOM would print "null").
-const clean = (children) => children.flat().filter((c) => c !== null && c !== undefined && c !== false);
+const clean = (children) => children.flat(Infinity).filter((c) => c !== null && c !== undefined && c !== false);
 const add = (node, ...children) => node.append(...clean(children));
 const fill = (node, ...children) => node.replaceChildren(...clean(children));
 
@@ -35,19 +35,21 @@ const $ = (sel, root = document) => root.querySelector(sel);
 const main = () => $("#main");
 const esc = (s) => encodeURIComponent(s);
 
-// Meaning of ite when the experiment has ended (autotuner/relay.py Code; 10: refused, exclusion group busy).
-const CODES = {
-  0: "ok",
-  1: "aborted (TBRK)",
-  2: "PV left its safety limits",
-  3: "no oscillation",
-  4: "identified point did not converge",
-  5: "invalid sample",
-  6: "relay cannot move the MV within its limits",
-  7: "link to the loop failed",
-  8: "no robust PI/PID design",
-  10: "refused: exclusion group busy",
-};
+// Meaning of ite when the experiment has ended: GET /api/v1/codes (value → {name, message, warning}), loaded once.
+const CODES = new Map();
+async function loadCodes() {
+  if (CODES.size) return;
+  try {
+    for (const c of await get("/codes")) CODES.set(c.value, c);
+  } catch (err) {
+    if (err.status !== 401) notify(err); // the page still shows each session's own message
+  }
+}
+// "code 3 NO_OSCILLATION" (the name when the daemon gave the table).
+function codeName(code) {
+  const c = CODES.get(code);
+  return c ? `code ${code} ${c.name}` : `code ${code}`;
+}
 
 const STAGES = { noise: "measuring noise", relay: "relay experiment", done: "designing" };
 
@@ -70,15 +72,19 @@ function clock(unix) {
   return `${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}`;
 }
 
-// The loop's state in words and a CSS class: tuning, failed, ok, idle.
+// The loop's state in words and a CSS class: tuning, failed, warn, ok, idle.
 function statusOf(loop) {
   if (loop.tbsy) {
     const left = Math.max(0, Math.round(loop.ite));
     return { cls: "tuning", badge: "TUNING", text: `${STAGES[loop.stage] || "starting"} · ${left} s left` };
   }
   const code = Math.round(loop.ite);
-  if (loop.te) return { cls: "failed", badge: "FAILED", text: `code ${code}: ${loop.message || CODES[code] || "?"}` };
-  if (loop.session) return { cls: "ok", badge: "OK", text: `code ${code}: ${CODES[code] || loop.message}` };
+  const meaning = CODES.get(code)?.message;
+  if (loop.te) return { cls: "failed", badge: "FAILED", text: `${codeName(code)}: ${loop.message || meaning || "?"}` };
+  if (loop.session && CODES.get(code)?.warning) {
+    return { cls: "warn", badge: "WARNING", text: `${codeName(code)}: ${loop.message || meaning}` };
+  }
+  if (loop.session) return { cls: "ok", badge: "OK", text: `${codeName(code)}: ${meaning || loop.message}` };
   return { cls: "idle", badge: "IDLE", text: "not tuned since the daemon started" };
 }
 
@@ -90,9 +96,10 @@ function flags(loop) {
     h("span", { class: "flag ite", "data-flag": "ite" }, `ite ${ite}`));
 }
 
+// Only while tuning: a finished or failed session has no "progress" to show (the badge and code say how it ended).
 function progressBar(loop) {
-  const pct = Math.round(100 * (loop.tbsy ? loop.progress || 0 : loop.session && !loop.te ? 1 : loop.progress || 0));
-  return h("div", { class: `progress ${loop.tbsy ? "running" : ""}`, role: "progressbar", "aria-valuenow": pct,
+  const pct = Math.round(100 * (loop.progress || 0));
+  return h("div", { class: "progress running", role: "progressbar", "aria-valuenow": pct,
                     "aria-valuemin": 0, "aria-valuemax": 100 },
     h("div", { class: "bar", style: `width:${pct}%` }), h("span", {}, `${pct} %`));
 }
@@ -314,25 +321,38 @@ function loopView(id) {
   form.onError = (err) => notify(err, actionMsg);
   form.onStart = () => fill(actionMsg);
 
+  // The confirmation lists every parameter that changes, the controller's value now → the designed one.
   function confirmApply() {
     const g = loop?.gains;
     if (!g) return;
     fill(actionMsg);
-    fill(applyBox, h("div", { class: "confirm" },
-      h("span", {}, `Write K = ${fmt(g.pk)}, Ti = ${g.pti === null ? "∞" : `${fmt(g.pti)} s`}`
-        + `${g.ptd ? `, Td = ${fmt(g.ptd)} s` : ""} to the controller of ${id}?`),
-      h("button", { type: "button", class: "primary", id: "apply-confirm", onclick: async () => {
-        fill(applyBox);
-        try {
-          const body = loop?.session ? { session: loop.session } : {};
-          const answer = await post(`/loops/${esc(id)}/apply`, body);
-          fill(actionMsg, h("div", { class: "alert ok", id: "apply-done" },
-            `Gains of session ${String(answer?.session || "").slice(0, 8)} written to the controller.`));
-          loop = await get(`/loops/${esc(id)}`);
-          update();
-        } catch (err) { notify(err, actionMsg); }
-      } }, "Confirm"),
-      h("button", { type: "button", class: "ghost", onclick: () => fill(applyBox) }, "Cancel")));
+    const diff = changes(loop.current_gains, g);
+    const changed = diff.filter((d) => d.changed);
+    const same = diff.filter((d) => !d.changed);
+    fill(applyBox, h("div", { class: "confirm", id: "apply-dialog" },
+      h("p", {}, `Write these gains to the controller of ${id}?`),
+      h("table", { class: "changes", id: "apply-changes" },
+        h("thead", {}, h("tr", {}, h("th", {}, ""), h("th", { class: "num" }, "now"), h("th", {}, ""),
+          h("th", { class: "num" }, "new"))),
+        h("tbody", {}, changed.map((d) => h("tr", { "data-param": d.key },
+          h("th", {}, d.label), h("td", { class: "num old" }, d.before === undefined ? "unknown" : paramText(d.key, d.before, d.unit)),
+          h("td", { class: "arrow" }, "→"), h("td", { class: "num new" }, paramText(d.key, d.after, d.unit)))))),
+      same.length ? h("p", { class: "muted small" }, `unchanged: ${same.map((d) => `${d.label} = ${paramText(d.key, d.after, d.unit)}`).join(", ")}`) : null,
+      loop.current_gains ? null : h("p", { class: "muted small" }, "The controller's gains have not been read yet."),
+      h("div", { class: "buttons" },
+        h("button", { type: "button", class: "primary", id: "apply-confirm", onclick: async () => {
+          fill(applyBox);
+          try {
+            const body = loop?.session ? { session: loop.session } : {};
+            const answer = await post(`/loops/${esc(id)}/apply`, body);
+            fill(actionMsg, h("div", { class: "alert ok", id: "apply-done" },
+              `Gains of session ${String(answer?.session || "").slice(0, 8)} written to the controller.`));
+            loop = await get(`/loops/${esc(id)}`);
+            shownSession = null; // the result card shows the session as applied
+            update();
+          } catch (err) { notify(err, actionMsg); }
+        } }, "Confirm"),
+        h("button", { type: "button", class: "ghost", id: "apply-cancel", onclick: () => fill(applyBox) }, "Cancel"))));
   }
 
   function update() {
@@ -350,9 +370,10 @@ function loopView(id) {
     fill(status, h("h2", {}, "Tuning state"),
       h("div", { class: "status-line" }, h("span", { class: `badge big ${st.cls}`, id: "badge" }, st.badge), flags(loop)),
       h("div", { class: "stage", id: "stage" }, loop.tbsy ? `Stage: ${STAGES[loop.stage] || "starting"}` : st.text),
-      progressBar(loop),
+      loop.tbsy ? progressBar(loop) : null,
       h("div", { class: "muted small", id: "message" }, loop.message ? `message: ${loop.message}` : ""),
       loop.monitor_error ? h("div", { class: "bad small" }, `monitor: ${loop.monitor_error}`) : null,
+      currentGains(loop.current_gains),
       h("dl", { class: "kv small" },
         h("dt", {}, "last tuning"), h("dd", {}, loop.last_tuned_at ? when(loop.last_tuned_at) : "—", " ",
           loop.last_outcome ? outcomeBadge(loop.last_outcome) : ""),
@@ -377,11 +398,11 @@ function loopView(id) {
 
   async function showResult(sid) {
     shownSession = sid;
-    fill(result, h("h2", {}, "Result"), h("p", { class: "muted" }, "loading…"));
+    if (!result.firstChild) fill(result, h("h2", {}, "Result"), h("p", { class: "muted" }, "loading…"));
     try {
       const session = await get(`/sessions/${esc(sid)}`);
       if (shownSession !== sid || closed) return;
-      await renderResult(result, session, { title: "Last session" });
+      await renderResult(result, session, { title: "Last session", pending: loop?.pending_gains });
     } catch (err) {
       if (shownSession === sid) notify(err, result);
     }
@@ -475,6 +496,8 @@ function loopView(id) {
         if (startedNew) for (const k of Object.keys(trend)) trend[k].length = 0;
         // The experiment's samples end here and the monitor's resume later: no line drawn across the pause.
         if (loop?.tbsy && !data.tbsy) gap();
+        // Applied meanwhile (here or elsewhere): the result card says so.
+        if (loop?.pending_gains && !data.pending_gains && !data.tbsy && data.session === shownSession) shownSession = null;
         // A state event lacks nothing the page needs; keep the live values the samples brought meanwhile.
         loop = { ...loop, ...data };
         update();
@@ -500,6 +523,15 @@ function loopView(id) {
 function readout(label, value, key) {
   return h("div", { class: "readout" }, h("div", { class: "label" }, label),
     h("div", { class: "value", "data-readout": key || label.toLowerCase() }, value));
+}
+
+// The controller's gains now (as last read from it by the monitor, a session's end or an apply).
+function currentGains(g) {
+  return h("div", { class: "current-gains", id: "current-gains" },
+    h("h3", {}, "Controller now (read from the device)"),
+    g ? h("dl", { class: "kv small params" }, PARAMS.map(([key, label, unit]) => [
+      h("dt", {}, label), h("dd", { class: "mono", "data-current": key }, paramText(key, g[key], unit))]))
+      : h("p", { class: "muted small" }, "not read yet"));
 }
 
 // The TUNE form: controller, amp, hysteresis, phase, Ms, apply; only filled fields are sent (others: loop default).
@@ -568,21 +600,40 @@ function tuneForm(id, getLoop) {
 
 // -- a session's result: summary, Nyquist plot, gains side by side, simulated steps
 
-async function renderResult(box, session, { title }) {
-  const r = session.result || {};
+// What the session identified, in words: the point and the static gain, or "nothing identified".
+function identified(r) {
   const point = r.point;
+  if (!point) return h("span", { class: "identified none", "data-identified": "none" }, "nothing identified (no point, no gains)");
+  const kind = r.static_gain === null || r.static_gain === undefined ? "none found (integrating or not measured)"
+    : fmt(r.static_gain);
+  return h("span", { class: "mono small identified", "data-identified": "point" },
+    `identified ω = ${fmt(point.omega)} rad/s, |F| = ${fmt(point.gain)}, ∠F = ${fmt(point.phase_deg)}° · static gain ${kind}`);
+}
+
+// The card of a session's result. A failure shows what was identified and why it failed, never success colours;
+// a success whether its gains were written (applied) or wait to be (`pending`).
+async function renderResult(box, session, { title, pending = false }) {
+  const r = session.result || {};
+  const ok = session.outcome === "success";
+  const warning = ok && CODES.get(session.code)?.warning;
+  box.classList.toggle("failed", session.outcome === "failure");
+  box.classList.toggle("warn", Boolean(warning));
   const applied = session.applied_at
-    ? h("span", { class: "badge ok" }, `applied ${when(session.applied_at)}${session.applied_by ? ` by ${session.applied_by}` : ""}`) : null;
-  fill(box, 
+    ? h("span", { class: "badge ok", id: "applied" }, `applied ${when(session.applied_at)}${session.applied_by ? ` by ${session.applied_by}` : ""}`)
+    : ok && pending ? h("span", { class: "badge pending", id: "applied" }, "not applied yet") : null;
+  const why = session.outcome === "failure" || warning
+    ? h("p", { class: `why ${warning ? "warn" : "bad"}`, id: "why" },
+      `${warning ? "Warning" : "Failed"}: ${codeName(session.code)} — ${session.message || CODES.get(session.code)?.message || ""}`)
+    : null;
+  fill(box,
     h("div", { class: "card-head" }, h("h2", {}, title),
       h("span", { class: "muted small" }, h("a", { href: `#/session/${esc(session.id)}` }, `session ${session.id.slice(0, 8)}`),
         ` · ${when(session.started_at)} · by ${session.user}`)),
-    h("div", { class: "summary" }, outcomeBadge(session.outcome, session.code),
-      h("span", {}, session.message || ""), applied,
-      point ? h("span", { class: "mono small" }, `point ω = ${fmt(point.omega)} rad/s, |F| = ${fmt(point.gain)}, ∠F = ${fmt(point.phase_deg)}°`) : null,
-      r.static_gain !== undefined ? h("span", { class: "mono small" }, `static gain ${r.static_gain === null ? "∞ (integrating)" : fmt(r.static_gain)}`) : null));
+    h("div", { class: "summary" }, outcomeBadge(session.outcome, session.code), applied,
+      ok ? h("span", {}, session.message || "") : null, identified(r)),
+    why);
   if (!r.gains) {
-    add(box, h("p", { class: "muted" }, "No gains from this session."));
+    add(box, h("p", { class: "muted", id: "no-gains" }, "No gains from this session: the controller keeps its gains."));
     return;
   }
   const grid = h("div", { class: "result-grid" });
@@ -753,6 +804,7 @@ async function route() {
     }
     renderWho();
   }
+  await loadCodes();
   const parts = hash.slice(2).split("/").map(decodeURIComponent);
   if (parts[0] === "login") cleanup = loginView();
   else if (parts[0] === "loop" && parts[1] && parts[2] === "history") cleanup = historyView(parts[1]);

@@ -69,3 +69,25 @@ export function cell(row, g, form) {
   }
   return fmt(v);
 }
+
+// The controller's parameters in the standard form, as the API names them: [key, label, unit].
+export const PARAMS = [["pk", "K", "MV/PV"], ["pti", "Ti", "s"], ["ptd", "Td", "s"], ["pnd", "N", ""], ["pb", "b", ""],
+  ["pc", "c", ""]];
+
+// One parameter's value as text: Ti null is "∞" (no integral action), seconds with their unit.
+export function paramText(key, v, unit) {
+  if (key === "pti" && v === null) return "∞";
+  const text = fmt(v);
+  return unit === "s" && text !== "—" ? `${text} s` : text;
+}
+
+// Every parameter of `newG` with its value in `oldG` (null: not known) and whether it changes (relative 1e-9).
+export function changes(oldG, newG) {
+  return PARAMS.map(([key, label, unit]) => {
+    const before = oldG ? oldG[key] : undefined;
+    const after = newG[key];
+    const same = before !== undefined && (before === after
+      || (before !== null && after !== null && Math.abs(before - after) <= 1e-9 * Math.max(1, Math.abs(after))));
+    return { key, label, unit, before, after, changed: !same };
+  });
+}
