@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 from autotuner.engine.design.closed_loop import HORIZON_PERIODS, SAMPLES_PER_PERIOD, integrated_error, margins, reference_period
+from autotuner.engine.control.gains import json_number
 from autotuner.engine.design.process_data import ProcessData
 from autotuner.engine.design.rules import RULES, Options, RuleError, Tuning, tune
 
@@ -62,3 +64,12 @@ def _judge(data: ProcessData, tuning: Tuning, period: float) -> Row:
 METHOD_NOTE = (f"Ms, margins on a 6000-point log grid; IAE of a unit load step at the process input, "
                f"PlantSim (exact ZOH) + PidUnit at ts = T135/{SAMPLES_PER_PERIOD}, rectangle sum over "
                f"{HORIZON_PERIODS:g}·T135")
+
+
+def compare_json(rows: list[Row], skipped: dict[str, str], controller: str) -> dict[str, Any]:
+    """The JSON of ``autotuner design --compare``: each rule's JSON with its figures on the plant, and the
+    rules that do not apply with the reason."""
+    return {"controller": controller, "method": METHOD_NOTE, "skipped": skipped, "rules": [
+        {**r.tuning.as_json(), "stable": r.stable, "ms": json_number(r.ms), "gain_margin": json_number(r.gain_margin),
+         "phase_margin_deg": json_number(r.phase_margin_deg), "iae_load": json_number(r.iae)} for r in rows]}
+

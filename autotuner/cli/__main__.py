@@ -1,5 +1,5 @@
 """``python -m autotuner.cli``: the ``autotuner`` command."""
 
-from autotuner.cli.commands import main
+from autotuner.cli import main
 
 main()

@@ -23,6 +23,10 @@ from autotuner.engine.experiment.relay import Identification, RelayConfig, Relay
 from autotuner.engine.plant.simulation import PlantSim
 
 SAMPLES_PER_PERIOD = 100
+# Time limit of a simulated experiment: this many expected periods of the
+# oscillation, or this many samples when the plant never reaches the phase.
+LIMIT_PERIODS = 200
+LIMIT_SAMPLES = 20000
 
 
 @dataclass(frozen=True)
@@ -97,6 +101,13 @@ def default_sample_time(process: Process, phase_deg: float = 135.0) -> float:
         return 2.0 * math.pi / w / SAMPLES_PER_PERIOD
     scales = [1.0 / abs(p) for p in process.poles if abs(p) > 1e-12] + [process.delay]
     return max(max(scales), 1e-3) / SAMPLES_PER_PERIOD
+
+
+def default_time_limit(process: Process, phase_deg: float, ts: float) -> float:
+    """Longest simulated experiment, s: ``LIMIT_PERIODS`` expected periods at ``phase_deg``, else
+    ``LIMIT_SAMPLES`` samples of ``ts`` seconds."""
+    w = phase_frequency(process, phase_deg)
+    return LIMIT_PERIODS * 2.0 * math.pi / w if w is not None else LIMIT_SAMPLES * ts
 
 
 def run_experiment(

@@ -39,6 +39,17 @@ FIELD_MAX_PERIODS = 40
 # The simulated plant behind a link ticks this many times per session sample,
 # so its own sampling adds little delay to what the session sees.
 PLANT_TICKS_PER_SAMPLE = 5
+# Longest experiment on a real loop, s, unless asked otherwise.
+LINK_TIME_LIMIT = 7200.0
+# A sample every this many wall seconds is what an asyncio loop keeps without much jitter.
+VIA_WALL_PER_SAMPLE = 0.01
+VIA_MAX_SPEED = 20.0
+
+
+def default_via_speed(ts: float) -> float:
+    """Plant seconds per wall second for a simulated plant behind a link sampled every ``ts`` plant seconds:
+    ``VIA_WALL_PER_SAMPLE`` of wall time per sample, at most ``VIA_MAX_SPEED``."""
+    return min(VIA_MAX_SPEED, ts / VIA_WALL_PER_SAMPLE)
 
 
 def field_config(config: RelayConfig) -> RelayConfig:
@@ -106,31 +117,48 @@ async def tune_opened(
 
 
 @contextlib.asynccontextmanager
-async def served(plc: SimulatedPlc, transport: str, speed: float) -> AsyncIterator[tuple[str, Any]]:
-    """Run ``plc`` (``speed`` × real time) behind a server; yields the URL of the link to it and the server."""
+async def serving(
+    plc: SimulatedPlc, speed: float, modbus: tuple[str, int] | None = None, can: tuple[str, str] | None = None,
+) -> AsyncIterator[list[tuple[str, Any]]]:
+    """Run ``plc`` (``speed`` × real time) behind a Modbus TCP server at ``modbus`` (HOST, PORT; port 0: any free
+    one) and/or a CAN node on ``can`` (INTERFACE, CHANNEL); yields the URL of a link to each and its server.
+
+    The one way to serve a simulated PLC: ``autotuner sim``, ``tune --via``, the jitter benchmark and the tests.
+    """
     halt = asyncio.Event()
     plant = asyncio.create_task(run(plc, speed, halt))
+    servers: list[tuple[str, Any]] = []
     try:
-        if transport == "modbus":
+        if modbus is not None:
             from drivers.modbus_server import serve_modbus
 
-            server = await serve_modbus(plc, "127.0.0.1", 0)
-            url = f"modbus://127.0.0.1:{server.port}/1"
-        elif transport == "can":
+            server = await serve_modbus(plc, modbus[0], modbus[1])
+            servers.append((f"modbus://{modbus[0]}:{server.port}/1", server))
+        if can is not None:
             from drivers.can_node import serve_can
 
-            channel = f"autotuner-{os.getpid()}-{id(plc)}"
-            server = await serve_can(plc, "virtual", channel, period=plc.ts / speed)
-            url = f"can://virtual/{channel}"
-        else:
-            raise ValueError(f"unknown transport {transport!r}: modbus or can")
-        try:
-            yield url, server
-        finally:
-            await server.close()
+            server = await serve_can(plc, can[0], can[1], period=plc.ts / speed)
+            servers.append((f"can://{can[0]}/{can[1]}", server))
+        yield servers
     finally:
+        for _, server in servers:
+            await server.close()
         halt.set()
         await plant
+
+
+@contextlib.asynccontextmanager
+async def served(plc: SimulatedPlc, transport: str, speed: float) -> AsyncIterator[tuple[str, Any]]:
+    """Run ``plc`` (``speed`` × real time) behind a server on this machine only (a free localhost port, or a
+    fresh CAN virtual channel); yields the URL of the link to it and the server."""
+    if transport == "modbus":
+        where: dict[str, Any] = {"modbus": ("127.0.0.1", 0)}
+    elif transport == "can":
+        where = {"can": ("virtual", f"autotuner-{os.getpid()}-{id(plc)}")}
+    else:
+        raise ValueError(f"unknown transport {transport!r}: modbus or can")
+    async with serving(plc, speed, **where) as servers:
+        yield servers[0]
 
 
 async def tune_via(

@@ -261,3 +261,26 @@ def from_parallel(p: ParallelGains, nd: float = 10.0, b: float = 1.0, c: float =
     """Parallel → standard: K = K'', Ti = K''/Ki'' (∞ if Ki'' = 0), Td = Kd''/K''."""
     ti = math.inf if p.ki == 0.0 else p.kp / p.ki
     return Gains(k=p.kp, ti=ti, td=p.kd / p.kp, nd=nd, b=b, c=c)
+
+
+def json_number(x: float) -> float | None:
+    """A JSON number; None (null) for an infinite value."""
+    return None if math.isinf(x) else float(x)
+
+
+def forms_json(gains: Gains) -> dict[str, Any]:
+    """The gains in parallel and series form, as JSON: ``{"parallel": {kp, ki, kd}, "series": {k, ti, td}}``.
+
+    ``series`` is null with ``series_reason`` saying why when the series form does not exist (Ti < 4·Td);
+    an infinite series ti (no integral action) is null.
+    """
+    p = to_parallel(gains)
+    out: dict[str, Any] = {"parallel": {"kp": p.kp, "ki": p.ki, "kd": p.kd}}
+    try:
+        ser = to_series(gains)
+        out["series"] = {"k": ser.k, "ti": json_number(ser.ti), "td": ser.td}
+    except FormError as exc:
+        out["series"] = None
+        out["series_reason"] = str(exc)
+    return out
+

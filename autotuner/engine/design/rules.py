@@ -23,7 +23,7 @@ from scipy.optimize import minimize
 
 from autotuner.engine.design.closed_loop import integrated_error, margins, reference_period
 from autotuner.engine.design.point_design import DEFAULT_ND, design
-from autotuner.engine.control.gains import Gains
+from autotuner.engine.control.gains import Gains, forms_json
 from autotuner.engine.design.process_data import Fopdt, ProcessData, Tangent
 from autotuner.engine.design.direct_synthesis import SynthesisError, design_unstable
 
@@ -64,6 +64,12 @@ class Tuning:
     controller: str
     gains: Gains
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def as_json(self) -> dict[str, Any]:
+        """The JSON of ``autotuner design --rule``: rule, controller, standard-form gains, series and parallel
+        forms (:func:`~autotuner.engine.control.gains.forms_json`), then the rule's extras."""
+        return {"rule": self.rule, "controller": self.controller, "gains": self.gains.as_json(),
+                **forms_json(self.gains), **self.extra}
 
 
 # -- what a rule needs ----------------------------------------------------------

@@ -168,6 +168,16 @@ class Process:
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.polyval(self.num, s) / np.polyval(self.den, s) * np.exp(-s * self.delay)
 
+    def time_constant_text(self) -> str:
+        """The process in time-constant form with real poles, e.g. ``1.5*exp(-2.5*s)/(8.8*s+1)`` (for models
+        without zeros, such as the design's; 4 significant digits)."""
+        n = self.integrator_count
+        gain = self.num[-1] / self.den[-1 - n]
+        text = f"{gain:.4g}" + (f"*exp(-{self.delay:.4g}*s)" if self.delay else "")
+        text += "/s" * n
+        text += "".join(f"/({-1.0 / p.real:.4g}*s+1)" for p in self.poles if p != 0)
+        return text
+
     def __str__(self) -> str:
         """Readable form in the expression grammar (parses back to the same process)."""
         text = _format_poly(self.num)

@@ -1,0 +1,92 @@
+"""Field links without a plant of one's own: ``autotuner sim`` serves a simulated PLC over Modbus TCP
+and/or CAN; ``autotuner jitter`` measures the sampling timing over a real link."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import signal
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from autotuner.cli.app import DEMO_PLANT, Transport, app, bad_input, parse_plant, stdout
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        bad_input(f"--modbus must be HOST:PORT, got {text!r}")
+    return host, int(port)
+
+
+@app.command("sim")
+def sim_command(
+    plant: Annotated[str, typer.Option(help="Process transfer function in s.")] = DEMO_PLANT,
+    modbus: Annotated[str | None, typer.Option(help="Serve over Modbus TCP at HOST:PORT (default map, docs/modbus.md).")]
+    = None,
+    can: Annotated[str | None, typer.Option(help="Serve over CAN on this channel (default DBC, docs/can.md).")] = None,
+    interface: Annotated[str, typer.Option(help="python-can interface for --can (socketcan, pcan, virtual, ...).")]
+    = "socketcan",
+    speed: Annotated[float, typer.Option(min=0.01, max=1000.0, help="Plant seconds per wall second.")] = 1.0,
+    ts: Annotated[float | None, typer.Option(help="Plant sample time, s. Default: ~500 per period at 135°.")] = None,
+    noise: Annotated[float, typer.Option(help="Standard deviation of measurement noise, PV units.")] = 0.0,
+    seed: Annotated[int, typer.Option(help="Seed of the noise.")] = 0,
+    duration: Annotated[float | None, typer.Option(help="Stop after this many wall seconds (default: run until "
+                                                   "Ctrl-C or SIGTERM).")] = None,
+) -> None:
+    """Serve a simulated plant under a PID unit (a simulated PLC) over Modbus TCP and/or CAN."""
+    from drivers.simplc import SimulatedPlc
+
+    from autotuner.engine.simulated_tuning import default_sample_time
+    from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, serving
+
+    if modbus is None and can is None:
+        bad_input("give --modbus HOST:PORT and/or --can CHANNEL")
+    process = parse_plant(plant)
+    address = None if modbus is None else _host_port(modbus)
+    try:
+        plc = SimulatedPlc(process, ts=(ts or default_sample_time(process) / PLANT_TICKS_PER_SAMPLE),
+                           noise_std=noise, seed=seed)
+    except ValueError as exc:
+        bad_input(str(exc))
+
+    async def serve() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, stop.set)
+        if duration is not None:
+            loop.call_later(duration, stop.set)
+        async with serving(plc, speed, address, None if can is None else (interface, can)) as servers:
+            for url, _ in servers:
+                print(f"serving {url}", flush=True)
+            print(f"plant {plant}, ts {plc.ts:.4g} s, {speed:g}× real time; Ctrl-C stops", flush=True)
+            await stop.wait()
+
+    try:
+        asyncio.run(serve())
+    except OSError as exc:  # port in use, no such CAN interface
+        bad_input(str(exc))
+
+
+@app.command("jitter")
+def jitter_command(
+    via: Annotated[Transport, typer.Option(case_sensitive=False, help="Transport to the simulated plant.")]
+    = Transport.MODBUS,
+    rate: Annotated[float, typer.Option(min=1.0, max=1000.0, help="Sample rate, Hz.")] = 50.0,
+    seconds: Annotated[float, typer.Option(min=1.0, max=3600.0, help="Length of the measurement, s.")] = 10.0,
+    plant: Annotated[str, typer.Option(help="Process transfer function in s.")] = DEMO_PLANT,
+) -> None:
+    """Benchmark: sample a simulated plant over a real link as a tuning session does; print the timing."""
+    from autotuner.service.remote_tuning import measure_jitter
+
+    process = parse_plant(plant)
+    j = asyncio.run(measure_jitter(process, via.value, rate, seconds))
+    table = Table(title=f"{j.samples} samples at {rate:g} Hz over {via.value} (localhost)", title_justify="left")
+    for name in ("PV read done after due, p50", "p99", "max", "sample interval, p1", "p99"):
+        table.add_column(name, justify="right")
+    table.add_row(*(f"{x:.2f} ms" for x in (j.late_p50, j.late_p99, j.late_max, j.interval_p1, j.interval_p99)))
+    stdout.print(table)

@@ -1,0 +1,61 @@
+"""``autotuner serve``: the daemon with the REST API, the event stream and the operator page."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from autotuner.cli.app import app, bad_input, stderr
+
+@app.command("serve")
+def serve_command(
+    config: Annotated[Path | None, typer.Option(help="Daemon config (YAML, docs/daemon.md). Default: a built-in "
+                                                "demo of 3 simulated loops, 20× real time.")] = None,
+    host: Annotated[str, typer.Option(help="Address to listen on.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=1, max=65535, help="TCP port.")] = 8000,
+    ssl_certfile: Annotated[Path | None, typer.Option(help="TLS certificate (PEM); with --ssl-keyfile serves "
+                                                      "HTTPS.")] = None,
+    ssl_keyfile: Annotated[Path | None, typer.Option(help="TLS private key (PEM).")] = None,
+) -> None:
+    """Run the daemon: the REST API of design.md under /api/v1 over the configured loops.
+
+    Tokens come from the config (hashed) and from $AUTOTUNER_TOKEN (an operator). The demo without
+    --config generates an operator token and prints it once when $AUTOTUNER_TOKEN is unset.
+    SIGTERM/SIGINT abort running experiments and restore their loops before the daemon exits.
+    """
+    import uvicorn
+
+    from api.app import PREFIX, create_app
+    from api.auth import new_token
+
+    from autotuner.service.config import ConfigError, load_config
+    from autotuner.service.demo import demo_config
+    from autotuner.service.history import History
+
+    if (ssl_certfile is None) != (ssl_keyfile is None):
+        bad_input("--ssl-certfile and --ssl-keyfile go together")
+    try:
+        daemon_config = demo_config() if config is None else load_config(config)
+    except ConfigError as exc:
+        bad_input(str(exc))
+    try:  # a database that cannot be opened is a clear error now, not a failed start inside uvicorn
+        History(daemon_config.history).close()
+    except ValueError as exc:
+        bad_input(str(exc))
+    token = os.environ.get("AUTOTUNER_TOKEN") or None
+    if config is None and token is None:
+        token = new_token()
+        print(f"operator token (shown once; or set AUTOTUNER_TOKEN): {token}", flush=True)
+    elif not daemon_config.tokens and token is None:
+        stderr.print("warning: no tokens in the config and AUTOTUNER_TOKEN unset: every request except "
+                     f"{PREFIX}/health will be refused", highlight=False)
+    scheme = "http" if ssl_certfile is None else "https"
+    print(f"autotuner API at {scheme}://{host}:{port}{PREFIX}  (OpenAPI: {PREFIX}/docs; operator page: "
+          f"{scheme}://{host}:{port}/); {len(daemon_config.loops)} loops: "
+          f"{', '.join(loop.id for loop in daemon_config.loops)}", flush=True)
+    uvicorn.run(create_app(daemon_config, env_token=token or ""), host=host, port=port, log_level="info",
+                ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
+                ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))
