@@ -2,8 +2,9 @@
 
 Starts the real built-in demo (``autotuner serve``, 20× real time) with a known operator token, drives the page in
 headless Chromium (Playwright): tunes TIC-101 from its loop page and saves ``loop-page.png`` when it has finished;
-then aborts a tuning of FIC-301 (TBRK), starts one of LIC-201 and saves ``overview.png`` while it runs.
-About 30 s. Needs Chromium (Debian: ``apt-get install chromium``; elsewhere set AUTOTUNER_CHROMIUM).
+saves the same page at every viewport of :data:`VIEWPORTS` (``screens/loop-WxH.png``, a phone of 360 px to a
+4K wall screen); then aborts a tuning of FIC-301 (TBRK), starts one of LIC-201 and saves ``overview.png`` (and
+``screens/overview-WxH.png``) while it runs. About 60 s. Needs Chromium (Debian: ``apt-get install chromium``; elsewhere set AUTOTUNER_CHROMIUM).
 """
 
 from __future__ import annotations
@@ -20,6 +21,16 @@ from playwright.sync_api import sync_playwright
 from tests.helpers import CHROMIUM_ARGS, chromium_path, free_port
 
 TOKEN = "screenshot-operator"
+# The screens of docs/operator-page.md: phones, a tablet, a desktop, a 4K wall screen (CSS pixels).
+VIEWPORTS = ((360, 640), (390, 844), (820, 1180), (1920, 1080), (3840, 2160))
+
+
+def at_viewport(page, width: int, height: int) -> None:
+    """Resize the page and wait until its trend (if shown) has been drawn again at its new width."""
+    page.set_viewport_size({"width": width, "height": height})
+    page.wait_for_function("() => { const t = document.querySelector('#trend');"
+                           " return !t || !t.dataset.width"
+                           " || Number(t.dataset.width) === Math.round(t.getBoundingClientRect().width / (t.currentCSSZoom || 1)); }")
 
 
 def main(outdir: Path) -> None:
@@ -43,6 +54,7 @@ def main(outdir: Path) -> None:
             browser = p.chromium.launch(executable_path=chromium_path(), args=CHROMIUM_ARGS)
             page = browser.new_page(viewport={"width": 1360, "height": 860})
             page.set_default_timeout(120_000)
+            page.on("pageerror", lambda exc: print(f"page error: {exc}", file=sys.stderr))
             page.goto(base)
             page.fill("#token", TOKEN)
             page.click("#login button[type=submit]")
@@ -55,6 +67,10 @@ def main(outdir: Path) -> None:
             page.wait_for_selector("#step-load path[data-series='PV new']")
             time.sleep(4)  # the loop settling back after the experiment
             page.screenshot(path=outdir / "loop-page.png", full_page=True)
+            (outdir / "screens").mkdir(exist_ok=True)
+            for width, height in VIEWPORTS:
+                at_viewport(page, width, height)
+                page.screenshot(path=outdir / "screens" / f"loop-{width}x{height}.png", full_page=width < 1000)
 
             api.post("/loops/FIC-301/tune").raise_for_status()
             time.sleep(2)
@@ -67,12 +83,15 @@ def main(outdir: Path) -> None:
             page.wait_for_function("() => { const r = document.querySelector('tr[data-loop=LIC-201] .progress');"
                                    " return r && Number(r.getAttribute('aria-valuenow')) >= 30; }")
             page.screenshot(path=outdir / "overview.png", full_page=False)
+            for width, height in VIEWPORTS:
+                at_viewport(page, width, height)
+                page.screenshot(path=outdir / "screens" / f"overview-{width}x{height}.png", full_page=False)
             browser.close()
     finally:
         api.close()
         proc.terminate()
         proc.wait(60)
-    print(f"wrote {outdir / 'overview.png'} and {outdir / 'loop-page.png'}")
+    print(f"wrote {outdir / 'overview.png'}, {outdir / 'loop-page.png'} and {outdir / 'screens'}/")
 
 
 if __name__ == "__main__":

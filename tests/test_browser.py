@@ -391,3 +391,78 @@ def test_api_errors_in_words_and_a_lost_stream_reconnects(page, daemon):
     banner.wait_for(state="detached")
     samples = float(page.get_attribute("#trend", "data-samples"))
     wait_attr_above(page, "#trend", "data-samples", samples)  # samples flow again
+
+
+def no_horizontal_scroll(page) -> None:
+    width, client = page.evaluate("[document.documentElement.scrollWidth, document.documentElement.clientWidth]")
+    assert width <= client, f"the page is {width} px wide in a {client} px viewport"
+
+
+def usable(page, selector: str, min_width: float) -> None:
+    """``selector`` is on screen (inside the viewport's width), at least ``min_width`` × 28 CSS px, not covered."""
+    box = page.locator(selector).bounding_box()
+    assert box is not None, selector
+    viewport = page.viewport_size["width"]
+    assert box["x"] >= 0 and box["x"] + box["width"] <= viewport + 0.5, (selector, box)
+    assert box["width"] >= min_width and box["height"] >= 28, (selector, box)
+    page.locator(selector).scroll_into_view_if_needed()
+    hit = page.evaluate("(s) => { const e = document.querySelector(s); const r = e.getBoundingClientRect();"
+                        " const top = document.elementFromPoint(r.x + r.width / 2, r.y + r.height / 2);"
+                        " return e === top || e.contains(top); }", selector)
+    assert hit, f"{selector} is covered by another element"
+
+
+def legible(page, selector: str) -> None:
+    """The plot's tick labels are drawn at 10 CSS px or more (the SVG is not shrunk below its drawing size)."""
+    size = page.evaluate("(s) => { const svg = document.querySelector(s); const t = svg.querySelector('.tick');"
+                         " const scale = svg.getBoundingClientRect().width / (svg.currentCSSZoom || 1)"
+                         " / svg.viewBox.baseVal.width;"
+                         " return parseFloat(getComputedStyle(t).fontSize) * scale; }", selector)
+    assert size >= 10, f"{selector}: tick labels {size:.1f} px"
+
+
+@pytest.mark.parametrize("width,height", [(390, 844), (820, 1180), (1920, 1080)])
+def test_every_screen_size_tune_result_apply(browser, daemon, width, height):
+    context = browser.new_context(viewport={"width": width, "height": height})
+    page = context.new_page()
+    page.set_default_timeout(TIMEOUT_MS)
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    try:
+        daemon.wait_idle("TIC-101")
+        login(page, daemon, OPERATOR, "operator")
+        no_horizontal_scroll(page)
+        usable(page, "tr[data-loop=TIC-101] a.loop-id", 40)
+        page.click("tr[data-loop=TIC-101] a.loop-id")
+        page.wait_for_selector("#tune:enabled")
+        page.wait_for_selector("#trend[data-samples]")
+        no_horizontal_scroll(page)
+        for field in ("#f-controller", "#f-amp", "#f-hysteresis", "#f-phase", "#f-ms", "#f-apply"):
+            usable(page, field, 90)  # wide enough to read "0.001" or "auto (3σ of noise)"
+        for button in ("#tune", "#tbrk", "#apply", "#tab-history"):
+            usable(page, button, 44)
+        legible(page, "#trend")
+        page.select_option("#f-apply", "false")
+        page.click("#tune")
+        page.wait_for_selector("#badge:has-text('TUNING')")
+        no_horizontal_scroll(page)
+        page.wait_for_selector("#badge:not(:has-text('TUNING'))")
+        assert page.inner_text("#badge") == "OK", daemon.get("/loops/TIC-101")["message"]
+        page.wait_for_selector("#nyquist [data-role=point]")
+        page.wait_for_selector("#step-load path[data-series='PV new']")
+        no_horizontal_scroll(page)
+        for plot in ("#trend", "#nyquist", "#step-setpoint", "#step-load"):
+            legible(page, plot)
+        usable(page, "#apply:enabled", 44)
+        page.click("#apply")
+        usable(page, "#apply-confirm", 44)
+        assert page.locator("#apply-changes tr[data-param=pk]").count() == 1
+        no_horizontal_scroll(page)
+        page.click("#apply-confirm")
+        page.wait_for_selector("#result #applied:has-text('applied')")
+        page.click("#tab-history")
+        page.wait_for_selector("#history tbody tr")
+        no_horizontal_scroll(page)
+    finally:
+        context.close()
+    assert not errors, errors

@@ -3,7 +3,7 @@
 
 import { ApiError, clearToken, eventStream, get, getToken, onUnauthorized, post, setToken, whoami } from "./api.js";
 import { PARAMS, ROWS, cell, changes, fmt, paramText } from "./gains.js";
-import { el, nyquist, timeChart } from "./plot.js";
+import { clockTicks, cssWidth, el, fitted, nyquist, timeChart } from "./plot.js";
 
 // ---------------------------------------------------------------- helpers
 
@@ -225,16 +225,16 @@ function overviewView() {
       h("td", {}, h("a", { href: `#/loop/${esc(loop.id)}`, class: "loop-id" }, loop.id),
         h("div", { class: "muted small" }, loop.description || ""),
         loop.monitor_error ? h("div", { class: "bad small" }, `monitor: ${loop.monitor_error}`) : null),
-      h("td", {}, modeBadge(loop.mode)),
-      h("td", { class: "num", "data-col": "pv" }, num(loop.pv)),
-      h("td", { class: "num", "data-col": "sp" }, num(loop.sp)),
-      h("td", { class: "num", "data-col": "mv" }, num(loop.mv)),
-      h("td", { "data-col": "status" },
+      h("td", { "data-label": "Mode" }, modeBadge(loop.mode)),
+      h("td", { class: "num", "data-col": "pv", "data-label": "PV" }, num(loop.pv)),
+      h("td", { class: "num", "data-col": "sp", "data-label": "SP" }, num(loop.sp)),
+      h("td", { class: "num", "data-col": "mv", "data-label": "MV" }, num(loop.mv)),
+      h("td", { "data-col": "status", "data-label": "Tuning" },
         h("div", { class: "status-line" }, h("span", { class: `badge ${st.cls}` }, st.badge), flags(loop)),
         h("div", { class: "small" }, st.text), loop.tbsy ? progressBar(loop) : null),
-      h("td", { "data-col": "last" }, loop.last_tuned_at ? h("div", {}, when(loop.last_tuned_at)) : h("div", { class: "muted" }, "never"),
+      h("td", { "data-col": "last", "data-label": "Last tuning" }, loop.last_tuned_at ? h("div", {}, when(loop.last_tuned_at)) : h("div", { class: "muted" }, "never"),
         loop.last_outcome ? outcomeBadge(loop.last_outcome) : null),
-      h("td", { "data-col": "gains" }, gainsBrief(loop.current_gains || null),
+      h("td", { "data-col": "gains", "data-label": "Gains" }, gainsBrief(loop.current_gains || null),
         loop.pending_gains ? h("div", {}, h("span", { class: "badge pending" }, "new gains to apply")) : null));
     return tr;
   }
@@ -459,6 +459,12 @@ function loopView(id) {
     }
   }
 
+  const trendWidth = () => cssWidth(trendSvg) || 960;
+  const resized = new ResizeObserver(() => {
+    if (!closed && trend.time.length && Number(trendSvg.dataset.width) !== trendWidth()) drawTrend();
+  });
+  resized.observe(trendSvg);
+
   function drawTrend() {
     const n = trend.time.length;
     $("#trend-info").textContent = n ? `${n} samples · last ${clock(trend.time[n - 1])}` : "waiting for samples…";
@@ -474,11 +480,13 @@ function loopView(id) {
       { height: 120, label: "MV", series: [{ name: "MV", cls: "s-mv", x: trend.time, y: trend.mv, step: true }] },
     ];
     if (hasRelay) {
-      panels.push({ height: 44, label: "relay", yRange: [-1.4, 1.4],
+      panels.push({ height: 54, label: "relay", yRange: [-1.4, 1.4], yTicks: [-1, 0, 1],
                     series: [{ name: "relay ±1", cls: "s-relay", x: trend.time, y: trend.relay, step: true }] });
     }
-    timeChart(trendSvg, { width: 960, xRange: [x0, x1], panels, xTick: clock, xLabel: "time (clock)" });
+    timeChart(trendSvg, { width: trendWidth(), xRange: [x0, x1], panels, xTick: clock, xTicks: clockTicks,
+                          xLabel: "time (clock)" });
     trendSvg.dataset.samples = n;
+    trendSvg.dataset.width = trendWidth();
   }
 
   async function start() {
@@ -514,6 +522,7 @@ function loopView(id) {
   start();
   return () => {
     closed = true;
+    resized.disconnect();
     stream?.close();
     clearTimeout(redraw);
     banner("stream", null);
@@ -652,12 +661,14 @@ async function renderResult(box, session, { title, pending = false }) {
     const curves = [];
     if (analysis.old?.nyquist) curves.push({ name: "L old", cls: "s-old", re: analysis.old.nyquist.re, im: analysis.old.nyquist.im });
     curves.push({ name: "L new", cls: "s-new", re: analysis.new.nyquist.re, im: analysis.new.nyquist.im });
-    nyquist(nq, { point: analysis.point, circle: analysis.ms_circle, curves,
-                  circleLabel: `Ms = ${fmt(analysis.ms_target, 3)} circle`, pointLabel: "F(jω₀)",
-                  pointLegend: "● identified point F(jω₀)" });
+    const loopPoint = openLoopAt(analysis.new.gains, analysis.point);
+    const nqOpts = { point: analysis.point, loopPoint, circle: analysis.ms_circle, curves,
+                     circleLabel: `Ms = ${fmt(analysis.ms_target, 3)} circle` };
+    const nqBox = h("div", { class: "plot-box nyquist-box" }, nq);
     add(grid, h("div", { class: "panel-box" }, h("h3", {}, "Nyquist: open loop L = C·F"),
-      nq, h("p", { class: "muted small" }, `model ${analysis.model?.text || analysis.model?.kind || "—"} · Ms old ${analysis.old ? fmt(analysis.old.ms, 3) : "—"}`
+      nqBox, h("p", { class: "muted small" }, `model ${analysis.model?.text || analysis.model?.kind || "—"} · Ms old ${analysis.old ? fmt(analysis.old.ms, 3) : "—"}`
         + `, new ${fmt(analysis.new.ms, 3)}${analysis.new.stable === false ? " (unstable!)" : ""}`)));
+    fitted(nq, (w) => nyquist(nq, { ...nqOpts, size: Math.min(w, 560) }), 420);
   }
   add(grid, h("div", { class: "panel-box" }, h("h3", {}, "Gains"), gainsTable(oldGains, newGains)));
   if (analysis) {
@@ -674,11 +685,30 @@ async function renderResult(box, session, { title, pending = false }) {
       }
       pv.push({ name: "PV new", cls: "s-new", x: analysis.new[key].t, y: analysis.new[key].pv });
       mv.push({ name: "MV new", cls: "s-new", x: analysis.new[key].t, y: analysis.new[key].mv });
-      timeChart(svg, { width: 520, panels: [{ height: 150, label: "PV", series: pv }, { height: 80, label: "MV", series: mv }],
-                       xLabel: "plant seconds after the step" });
+      fitted(svg, (w) => timeChart(svg, { width: w, panels: [{ height: 150, label: "PV", series: pv },
+        { height: 90, label: "MV", series: mv }], xLabel: "plant seconds after the step" }), 520);
     }
     add(box, steps);
   }
+}
+
+// L(jω₀) = C(jω₀)·F(jω₀): the designed controller (standard form, derivative filter N, feedback path) times the
+// identified point; null without gains.
+function openLoopAt(g, point) {
+  if (!g || !point) return null;
+  const w = point.omega;
+  let cre = 1;
+  let cim = g.pti ? -1 / (g.pti * w) : 0;
+  if (g.ptd) { // Td·jω / (1 + Td·jω/N)
+    const a = g.ptd * w;
+    const n = g.pnd || Infinity;
+    const den = 1 + (a / n) ** 2;
+    cre += (a * a / n) / den;
+    cim += a / den;
+  }
+  cre *= g.pk;
+  cim *= g.pk;
+  return { re: cre * point.re - cim * point.im, im: cre * point.im + cim * point.re };
 }
 
 function gainsTable(oldG, newG) {
@@ -725,10 +755,10 @@ function historyView(id) {
             : s.request?.apply && s.outcome === "success" ? h("span", { class: "badge ok" }, "written") : h("span", { class: "muted small" }, "—"))));
       }
       fill(box, h("div", { class: "card-head" }, h("h2", {}, `${sessions.length} session${sessions.length === 1 ? "" : "s"}`)),
-        sessions.length ? h("table", { class: "history", id: "history" },
+        sessions.length ? h("div", { class: "scroll-x" }, h("table", { class: "history", id: "history" },
           h("thead", {}, h("tr", {}, h("th", {}, "Started"), h("th", {}, "Who"), h("th", {}, "Outcome"), h("th", {}, "Type"),
             h("th", {}, "Identified point"), h("th", {}, "Gains before"), h("th", {}, "Gains designed"), h("th", {}, "Applied"))),
-          tbody) : h("p", { class: "muted" }, "No sessions yet."));
+          tbody)) : h("p", { class: "muted" }, "No sessions yet."));
     } catch (err) {
       notify(err, box);
     }
@@ -767,10 +797,10 @@ function sessionView(sid) {
         h("dt", {}, "experiment"), h("dd", { class: "mono small" }, exp ? `${fmt(exp.duration)} s · ${exp.periods ?? "—"} periods · ${exp.samples} samples` : "—")));
       const tr = s.trace;
       if (tr && tr.t.length) {
-        timeChart(traceSvg, { width: 960, panels: [
+        fitted(traceSvg, (w) => timeChart(traceSvg, { width: w, panels: [
           { height: 170, label: "PV", series: [{ name: "PV", cls: "s-pv", x: tr.t, y: tr.pv }, ...(tr.sp ? [{ name: "SP", cls: "s-sp", x: tr.t, y: tr.sp, step: true }] : [])] },
           { height: 110, label: "MV", series: [{ name: "MV", cls: "s-mv", x: tr.t, y: tr.mv, step: true }] },
-        ], xLabel: "plant seconds from the start" });
+        ], xLabel: "plant seconds from the start" }), 960);
       } else {
         add(traceCard, h("p", { class: "muted" }, "No trace recorded."));
       }

@@ -24,6 +24,22 @@ export function ticks(min, max, count = 5) {
   return out;
 }
 
+// Ticks of a clock axis (unix seconds): whole seconds, minutes or hours, about `count` of them.
+export function clockTicks(min, max, count = 5) {
+  const raw = (max - min) / Math.max(1, count);
+  const step = [1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200, 21600].find((s) => s >= raw) || 43200;
+  const out = [];
+  for (let v = Math.ceil(min / step) * step; v <= max; v += step) out.push(v);
+  return out;
+}
+
+// At least three labelled ticks (a short panel still shows its scale), else `ticks` as asked.
+function enoughTicks(min, max, count) {
+  let out = ticks(min, max, count);
+  for (let c = count * 2; out.length < 3 && c <= count * 8; c *= 2) out = ticks(min, max, c);
+  return out;
+}
+
 function label(v) {
   const a = Math.abs(v);
   const s = a !== 0 && (a >= 1e5 || a < 1e-3) ? v.toExponential(1) : Number(v.toPrecision(4)).toString();
@@ -110,7 +126,8 @@ export function timeChart(svg, opts) {
   const [x0, x1] = opts.xRange || extent(all.map((s) => ({ x: s.x })), "x", [0, 1]);
   const plotW = width - left - right;
   const sx = (x) => left + ((x - x0) / (x1 - x0 || 1)) * plotW;
-  const xt = ticks(x0, x1, Math.max(3, Math.round(plotW / 110)));
+  const xt = opts.xTicks ? opts.xTicks(x0, x1, Math.max(2, Math.round(plotW / 110)))
+    : ticks(x0, x1, Math.max(2, Math.round(plotW / 90)));
   let y = top;
   const clipId = `clip${Math.random().toString(36).slice(2, 8)}`;
   panels.forEach((panel, index) => {
@@ -122,7 +139,7 @@ export function timeChart(svg, opts) {
     el("rect", { class: "plot-bg", x: left, y, width: plotW, height: h }, g);
     const cid = `${clipId}-${index}`;
     el("rect", { x: left, y, width: plotW, height: h }, el("clipPath", { id: cid }, g));
-    for (const v of ticks(y0, y1, Math.max(2, Math.round(h / 40)))) {
+    for (const v of panel.yTicks || enoughTicks(y0, y1, Math.max(2, Math.round(h / 40)))) {
       el("line", { class: "grid", x1: left, x2: left + plotW, y1: sy(v), y2: sy(v) }, g);
       el("text", { class: "tick", x: left - 6, y: sy(v) + 4, "text-anchor": "end" }, g, label(v));
     }
@@ -162,7 +179,13 @@ export function nyquist(svg, opts) {
   clear(svg);
   const size = opts.size || 420;
   const pad = 34;
-  svg.setAttribute("viewBox", `0 0 ${size} ${size}`);
+  // Legend below the plot, one item a row: it never covers the curves, the circle or the points.
+  const items = [...opts.curves.map((c) => [c.cls, "line", c.name])];
+  if (opts.circle) items.push(["ms-circle", "circle", opts.circleLabel || "Ms circle"]);
+  if (opts.point) items.push(["point", "dot", "identified point F(jω₀)"]);
+  if (opts.loopPoint) items.push(["loop-point", "square", "L(jω₀) = C(jω₀)·F(jω₀), new gains"]);
+  const legendH = 10 + 18 * items.length;
+  svg.setAttribute("viewBox", `0 0 ${size} ${size + legendH}`);
   // The view: the critical point, the origin, the Ms circle and the point, with room around them.
   let xs = [-1, 0];
   let ys = [0];
@@ -171,7 +194,7 @@ export function nyquist(svg, opts) {
     xs.push(c - r, c + r);
     ys.push(-r, r);
   }
-  if (opts.point) { xs.push(opts.point.re); ys.push(opts.point.im); }
+  for (const pt of [opts.point, opts.loopPoint]) if (pt) { xs.push(pt.re); ys.push(pt.im); }
   let lo = Math.min(...xs);
   let hi = Math.max(...xs);
   let bottomY = Math.min(...ys);
@@ -219,15 +242,43 @@ export function nyquist(svg, opts) {
   el("text", { class: "tick", x: sx(-1) + 4, y: sy(0) + 14 }, g, "−1");
   if (opts.point) {
     el("circle", { class: "point", "data-role": "point", cx: sx(opts.point.re), cy: sy(opts.point.im), r: 5 }, g);
-    el("text", { class: "point-label", x: sx(opts.point.re) + 8, y: sy(opts.point.im) - 6 }, g, opts.pointLabel || "F(jω₀)");
+    el("text", { class: "point-label", x: sx(opts.point.re) + 8, y: sy(opts.point.im) + 14 }, g, "F(jω₀)");
   }
-  // Legend.
-  let ly = pad + 16;
-  const items = [...opts.curves.map((c) => [c.cls, c.name])];
-  if (opts.circle) items.push(["ms-circle-legend", opts.circleLabel || "Ms circle"]);
-  if (opts.point) items.push(["point-legend", opts.pointLegend || "identified point"]);
-  for (const [cls, name] of items) {
-    el("text", { class: `legend ${cls}`, x: pad + inner - 6, y: ly, "text-anchor": "end" }, svg, name);
-    ly += 15;
+  if (opts.loopPoint) {
+    const [x, y] = [sx(opts.loopPoint.re), sy(opts.loopPoint.im)];
+    el("rect", { class: "loop-point", "data-role": "loop-point", x: x - 4.5, y: y - 4.5, width: 9, height: 9 }, g);
+    el("text", { class: "loop-point-label", x: x - 8, y: y - 6, "text-anchor": "end" }, g, "L(jω₀)");
   }
+  let ly = size + 8;
+  for (const [cls, mark, name] of items) {
+    const x = pad;
+    if (mark === "line") el("line", { class: `line ${cls}`, x1: x, x2: x + 22, y1: ly + 5, y2: ly + 5 }, svg);
+    else if (mark === "circle") el("circle", { class: cls, cx: x + 11, cy: ly + 5, r: 6 }, svg);
+    else if (mark === "dot") el("circle", { class: cls, cx: x + 11, cy: ly + 5, r: 5 }, svg);
+    else el("rect", { class: cls, x: x + 6.5, y: ly + 0.5, width: 9, height: 9 }, svg);
+    el("text", { class: "legend-text", x: x + 30, y: ly + 9 }, svg, name);
+    ly += 18;
+  }
+}
+
+// Draw `svg` at its own width in CSS pixels (`draw(width)`), and again whenever that width changes: the plot's
+// text stays at its CSS size on a phone and on a 4K screen instead of being scaled with a fixed viewBox.
+// The width of `node` in its own CSS pixels (getBoundingClientRect counts the zoom of a 4K screen's style in).
+export function cssWidth(node) {
+  return Math.round(node.getBoundingClientRect().width / (node.currentCSSZoom || 1));
+}
+
+export function fitted(svg, draw, fallback = 800) {
+  let drawn = null;
+  const run = () => {
+    const measured = cssWidth(svg);
+    if (!measured && drawn !== null) return; // taken off the page (another view): nothing to redraw
+    const w = measured || fallback;
+    if (w === drawn) return;
+    drawn = w;
+    draw(w);
+  };
+  new ResizeObserver(run).observe(svg);
+  run();
+  return { redraw() { drawn = null; run(); } };
 }
