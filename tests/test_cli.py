@@ -46,7 +46,11 @@ def _invoke(*args: str):
 
 def check_contract(doc: dict, controller: str = "PI") -> None:
     """Keys and types of the design.md JSON for a successful tuning of PLANT."""
-    assert set(doc) == {"tbsy", "te", "ite", "message", "controller", "point", "static_gain", "gains", "experiment"}
+    assert set(doc) == {"tbsy", "te", "ite", "message", "controller", "point", "static_gain", "gains", "design",
+                        "experiment"}
+    assert set(doc["design"]) == {"model", "ms_model", "ms_target", "noise_gain", "notes"}
+    assert doc["design"]["notes"] == [] and isinstance(doc["design"]["model"], str)
+    assert doc["design"]["ms_model"] == pytest.approx(doc["design"]["ms_target"], abs=0.01)
     assert doc["tbsy"] is False and doc["te"] is False
     assert doc["ite"] == 0 and isinstance(doc["ite"], int)
     assert doc["message"] == "ok"
@@ -248,3 +252,76 @@ def test_bad_link_options_exit_2(args: list[str], words: str) -> None:
     assert result.exit_code == 2
     assert words in result.output
     assert "Traceback" not in result.output
+
+
+# -- field conditions (issue 13) ------------------------------------------------
+
+
+def test_field_options_build_the_simulated_plant() -> None:
+    from autotuner.cli.tune import _loads, _prepare
+
+    steps = _loads(["20:0.2", "35.5:-0.1"])
+    assert steps == [(20.0, 0.2), (35.5, -0.1)]
+    sim, _ = _prepare(PLANT, 0.05, 1.0, None, 135.0, 0.0, 0, 100.0, steps, 0.01, 0.002)
+    assert sim.quantum == 0.002
+    inputs = []
+    for _ in range(1000):  # MV held at 0: the PV shows the loads and the ramp alone
+        inputs.append(sim.true_pv())
+        sim.advance(0.0)
+    # At 50 s: steps 0.2 − 0.1 plus the ramp 0.01·50 have passed the lag and the dead time.
+    assert inputs[-1] == pytest.approx(0.2 - 0.1 + 0.01 * (50.0 - 1.0 - 2.0), abs=0.03)
+    assert sim.measure() == pytest.approx(round(sim.true_pv() / 0.002) * 0.002, abs=1e-12)
+
+
+def test_load_step_option_reaches_the_experiment() -> None:
+    clean = _last_json(_invoke("tune", "--plant", PLANT, "--json").stdout)
+    loaded = _invoke("tune", "--plant", PLANT, "--load", "15:0.2", "--quantum", "0.001", "--json")
+    assert loaded.exit_code in (0, 1), loaded.output
+    doc = _last_json(loaded.stdout)
+    assert doc != clean and set(doc) == set(clean)
+
+
+@pytest.mark.parametrize("value", ["abc", "10", "10:", ":0.2", "-1:0.2", "1:nan", "inf:1"])
+def test_bad_load_exits_2(value: str) -> None:
+    result = _invoke("tune", "--plant", PLANT, "--load", value, "--json")
+    assert result.exit_code == 2 and result.stdout == ""
+    assert "--load" in result.stderr and "T:SIZE" in result.stderr
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["--quantum", "-0.1"], "--quantum"),
+    (["--drift", "x"], "--drift"),
+    (["--link", "modbus://127.0.0.1:1/1", "--ts", "0.1", "--load", "1:1"], "in-process --plant only"),
+    (["--via", "modbus", "--drift", "0.1"], "in-process --plant only"),
+])
+def test_bad_field_options_exit_2(args: list[str], words: str) -> None:
+    result = _invoke("tune", *args, "--json")
+    assert result.exit_code == 2, result.output
+    assert words in result.stderr
+
+
+@pytest.mark.parametrize(("plant", "words"), [("0", "is zero"), ("0*exp(-s)/(s+1)", "is zero"),
+                                              ("2", "no dynamics"), ("-3.5", "no dynamics")])
+def test_nonsense_plants_exit_2(plant: str, words: str) -> None:
+    result = _invoke("tune", "--plant", plant, "--json")
+    assert result.exit_code == 2 and result.stdout == ""
+    assert words in result.stderr and "Traceback" not in result.output
+
+
+def test_integrators_without_a_time_scale_get_a_sample_time_from_their_gain() -> None:
+    from autotuner.engine.plant.expression import parse_process
+    from autotuner.engine.simulated_tuning import default_sample_time
+
+    # |F(jω)| = 1 at ω = 1 rad/s for 1/s and at 2 rad/s for 4/s²: 100 samples per period there.
+    assert default_sample_time(parse_process("1/s")) == pytest.approx(2 * math.pi / 100)
+    assert default_sample_time(parse_process("4/s^2")) == pytest.approx(2 * math.pi / 2 / 100)
+
+
+def test_warning_result_exits_0_with_te_false_and_the_notes_in_the_message() -> None:
+    result = _invoke("tune", "--controller", "PID", "--noise", "0.01", "--json")
+    assert result.exit_code == 0, result.output
+    doc = _last_json(result.stdout)
+    assert doc["te"] is False and doc["ite"] == 15 and doc["gains"]["ptd"] > 0.0
+    assert doc["design"]["notes"] and doc["design"]["notes"][0] in doc["message"]
+    human = _invoke("tune", "--controller", "PID", "--noise", "0.01")
+    assert human.exit_code == 0 and "warning" in human.stdout and "design note" in human.stdout

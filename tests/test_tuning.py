@@ -9,6 +9,7 @@ import pytest
 
 from autotuner.benchmarks.design_bench import default_batch, load_batch
 from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.design.closed_loop import check_gains
 from autotuner.engine.outcome import Code
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.engine.design.robustness import Plant, check_loop, log_grid, migo, pid_frequency_response
@@ -83,7 +84,10 @@ def test_result_json_shape_on_success_and_failure():
     ok = tune(PlantSim(process, ts), RelayConfig(amp=1.0, time_limit=500.0)).as_json()
     text = json.dumps(ok, allow_nan=False)
     assert json.loads(text) == ok
-    assert set(ok) == {"tbsy", "te", "ite", "message", "controller", "point", "static_gain", "gains", "experiment"}
+    assert set(ok) == {"tbsy", "te", "ite", "message", "controller", "point", "static_gain", "gains", "design",
+                       "experiment"}
+    assert set(ok["design"]) == {"model", "ms_model", "ms_target", "noise_gain", "notes"}
+    assert ok["design"]["notes"] == [] and ok["design"]["ms_model"] == pytest.approx(1.4, abs=0.01)
     assert ok["te"] is False and ok["ite"] == 0 and ok["tbsy"] is False
     assert set(ok["gains"]) == {"pk", "pti", "ptd", "pnd", "pb", "pc"}
     assert set(ok["experiment"]) == {"duration", "periods", "samples"}
@@ -91,12 +95,15 @@ def test_result_json_shape_on_success_and_failure():
 
     failed = tune(PlantSim(process, ts), RelayConfig(amp=1.0, pv_limits=(-0.1, 0.1))).as_json()
     assert failed["te"] is True and failed["ite"] == int(Code.PV_OUT_OF_LIMITS)
-    assert failed["gains"] is None and "limits" in failed["message"]
+    assert failed["gains"] is None and failed["design"] is None and "limits" in failed["message"]
 
 
-def test_unstable_process_is_refused_by_the_design():
+def test_unstable_process_is_stabilised_by_the_design():
+    """The README's example: a negative static gain is an unstable process, not an error (design notes)."""
     process = parse_process("exp(-0.2*s)/(2*s-1)")
     result = tune(PlantSim(process, 0.02), RelayConfig(amp=1.0, time_limit=200.0))
-    assert not result.ok
-    assert result.code in (Code.NO_DESIGN, Code.NOT_CONVERGED)
-    assert result.design is None
+    assert result.ok, result.message
+    assert result.identification.static_gain == pytest.approx(-1.0, rel=0.02)
+    assert result.design.model.rhp_pole_count == 1
+    check = check_gains(process, result.design.gains, log_grid(result.identification.point.omega))
+    assert check.stable and check.ms <= 1.45

@@ -42,18 +42,53 @@ def _config(amp: float, hysteresis: float | None, phase: float, time_limit: floa
         bad_input(str(exc))
 
 
+def _loads(texts: list[str] | None) -> list[tuple[float, float]]:
+    """``--load T:SIZE`` options as (plant seconds, MV units) load steps; bad input exits with code 2."""
+    steps = []
+    for text in texts or []:
+        when, sep, size = text.partition(":")
+        try:
+            step: tuple[float, float] | None = (float(when), float(size))
+        except ValueError:
+            step = None
+        if not sep or step is None or not all(math.isfinite(x) for x in step) or step[0] < 0.0:
+            bad_input(f"bad --load {text!r}: expected T:SIZE, T ≥ 0 plant seconds from the start of the "
+                      "experiment and SIZE the step in MV units at the process input, e.g. --load 30:0.2")
+        steps.append(step)
+    return steps
+
+
+def _check_plant(process: Process, text: str) -> None:
+    """Refuse plants no relay experiment can tune (exit 2): zero gain, or no dynamics at all."""
+    if process.num == (0.0,):
+        bad_input(f"--plant {text!r} is zero: the MV has no effect on the PV, there is nothing to tune")
+    if process.order == 0 and process.delay == 0.0:
+        bad_input(f"--plant {text!r} has no dynamics (a pure gain): the PV follows the MV at once, so a relay "
+                  "experiment identifies no frequency-response point; give a transfer function in s, "
+                  "e.g. 2*exp(-s)/(3*s+1)")
+
+
 def _prepare(
     plant: str, ts: float | None, amp: float, hysteresis: float | None, phase: float, noise: float, seed: int,
-    time_limit: float | None = None,
+    time_limit: float | None = None, loads: list[tuple[float, float]] | None = None, drift: float = 0.0,
+    quantum: float = 0.0,
 ) -> tuple[PlantSim, RelayConfig]:
-    """The simulated plant and the experiment settings; bad input exits with code 2."""
+    """The simulated plant (with its load steps, drift and PV resolution) and the experiment settings.
+
+    Bad input exits with code 2.
+    """
     from autotuner.engine.plant.simulation import PlantSim
-    from autotuner.engine.simulated_tuning import default_sample_time, default_time_limit
+    from autotuner.engine.simulated_tuning import default_sample_time, default_time_limit, ramp_loads
 
     process = parse_plant(plant)
+    _check_plant(process, plant)
+    if not math.isfinite(drift):
+        bad_input(f"--drift must be a finite number of MV units per second, got {drift}")
     try:
         sample_time = default_sample_time(process, phase) if ts is None else ts
-        sim = PlantSim(process, sample_time, noise_std=noise, seed=seed)
+        limit = time_limit or default_time_limit(process, phase, sample_time)
+        steps = list(loads or ()) + ramp_loads(drift, sample_time, limit)
+        sim = PlantSim(process, sample_time, noise_std=noise, seed=seed, quantum=quantum, loads=steps)
     except ValueError as exc:
         bad_input(str(exc))
     return sim, _config(amp, hysteresis, phase, time_limit or default_time_limit(process, phase, sim.ts))
@@ -106,7 +141,12 @@ def _result_table(result: TuneResult, ts: float, plant: Process | None = None) -
     table = Table(title=f"{result.controller} tuning", show_header=False, title_justify="left")
     table.add_column(style="bold")
     table.add_column()
-    outcome = "ok" if result.ok else f"[red]failed[/] (ite = {int(result.code)}): {escape(result.message)}"
+    if not result.ok:
+        outcome = f"[red]failed[/] (ite = {int(result.code)}): {escape(result.message)}"
+    elif int(result.code) == 0:
+        outcome = "ok"
+    else:  # a warning: gains usable, but the message names what was missed
+        outcome = f"[yellow]warning[/] (ite = {int(result.code)}): {escape(result.message)}"
     table.add_row("result", outcome)
     ident, des = result.identification, result.design
     if ident is None:
@@ -121,8 +161,12 @@ def _result_table(result: TuneResult, ts: float, plant: Process | None = None) -
     if des is not None:
         for name, text in gains_rows(des.gains):
             table.add_row(name, text)
-        table.add_row("model", f"{des.model.text}: {des.model.time_constant_text()}")
-        table.add_row("Ms on model", f"{des.model_ms:.3f}")
+        real = all(abs(pole.imag) == 0.0 for pole in des.model.poles)  # a resonance has no time-constant form
+        table.add_row("model", f"{des.model.text}: {des.model.time_constant_text() if real else des.model}")
+        table.add_row("Ms on model", f"{des.model_ms:.3f} (target {des.ms_target:.3g})")
+        table.add_row("noise gain", f"{des.noise_gain:.4g} (MV noise per PV noise)")
+        for note in des.notes:
+            table.add_row("design note", escape(note))
         if plant is not None:
             table.add_row("Ms on the plant", _plant_ms(plant, des.gains, p.omega))
     return table
@@ -148,6 +192,13 @@ def tune_command(
     ms: Annotated[float, typer.Option(min=1.05, max=4.0, help="Maximum sensitivity of the design.")] = 1.4,
     noise: Annotated[float, typer.Option(help="Standard deviation of white measurement noise, PV units.")] = 0.0,
     seed: Annotated[int, typer.Option(help="Seed of the noise.")] = 0,
+    load: Annotated[list[str] | None, typer.Option("--load", help="Load step T:SIZE at the process input (plant "
+                                                   "seconds from the start of the experiment : MV units); "
+                                                   "repeat for several.")] = None,
+    drift: Annotated[float, typer.Option(help="Load ramp at the process input from the start, MV units per "
+                                         "second.")] = 0.0,
+    quantum: Annotated[float, typer.Option(min=0.0, help="PV resolution (the sensor rounds to multiples of it), "
+                                           "PV units; 0: none.")] = 0.0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object (docs/design.md) to stdout.")] = False,
     link: Annotated[str | None, typer.Option(help="Tune a real loop in real time instead: "
                                              f"{escape('modbus://HOST:PORT[/UNIT]')} "
@@ -177,6 +228,12 @@ def tune_command(
     """
     if (config_file is None) != (loop_id is None):
         bad_input("--config and --loop go together")
+    field = [name for name, given in (("--load", bool(load)), ("--drift", drift != 0.0), ("--quantum", quantum != 0.0))
+             if given]
+    if field and (config_file is not None or link is not None or via is not None):
+        bad_input(f"{', '.join(field)} simulate field conditions on the in-process --plant only "
+                  "(not with --config, --link or --via)")
+    steps = _loads(load)
     if config_file is not None:
         from autotuner.service.configured_loop import tune_configured
 
@@ -210,7 +267,7 @@ def tune_command(
     else:
         from autotuner.engine.simulated_tuning import tune
 
-        sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit)
+        sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit, steps, drift, quantum)
         sample_time = sim.ts
 
         async def start(on_status: Callable[[Status], None] | None) -> TuneResult:

@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 
 from autotuner.engine.design.point_design import Design, design
+from autotuner.engine.design.unstable_design import Refusal
 from autotuner.engine.design.process_data import exact_point
 from autotuner.engine.plant.process import Process
-from autotuner.engine.outcome import MESSAGES, Code
+from autotuner.engine.outcome import MESSAGES, Code, is_failure
 from autotuner.engine.experiment.relay import Identification, RelayConfig, RelayExperiment, Status
 from autotuner.engine.plant.simulation import PlantSim
 
@@ -56,8 +57,8 @@ class TuneResult:
 
     @property
     def ok(self) -> bool:
-        """True when the experiment succeeded and gains were computed."""
-        return self.code is Code.OK and self.design is not None
+        """True when gains were computed (``te`` false): code OK, or a warning that says what was missed."""
+        return not is_failure(self.code) and self.design is not None
 
     def as_json(self) -> dict[str, Any]:
         """The result object of design.md (``tbsy, te, ite, message, point, gains, ...``)."""
@@ -77,12 +78,24 @@ class TuneResult:
             },
             "static_gain": None if ident is None or math.isinf(ident.static_gain) else float(ident.static_gain),
             "gains": None if des is None else des.gains.as_json(),
+            "design": None if des is None else design_json(des),
             "experiment": {
                 "duration": float(self.trace.t[-1] - self.trace.t[0]) if len(self.trace.t) else 0.0,
                 "periods": None if ident is None else round(ident.periods, 2),
                 "samples": len(self.trace.t),
             },
         }
+
+
+def design_json(des: Design) -> dict[str, Any]:
+    """The ``design`` object of the result: the model (expression), its Ms, the target, noise gain and notes."""
+    return {
+        "model": str(des.model),
+        "ms_model": float(des.model_ms),
+        "ms_target": float(des.ms_target),
+        "noise_gain": float(des.noise_gain),
+        "notes": list(des.notes),
+    }
 
 
 def phase_frequency(process: Process, phase_deg: float) -> float | None:
@@ -94,13 +107,20 @@ def phase_frequency(process: Process, phase_deg: float) -> float | None:
 def default_sample_time(process: Process, phase_deg: float = 135.0) -> float:
     """A sample time (s) giving about 100 samples per period of the oscillation at ``phase_deg``.
 
-    A process that never reaches that lag gets 1/100 of its slowest time constant or dead time.
+    A process that never reaches that lag gets 1/100 of its slowest time constant or dead time;
+    one without either (``K/s``, ``K/s²``: integrators only, whose phase says nothing about time)
+    1/100 of the period where its gain is 1, the natural scale of a relay loop around it.
     """
     w = phase_frequency(process, phase_deg)
     if w is not None:
         return 2.0 * math.pi / w / SAMPLES_PER_PERIOD
     scales = [1.0 / abs(p) for p in process.poles if abs(p) > 1e-12] + [process.delay]
-    return max(max(scales), 1e-3) / SAMPLES_PER_PERIOD
+    if max(scales) > 0.0:
+        return max(scales) / SAMPLES_PER_PERIOD
+    n = max(process.integrator_count, 1)
+    gain = abs(process.num[-1] / process.den[-1 - n]) if process.den[-1 - n] else 1.0
+    crossover = gain ** (1.0 / n)  # |K/(jω)^n| = 1
+    return 2.0 * math.pi / crossover / SAMPLES_PER_PERIOD
 
 
 def default_time_limit(process: Process, phase_deg: float, ts: float) -> float:
@@ -108,6 +128,16 @@ def default_time_limit(process: Process, phase_deg: float, ts: float) -> float:
     ``LIMIT_SAMPLES`` samples of ``ts`` seconds."""
     w = phase_frequency(process, phase_deg)
     return LIMIT_PERIODS * 2.0 * math.pi / w if w is not None else LIMIT_SAMPLES * ts
+
+
+def ramp_loads(rate: float, ts: float, until: float) -> list[tuple[float, float]]:
+    """A load ramp of ``rate`` MV units per second from t = 0 as load steps at every sample up to ``until`` s.
+
+    Sampled this way the load at sample ``k`` is ``rate·k·ts``, the ramp held over each sample interval.
+    """
+    if rate == 0.0:
+        return []
+    return [(k * ts, rate * ts) for k in range(1, int(math.ceil(until / ts)) + 2)]
 
 
 def run_experiment(
@@ -136,15 +166,27 @@ def run_experiment(
 
 
 def result_of(experiment: RelayExperiment, trace: Trace, controller: str, ms: float) -> TuneResult:
-    """The outcome of an ended experiment, with ``controller`` designed for ``ms`` on success."""
+    """The outcome of an ended experiment, with ``controller`` designed for ``ms`` on success.
+
+    A design that missed something it was asked for (its notes) turns an OK
+    experiment into that warning code: ``te`` stays false, the message names
+    the miss. A refused design carries its own code (e.g. an unstable process
+    with too long a dead time).
+    """
     ident = experiment.result
     des = None
     code, message = experiment.code or Code.OK, experiment.message
     if ident is not None:
         try:
-            des = design(ident.point, ident.static_gain, controller, ms)
+            des = design(ident.point, ident.static_gain, controller, ms, noise_std=ident.noise_std,
+                         amp=experiment.config.amp)
+        except Refusal as exc:
+            code, message = exc.code, f"{MESSAGES[exc.code]}: {exc}"
         except ValueError as exc:
             code, message = Code.NO_DESIGN, f"{MESSAGES[Code.NO_DESIGN]}: {exc}"
+        else:
+            if code is Code.OK and des.warning is not Code.OK:
+                code, message = des.warning, f"{MESSAGES[des.warning]}: " + "; ".join(des.notes)
     return TuneResult(code, message, controller, ident, des, trace)
 
 

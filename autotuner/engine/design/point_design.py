@@ -18,6 +18,24 @@ largest ``ki``; PI is the fraction 0, so PID never has less integral gain on
 the model. The set-point weight ``b`` is the largest in [0, 1] whose
 set-point response has no resonance peak on the model.
 
+Beyond that batch (docs/design-notes.md):
+
+* a gain at ω* above the static gain (``|F(jω*)| > K0``) is a resonance no
+  lag explains; the family then also holds the underdamped second-order
+  models through the point with no dead time and with the dead time that
+  leaves 90° to the resonance (the lightly damped end and the other end);
+* a negative static gain is an unstable process: the design of
+  :mod:`autotuner.engine.design.unstable_design` (raised Ms target, or a
+  refusal with its code);
+* with measured noise, a PID whose high-frequency gain ``k(1 + N)`` would
+  put more than :data:`MV_NOISE_BUDGET` × amp of noise (standard deviation)
+  on the MV gets a lower ``N`` (down to :data:`ND_MIN`), and below that no
+  derivative action.
+
+Whatever the design had to give up is in ``Design.notes`` and its
+``warning`` code (``ROBUSTNESS_MISSED``, ``DERIVATIVE_DROPPED``,
+``DERIVATIVE_LIMITED``); a design with no notes met everything it was asked.
+
 The derivation and its check on the benchmark batch are in docs/design-rule.md.
 """
 
@@ -29,9 +47,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from autotuner.engine.control.gains import Gains
+from autotuner.engine.outcome import Code
 from autotuner.engine.plant.process import Process
 from autotuner.engine.experiment.relay import Point
-from autotuner.engine.design.robustness import Plant, log_grid, max_sensitivity, migo, pid_frequency_response
+from autotuner.engine.design import unstable_design
+from autotuner.engine.design.robustness import (MigoResult, Plant, check_loop, log_grid, max_sensitivity, migo,
+                                                pid_frequency_response)
+from autotuner.engine.design.unstable_design import Refusal
 
 # A static gain this many times |F(jω*)| or more is designed as an integrator.
 INTEGRATING_RATIO = 200.0
@@ -41,16 +63,38 @@ INTEGRATING_RATIO = 200.0
 BOUND_MARGIN = 1.05
 TD_RATIOS = (0.0, 0.1, 0.15, 0.2, 0.25)
 DEFAULT_ND = 10.0
+# MV noise budget: the standard deviation of the MV noise the controller may make of the measured
+# PV noise, as a fraction of the relay amplitude (the MV excursion the operator accepted for the test).
+MV_NOISE_BUDGET = 0.1
+# Lowest derivative filter factor N used to keep within that budget; below it the derivative goes.
+ND_MIN = 2.0
+# Relative slack on the Ms checks (the grid and the optimiser's tolerance).
+_MS_SLACK = 1e-3
 
 
 @dataclass(frozen=True)
 class Design:
-    """Gains with the model they were designed on and the Ms they give on it."""
+    """Gains with the model they were designed on, what they achieve there, and what was given up.
+
+    model_ms: Ms on ``model``; ms_target: the Ms the gains were designed for
+    (the requested one, or raised for an unstable process); bound: the second
+    extreme model of the family (None if none); family: every model the design
+    held to its target (``model`` first); noise_gain: MV noise per PV noise,
+    the controller's high-frequency gain ``k`` (PI) or ``k(1 + N)`` (PID), MV
+    units per PV unit; notes: one sentence per target missed or action given
+    up, empty when the design met everything asked; warning: the outcome code
+    for the notes (``Code.OK`` when there are none).
+    """
 
     gains: Gains
     model: Process
     model_ms: float
     bound: Process | None
+    ms_target: float = 1.4
+    family: tuple[Process, ...] = ()
+    noise_gain: float = 0.0
+    notes: tuple[str, ...] = ()
+    warning: Code = Code.OK
 
 
 def fit_model(point: Point, static_gain: float) -> Process:
@@ -105,8 +149,49 @@ def fit_lag_bound(point: Point, static_gain: float) -> Process | None:
     )
 
 
+def fit_resonant(point: Point, static_gain: float, delay: float) -> Process | None:
+    """Underdamped ``K0·e^{−Ls}/(s²/ωn² + 2ζs/ωn + 1)`` through the point with dead time ``delay`` (s).
+
+    With ``x = K0/r`` and the phase left to the rational part ``ψ = φ − ω*L``,
+    ``K0/F = x·e^{jψ} = 1 − u² + j2ζu`` (``u = ω*/ωn``) gives ``u² = 1 − x·cos ψ``
+    and ``ζ = x·sin ψ/(2u)``; None when no such model exists (``u² ≤ 0`` or ``ψ``
+    outside (0, π)).
+    """
+    w, r = point.omega, point.gain
+    psi = -math.radians(point.phase_deg) - w * delay
+    x = static_gain / r
+    u2 = 1.0 - x * math.cos(psi)
+    if not (0.0 < psi < math.pi and u2 > 0.0):
+        return None
+    u = math.sqrt(u2)
+    zeta = x * math.sin(psi) / (2.0 * u)
+    wn = w / u
+    return Process.from_tf((static_gain,), (1.0 / wn**2, 2.0 * zeta / wn, 1.0), delay,
+                           text=f"resonant model (ζ = {zeta:.3g})")
+
+
+def model_family(point: Point, static_gain: float) -> list[tuple[Process, float]]:
+    """The models the stable design holds to its target, each with its Ms margin (best guess first)."""
+    model = fit_model(point, static_gain)
+    bound = fit_lag_bound(point, static_gain)
+    family = [(model, 1.0)] + ([] if bound is None else [(bound, BOUND_MARGIN)])
+    if math.isfinite(static_gain) and static_gain <= point.gain:
+        # A resonance: the lightly damped end (no dead time, the best guess: it reports the model)
+        # and the dead time leaving 90° to it, then the dead-time model as the third extreme.
+        lag = -math.radians(point.phase_deg)
+        resonant = [fit_resonant(point, static_gain, delay)
+                    for delay in (0.0, max(lag - math.pi / 2, 0.0) / point.omega)]
+        family = [(m, 1.0) for m in resonant if m is not None] + family
+    return family
+
+
 def _plant(model: Process, margin: float = 1.0) -> Plant:
-    return Plant(model.freqresp, integrators=model.integrator_count, rhp_poles=0, margin=margin)
+    return Plant(model.freqresp, integrators=model.integrator_count, rhp_poles=model.rhp_pole_count, margin=margin)
+
+
+def noise_gain(gains: Gains) -> float:
+    """MV noise per PV noise (MV units per PV unit): the high-frequency gain ``k`` or ``k(1 + N)`` with derivative."""
+    return abs(gains.k) * (1.0 + gains.nd if gains.td > 0.0 else 1.0)
 
 
 def setpoint_weight(model: Process, k: float, ti: float, td: float, nd: float, w: np.ndarray) -> float:
@@ -133,22 +218,100 @@ def setpoint_weight(model: Process, k: float, ti: float, td: float, nd: float, w
     return math.floor(lo * 1000.0) / 1000.0  # rounding up could cross the limit
 
 
-def design(point: Point, static_gain: float, controller: str = "PI", ms: float = 1.4, nd: float = DEFAULT_ND) -> Design:
+def _ms_on(model: Process, best: MigoResult, nd: float, w: np.ndarray) -> float:
+    """Ms of the designed loop on ``model`` (inf if unstable)."""
+    controller = lambda x: pid_frequency_response(x, best.k, best.ti, best.td, nd)  # noqa: E731
+    integrators = model.integrator_count + (1 if math.isfinite(best.ti) else 0)
+    return check_loop(model.freqresp, controller, w, integrators, model.rhp_pole_count).ms
+
+
+def _stable_gains(family: list[tuple[Process, float]], omega: float, controller: str, ms: float, nd: float,
+                  w: np.ndarray) -> MigoResult:
+    plants = [_plant(m, margin) for m, margin in family]
+    ratios = TD_RATIOS if controller == "PID" else (0.0,)
+    return max((migo(plants, omega, ms, ratio, nd, w) for ratio in ratios), key=lambda m: m.ki)
+
+
+def design(point: Point, static_gain: float, controller: str = "PI", ms: float = 1.4, nd: float = DEFAULT_ND,
+           noise_std: float = 0.0, amp: float | None = None) -> Design:
     """Robust PI or PID gains (standard form) from the identified point and static gain.
 
     ``ms`` is the required maximum sensitivity (1.2–2.0 is the usual range).
+    ``noise_std`` (PV units) is the measured noise and ``amp`` (MV units) the
+    relay amplitude: with both, a PID keeps its MV noise within
+    ``MV_NOISE_BUDGET·amp``. Raises :class:`Refusal` (with an outcome code) for
+    an unstable process no PI/PID of this kind stabilises robustly, ValueError
+    for data no design applies to.
     """
     if controller not in ("PI", "PID"):
         raise ValueError(f"controller must be PI or PID, got {controller!r}")
     if not 1.05 <= ms <= 4.0:
         raise ValueError(f"Ms must be between 1.05 and 4, got {ms}")
-    model = fit_model(point, static_gain)
-    bound = fit_lag_bound(point, static_gain)
-    plants = [_plant(model)] + ([] if bound is None else [_plant(bound, BOUND_MARGIN)])
     w = log_grid(point.omega)
-    ratios = TD_RATIOS if controller == "PID" else (0.0,)
-    best = max((migo(plants, point.omega, ms, ratio, nd, w) for ratio in ratios), key=lambda m: m.ki)
+    notes: list[tuple[Code, str]] = []
+    if math.isfinite(static_gain) and static_gain < 0.0:
+        fit_model(point, math.inf)  # the same checks of the point as the stable path
+        lag = -math.radians(point.phase_deg)
+        model = unstable_design.fit_unstable(point.omega, point.gain, lag, static_gain)
+        ratio = unstable_design.check_dead_time(model, controller)
+        family = [(model, 1.0)]
+        best, target = unstable_design.design_gains(model, point.omega, controller, ms, nd)
+        if target > ms * (1.0 + _MS_SLACK):
+            notes.append((Code.ROBUSTNESS_MISSED, (
+                f"Ms {ms:g} is out of reach of a {controller} on this unstable process (dead time {ratio:.2f} × the "
+                f"unstable time constant): designed for Ms {target:.2f} on the model")))
+    else:
+        family = model_family(point, static_gain)
+        target = ms
+        best = _stable_gains(family, point.omega, controller, ms, nd, w)
+    model = family[0][0]
+    if controller == "PID" and best.td > 0.0 and noise_std > 0.0 and amp is not None:
+        best, nd, note = _within_noise_budget(best, family, point.omega, target, nd, noise_std, amp, w)
+        if note is not None:
+            notes.append(note)
+    if controller == "PID" and best.td == 0.0 and not any(code is Code.DERIVATIVE_DROPPED for code, _ in notes):
+        notes.append((Code.DERIVATIVE_DROPPED, (
+            "PID was asked for, but derivative action adds no integral gain on the model "
+            f"({model.text}: dead time dominates); the gains are PI")))
+    for member, margin in family:
+        member_ms = _ms_on(member, best, nd, w)
+        if member_ms > target * margin * (1.0 + _MS_SLACK):
+            notes.append((Code.ROBUSTNESS_MISSED, (
+                f"Ms {member_ms:.3g} on the {member.text} exceeds the target {target * margin:.3g}")))
     b = setpoint_weight(model, best.k, best.ti, best.td, nd, w)
     gains = Gains(k=best.k, ti=best.ti, td=best.td, nd=nd, b=b, c=0.0)
     loop = pid_frequency_response(w, best.k, best.ti, best.td, nd) * model.freqresp(w)
-    return Design(gains=gains, model=model, model_ms=max_sensitivity(loop), bound=bound)
+    codes = [code for code, _ in notes]
+    warning = max(codes, default=Code.OK)  # 19 robustness before 18 derivative before 15 filter
+    bound = family[1][0] if len(family) > 1 else None
+    return Design(gains=gains, model=model, model_ms=max_sensitivity(loop), bound=bound, ms_target=target,
+                  family=tuple(m for m, _ in family), noise_gain=noise_gain(gains),
+                  notes=tuple(text for _, text in notes), warning=warning)
+
+
+def _within_noise_budget(best: MigoResult, family: list[tuple[Process, float]], omega: float, ms: float, nd: float,
+                         noise_std: float, amp: float, w: np.ndarray) -> tuple[MigoResult, float, tuple[Code, str] | None]:
+    """Lower ``N`` (and at last drop the derivative) until ``k(1 + N)·σ ≤ MV_NOISE_BUDGET·amp``.
+
+    ``k`` changes with ``N``, so the design is redone for the lowered ``N``
+    (twice: the second pass corrects for the new ``k``).
+    """
+    budget = MV_NOISE_BUDGET * amp
+    if best.k * (1.0 + nd) * noise_std <= budget:
+        return best, nd, None
+    start = nd
+    for _ in range(2):
+        nd = min(nd, budget / (best.k * noise_std) - 1.0)
+        if nd < ND_MIN:
+            break
+        best = max((migo([_plant(m, margin) for m, margin in family], omega, ms, r, nd, w) for r in TD_RATIOS[1:]),
+                   key=lambda m: m.ki)
+    if nd >= ND_MIN and best.k * (1.0 + nd) * noise_std <= budget * (1.0 + 1e-6):
+        return best, nd, (Code.DERIVATIVE_LIMITED, (
+            f"derivative filter N lowered from {start:g} to {nd:.3g}: with the measured noise σ = {noise_std:.3g} "
+            f"the MV noise stays within {MV_NOISE_BUDGET:g} × amp = {budget:.3g}"))
+    pi = migo([_plant(m, margin) for m, margin in family], omega, ms, 0.0, start, w)
+    return pi, start, (Code.DERIVATIVE_DROPPED, (
+        f"PID was asked for, but with the measured noise σ = {noise_std:.3g} even N = {ND_MIN:g} would put "
+        f"more than {MV_NOISE_BUDGET:g} × amp = {budget:.3g} of noise on the MV: derivative action dropped, "
+        f"the gains are PI (MV noise {pi.k * noise_std:.3g})"))
