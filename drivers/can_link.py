@@ -66,8 +66,8 @@ REQUIRED: dict[str, tuple[str, ...]] = {
 }
 
 # How often the notifier's receive thread wakes to see whether it is stopped (s);
-# close() waits for it, so this bounds the time close() takes.
-_RX_POLL = 0.05
+# close() waits for it, so this bounds the time close() takes. The simulated node uses it too.
+RX_POLL = 0.05
 
 
 def default_dbc() -> Path:
@@ -352,7 +352,7 @@ class CanLink:
         self._error = None
         self._latest.clear()
         try:
-            self._notifier = can.Notifier(self._bus, [_Receiver(self)], timeout=_RX_POLL,
+            self._notifier = can.Notifier(self._bus, [_Receiver(self)], timeout=RX_POLL,
                                           loop=asyncio.get_running_loop())
         except (can.CanError, ValueError, OSError) as exc:
             self._bus.shutdown()
@@ -366,7 +366,7 @@ class CanLink:
         self._wake()  # waiters see the link closed
         try:
             if notifier is not None:
-                notifier.stop(timeout=_RX_POLL + 1.0)
+                notifier.stop(timeout=RX_POLL + 1.0)
         except Exception:  # noqa: BLE001 - close never raises
             pass
         try:
@@ -425,10 +425,6 @@ class CanLink:
     async def write_mode(self, mode: Mode) -> None:
         """Send the mode (AT_CmdMode)."""
         await self._send((CMD_MODE, {"Mode": int(Mode(mode))}))
-
-    async def write_sp(self, sp: float) -> None:
-        """Send the set point (AT_CmdSP)."""
-        await self._send((CMD_SP, {"SP": checked("SP", float(sp))}))
 
     async def write_gains(self, gains: Gains) -> None:
         """Send the three staged gains frames, then AT_CmdGainsApply (the node applies them together)."""

@@ -30,14 +30,12 @@ import can
 from autotuner.engine.checks import finite
 from autotuner.engine.control.gains import Gains
 
-from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, GAINS, PROCESS, REQUEST,
+from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, GAINS, PROCESS, REQUEST, RX_POLL,
                        SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire, load_dbc, open_bus)
 from .link import LinkError, Mode
 from .simplc import SimulatedPlc
 
 log = logging.getLogger(__name__)
-
-_RX_POLL = 0.05
 
 
 class CanPlcNode:
@@ -67,7 +65,7 @@ class CanPlcNode:
     def start(self) -> None:
         """Start receiving and the cyclic transmission (call from the event loop)."""
         loop = asyncio.get_running_loop()
-        self._notifier = can.Notifier(self.bus, [self._on_message], timeout=_RX_POLL, loop=loop)
+        self._notifier = can.Notifier(self.bus, [self._on_message], timeout=RX_POLL, loop=loop)
         self._task = loop.create_task(self._cyclic(), name="can-node-cyclic")
 
     async def close(self) -> None:
@@ -82,7 +80,7 @@ class CanPlcNode:
         notifier, self._notifier = self._notifier, None
         try:
             if notifier is not None:
-                notifier.stop(timeout=_RX_POLL + 1.0)
+                notifier.stop(timeout=RX_POLL + 1.0)
         except Exception:  # noqa: BLE001
             pass
         try:

@@ -173,7 +173,7 @@ class ModbusLink:
         timeout = take("timeout", float, 1.0)
         retries = take("retries", int, 2)
         mp = load_map(map_path) if map_path else DEFAULT_MAP
-        if scheme in ("modbus", "modbus+tcp", "modbus-tcp"):
+        if scheme in ("modbus", "modbus+tcp"):
             if not parts.hostname:
                 raise ValueError(f"bad Modbus URL {url!r}: no host (expected modbus://HOST[:PORT][/UNIT])")
             try:
@@ -192,7 +192,7 @@ class ModbusLink:
             if query:
                 raise ValueError(f"bad Modbus URL {url!r}: unknown option(s) {', '.join(sorted(query))}")
             return cls.tcp(parts.hostname, port, unit, mp, timeout, retries)
-        if scheme in ("modbus+rtu", "modbus-rtu"):
+        if scheme == "modbus+rtu":
             device = unquote(parts.netloc + parts.path)
             if not device:
                 raise ValueError(f"bad Modbus URL {url!r}: no serial device (expected modbus+rtu:///dev/ttyUSB0)")

@@ -20,7 +20,7 @@ from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config
 from autotuner.service.link_session import tune_link
 from autotuner.engine.simulated_tuning import default_sample_time
-from drivers.can_link import (REQUIRED, CanLink, default_dbc, gains_from_wire, gains_to_wire, load_dbc,
+from drivers.can_link import (CMD_SP, REQUIRED, CanLink, default_dbc, gains_from_wire, gains_to_wire, load_dbc,
                               ti_from_wire, ti_to_wire)
 from drivers.can_node import serve_can
 from drivers.link import LinkError, Mode, TuneFlags
@@ -225,7 +225,7 @@ def test_writes_reach_the_plc():
         async with rig() as (plc, node, link):
             await link.write_mode(Mode.MAN)
             await link.write_mv(37.25)
-            await link.write_sp(61.5)
+            await link._send((CMD_SP, {"SP": 61.5}))  # an HMI's set point: the autotuner sends none
             assert await until(lambda: plc.sp == 61.5)  # frames from one sender arrive in order
             assert plc.mode is Mode.MAN and plc.hv == 37.25 and plc.sp == 61.5
             await link.write_mode(Mode.AUTO)

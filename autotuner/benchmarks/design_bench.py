@@ -38,7 +38,7 @@ from autotuner.engine.plant.process import Process
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.engine.design.robustness import Plant, log_grid, migo
 from autotuner.engine.plant.simulation import PlantSim
-from autotuner.engine.simulated_tuning import SAMPLES_PER_PERIOD, phase_frequency, tune
+from autotuner.engine.simulated_tuning import EXPERIMENT_SAMPLES_PER_PERIOD, phase_frequency, tune
 
 NOISE_FRACTION = 0.01
 AH_RADIUS = 0.5
@@ -84,7 +84,7 @@ def ideal_relay(process: Process, ts: float, amp: float, periods: int = 8) -> tu
     """Ideal (no hysteresis) symmetric relay: (period Tu in s, PV amplitude) of the last period."""
     sim = PlantSim(process, ts)
     relay, rising, t, y = 1.0, [], [], []
-    limit = 10000 * SAMPLES_PER_PERIOD
+    limit = 10000 * EXPERIMENT_SAMPLES_PER_PERIOD
     while len(rising) < periods + 1 and len(t) < limit:
         pv = sim.measure()
         t.append(sim.t)
@@ -110,7 +110,7 @@ def run_one(row: dict[str, str]) -> Row:
     process = parse_process(row["expr"])
     w135 = phase_frequency(process, 135.0)
     assert w135 is not None
-    ts = 2.0 * math.pi / w135 / SAMPLES_PER_PERIOD
+    ts = 2.0 * math.pi / w135 / EXPERIMENT_SAMPLES_PER_PERIOD
     w = log_grid(w135)
     plant = Plant(process.freqresp, integrators=process.integrator_count)
     migo_pi = migo([plant], w135, 1.4)

@@ -14,17 +14,17 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from autotuner.engine.design.closed_loop import HORIZON_PERIODS, SAMPLES_PER_PERIOD, integrated_error, margins, reference_period
+from autotuner.engine.design.closed_loop import HORIZON_PERIODS, STEP_SAMPLES_PER_PERIOD, integrated_error, margins, reference_period
 from autotuner.engine.control.gains import json_number
 from autotuner.engine.design.process_data import ProcessData
-from autotuner.engine.design.rules import RULES, Options, RuleError, Tuning, tune
+from autotuner.engine.design.rules import RULES, Options, RuleError, RuleResult, tune
 
 
 @dataclass(frozen=True)
 class Row:
     """One rule's result on the plant: IAE is inf for an unstable loop or a load offset (no integral)."""
 
-    tuning: Tuning
+    tuning: RuleResult
     stable: bool
     ms: float
     gain_margin: float
@@ -55,14 +55,14 @@ def compare(data: ProcessData, controller: str, options: Options) -> tuple[list[
     return rows, skipped
 
 
-def _judge(data: ProcessData, tuning: Tuning, period: float) -> Row:
+def _judge(data: ProcessData, tuning: RuleResult, period: float) -> Row:
     m = margins(data.process, tuning.gains, 2.0 * math.pi / period)
     iae = integrated_error(data.process, tuning.gains, "load", period)[0] if m.stable else math.inf
     return Row(tuning, m.stable, m.ms, m.gain_margin, m.phase_margin_deg, iae)
 
 
 METHOD_NOTE = (f"Ms, margins on a 6000-point log grid; IAE of a unit load step at the process input, "
-               f"PlantSim (exact ZOH) + PidUnit at ts = T135/{SAMPLES_PER_PERIOD}, rectangle sum over "
+               f"PlantSim (exact ZOH) + PidUnit at ts = T135/{STEP_SAMPLES_PER_PERIOD}, rectangle sum over "
                f"{HORIZON_PERIODS:g}·T135")
 
 

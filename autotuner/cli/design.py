@@ -17,7 +17,7 @@ from autotuner.cli.app import app, bad_input, fmt, gains_rows, stdout
 if TYPE_CHECKING:
     from autotuner.benchmarks.rule_comparison import Row
     from autotuner.engine.design.process_data import ProcessData
-    from autotuner.engine.design.rules import Tuning
+    from autotuner.engine.design.rules import RuleResult
 
 
 class RuleController(str, Enum):
@@ -74,7 +74,7 @@ def _design_data(fopdt: str | None, plant: str | None, point: str | None, static
         bad_input(str(exc))
 
 
-def _extra_rows(tuning: Tuning) -> list[tuple[str, str]]:
+def _extra_rows(tuning: RuleResult) -> list[tuple[str, str]]:
     rows = []
     for key, value in tuning.extra.items():
         if key == "two_controller":
@@ -84,7 +84,7 @@ def _extra_rows(tuning: Tuning) -> list[tuple[str, str]]:
     return rows
 
 
-def _tuning_table(tuning: Tuning) -> Table:
+def _tuning_table(tuning: RuleResult) -> Table:
     table = Table(title=f"{tuning.rule}: {tuning.controller}", show_header=False, title_justify="left")
     table.add_column(style="bold")
     table.add_column()

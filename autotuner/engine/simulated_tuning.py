@@ -23,7 +23,8 @@ from autotuner.engine.outcome import MESSAGES, Code, is_failure
 from autotuner.engine.experiment.relay import Identification, RelayConfig, RelayExperiment, Status
 from autotuner.engine.plant.simulation import PlantSim
 
-SAMPLES_PER_PERIOD = 100
+# Samples per oscillation period of the default sample time (default_sample_time).
+EXPERIMENT_SAMPLES_PER_PERIOD = 100
 # Time limit of a simulated experiment: this many expected periods of the
 # oscillation, or this many samples when the plant never reaches the phase.
 LIMIT_PERIODS = 200
@@ -113,14 +114,14 @@ def default_sample_time(process: Process, phase_deg: float = 135.0) -> float:
     """
     w = phase_frequency(process, phase_deg)
     if w is not None:
-        return 2.0 * math.pi / w / SAMPLES_PER_PERIOD
+        return 2.0 * math.pi / w / EXPERIMENT_SAMPLES_PER_PERIOD
     scales = [1.0 / abs(p) for p in process.poles if abs(p) > 1e-12] + [process.delay]
     if max(scales) > 0.0:
-        return max(scales) / SAMPLES_PER_PERIOD
+        return max(scales) / EXPERIMENT_SAMPLES_PER_PERIOD
     n = max(process.integrator_count, 1)
     gain = abs(process.num[-1] / process.den[-1 - n]) if process.den[-1 - n] else 1.0
     crossover = gain ** (1.0 / n)  # |K/(jω)^n| = 1
-    return 2.0 * math.pi / crossover / SAMPLES_PER_PERIOD
+    return 2.0 * math.pi / crossover / EXPERIMENT_SAMPLES_PER_PERIOD
 
 
 def default_time_limit(process: Process, phase_deg: float, ts: float) -> float:

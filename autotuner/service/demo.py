@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from autotuner.service.config import DaemonConfig
 from autotuner.engine.plant.expression import parse_process
-from autotuner.engine.simulated_tuning import default_sample_time
+from autotuner.engine.simulated_tuning import EXPERIMENT_SAMPLES_PER_PERIOD, default_sample_time
 
 # (id, description, plant) — a lag with dead time, an integrating level, a lag-dominant loop.
 DEMO_LOOPS = (
@@ -18,15 +18,17 @@ DEMO_LOOPS = (
     ("LIC-201", "level: integrating with dead time", "0.2*exp(-1*s)/(s*(2*s+1))"),
     ("FIC-301", "lag-dominant flow/pressure loop", "2*exp(-0.5*s)/((20*s+1)*(2*s+1))"),
 )
-# Experiment samples per oscillation period (at the 135° point).
-SAMPLES_PER_PERIOD = 50
+# The demo's experiments sample this many times per oscillation period (at the 135° point): half the
+# default, so the demo's real-time loops cost less.
+DEMO_SAMPLES_PER_PERIOD = 50
 
 
 def demo_config(speed: float = 20.0) -> DaemonConfig:
     """The demo's loops, each at ``speed`` plant seconds per wall second."""
     loops = [
         {"id": loop_id, "description": description, "sim": {"plant": plant},
-         "ts": default_sample_time(parse_process(plant)) * 100 / SAMPLES_PER_PERIOD, "speed": speed,
+         "ts": default_sample_time(parse_process(plant)) * EXPERIMENT_SAMPLES_PER_PERIOD / DEMO_SAMPLES_PER_PERIOD,
+         "speed": speed,
          "tuning": {"amp": 5.0, "time_limit": 1000.0}, "limits": {"pv": [0.0, 100.0], "mv": [0.0, 100.0]}}
         for loop_id, description, plant in DEMO_LOOPS
     ]

@@ -4,7 +4,7 @@ The time responses are simulated with the exact ZOH plant simulator
 (:class:`autotuner.engine.plant.simulation.PlantSim`) in feedback with the engine's PID unit
 (:class:`autotuner.engine.control.pid.PidUnit`, the same discrete law the tuner runs:
 Tustin integral, filtered backward-difference derivative). The sample time is
-``T135/SAMPLES_PER_PERIOD`` (``T135 = 2π/ω135``, the period of the 135° point),
+``T135/STEP_SAMPLES_PER_PERIOD`` (``T135 = 2π/ω135``, the period of the 135° point),
 and the integrals are rectangle sums over the samples:
 ``IAE = Σ|e|·ts``, ``ITAE = Σ t·|e|·ts`` with ``e = sp − pv``.
 """
@@ -23,7 +23,8 @@ from autotuner.engine.plant.process import Process
 from autotuner.engine.design.robustness import LoopCheck, check_loop, closed_loop_stable, log_grid, max_sensitivity, pid_frequency_response
 from autotuner.engine.plant.simulation import PlantSim
 
-SAMPLES_PER_PERIOD = 50
+# Samples per 135° period of the simulated step responses (not the experiment's sampling).
+STEP_SAMPLES_PER_PERIOD = 50
 HORIZON_PERIODS = 30.0
 # An error this large means the loop has diverged; the simulation stops.
 DIVERGED = 1e6
@@ -105,7 +106,7 @@ def closed_loop_step(process: Process, gains: Gains, step: str, ts: float,
 
 
 def integrated_error(process: Process, gains: Gains, step: str, period: float,
-                     samples_per_period: int = SAMPLES_PER_PERIOD,
+                     samples_per_period: int = STEP_SAMPLES_PER_PERIOD,
                      horizon_periods: float = HORIZON_PERIODS) -> tuple[float, float]:
     """(IAE, ITAE) of the unit step response over ``horizon_periods·period`` seconds.
 

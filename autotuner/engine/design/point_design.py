@@ -49,14 +49,13 @@ import numpy as np
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.outcome import Code
 from autotuner.engine.plant.process import Process
-from autotuner.engine.experiment.relay import Point
+# A static gain INTEGRATING_RATIO times |F(jω*)| or more is designed as an integrator.
+from autotuner.engine.experiment.relay import INTEGRATING_RATIO, Point
 from autotuner.engine.design import unstable_design
 from autotuner.engine.design.robustness import (MigoResult, Plant, check_loop, log_grid, max_sensitivity, migo,
                                                 pid_frequency_response)
 from autotuner.engine.design.unstable_design import Refusal
 
-# A static gain this many times |F(jω*)| or more is designed as an integrator.
-INTEGRATING_RATIO = 200.0
 # Ms allowance on the no-dead-time bound relative to the best-guess model:
 # 1.0 holds every batch process under Ms·1.02 but costs up to 35 % of the
 # integral gain on delay-dominant ones; 1.05 keeps Ms within 1.36–1.47.

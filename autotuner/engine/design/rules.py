@@ -1,7 +1,7 @@
 """The classical tuning rules of methods.md §4 as plain functions, and a registry of them.
 
 Every rule takes the :class:`autotuner.engine.design.process_data.ProcessData` of one process,
-the controller type and the :class:`Options`, and returns a :class:`Tuning`
+the controller type and the :class:`Options`, and returns a :class:`RuleResult`
 in the standard (ISA) form ``K[bW − Y + E/(Ti s) + Td s/(Td s/N + 1)(cW − Y)]``
 (``c = 0``, ``N = 10`` unless the rule says otherwise), plus its native form
 where it has one. A rule asked for something it does not define raises
@@ -57,7 +57,7 @@ class Options:
 
 
 @dataclass(frozen=True)
-class Tuning:
+class RuleResult:
     """Result of a rule: standard-form gains and JSON-ready extras (native forms, data used)."""
 
     rule: str
@@ -128,12 +128,12 @@ def _table(controller: str, p: tuple, pi: tuple, pid: tuple) -> Gains:
 # -- the rules ------------------------------------------------------------------
 
 
-def zn_step(data: ProcessData, controller: str, options: Options) -> Tuning:
+def zn_step(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Ziegler–Nichols step response (methods.md §4.1): a = R·D; K = 1/a, 0.9/a, 1.2/a; Ti = 3D, 2D; Td = D/2."""
     tan = _tangent(data, "zn-step")
     a, d = tan.a, tan.d
     gains = _table(controller, (1.0 / a,), (0.9 / a, 3.0 * d), (1.2 / a, 2.0 * d, 0.5 * d))
-    return Tuning("zn-step", controller, gains, {"data": {"D": d, "R": tan.r, "a": a}})
+    return RuleResult("zn-step", controller, gains, {"data": {"D": d, "R": tan.r, "a": a}})
 
 
 # (a0, a1, a2) of f(τ) = a0·exp(a1 τ + a2 τ²), methods.md §4.2
@@ -149,7 +149,7 @@ def _f(coeffs: tuple[float, float, float], tau: float) -> float:
     return a0 * math.exp(a1 * tau + a2 * tau * tau)
 
 
-def kappa_tau(data: ProcessData, controller: str, options: Options) -> Tuning:
+def kappa_tau(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Åström–Hägglund modified step response (methods.md §4.2) from ``a = R·D``, ``D`` and ``T = t63 − D``.
 
     ``τ = D/(D + T)`` (0 for an integrating process). Ti and Td use the rows
@@ -166,7 +166,7 @@ def kappa_tau(data: ProcessData, controller: str, options: Options) -> Tuning:
     if controller == "PID":
         td = _f(row["Td/D"], tau) * tan.d if by_d else _f(row["Td/T"], tau) * lag
     gains = _gains(_f(row["aK"], tau) / tan.a, ti, td, _f(row["b"], tau))
-    return Tuning("kappa-tau", controller, gains, {"data": {"D": tan.d, "T": lag, "a": tan.a, "tau": tau}})
+    return RuleResult("kappa-tau", controller, gains, {"data": {"D": tan.d, "T": lag, "a": tan.a, "tau": tau}})
 
 
 def _ultimate(data: ProcessData, rule: str) -> tuple[float, float]:
@@ -175,14 +175,14 @@ def _ultimate(data: ProcessData, rule: str) -> tuple[float, float]:
     return 1.0 / point.gain, 2.0 * math.pi / point.omega
 
 
-def zn_frequency(data: ProcessData, controller: str, options: Options) -> Tuning:
+def zn_frequency(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Ziegler–Nichols frequency response (methods.md §4.3): 0.5Kc; 0.45Kc, T180/1.2; 0.6Kc, T180/2, T180/8."""
     kc, tu = _ultimate(data, "zn-frequency")
     gains = _table(controller, (0.5 * kc,), (0.45 * kc, tu / 1.2), (0.6 * kc, tu / 2.0, tu / 8.0))
-    return Tuning("zn-frequency", controller, gains, {"data": {"Kc": kc, "T180": tu}})
+    return RuleResult("zn-frequency", controller, gains, {"data": {"Kc": kc, "T180": tu}})
 
 
-def astrom_hagglund(data: ProcessData, controller: str, options: Options) -> Tuning:
+def astrom_hagglund(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Relay rule with a prescribed Nyquist point (methods.md §4.4); PI is the same K, Ti without Td."""
     if not (0.0 < options.rb < 1.0 and 0.0 < options.phib_deg < 90.0):
         raise RuleError(f"astrom-hagglund needs 0 < r_b < 1 and 0° < φ_b < 90°, got r_b = {options.rb:g}, "
@@ -191,27 +191,27 @@ def astrom_hagglund(data: ProcessData, controller: str, options: Options) -> Tun
     phi = math.radians(options.phib_deg)
     ti = tu / math.pi * (1.0 + math.sin(phi)) / math.cos(phi)
     gains = _gains(kc * options.rb * math.cos(phi), ti, ti / 4.0 if controller == "PID" else 0.0)
-    return Tuning("astrom-hagglund", controller, gains,
+    return RuleResult("astrom-hagglund", controller, gains,
                   {"data": {"Kc": kc, "T180": tu, "rb": options.rb, "phib_deg": options.phib_deg}})
 
 
-def chr_regulation(data: ProcessData, controller: str, options: Options) -> Tuning:
+def chr_regulation(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Chien–Hrones–Reswick, load disturbance, 20 % overshoot (methods.md §4.5)."""
     m = _fopdt(data, "chr-regulation")
     g = m.t / (m.k * m.l)
     gains = _table(controller, (0.7 * g,), (0.7 * g, 2.3 * m.l), (1.2 * g, 2.0 * m.l, 0.42 * m.l))
-    return Tuning("chr-regulation", controller, gains, {"data": _fopdt_json(m)})
+    return RuleResult("chr-regulation", controller, gains, {"data": _fopdt_json(m)})
 
 
-def chr_servo(data: ProcessData, controller: str, options: Options) -> Tuning:
+def chr_servo(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Chien–Hrones–Reswick, set point, 20 % overshoot (methods.md §4.5)."""
     m = _fopdt(data, "chr-servo")
     g = m.t / (m.k * m.l)
     gains = _table(controller, (0.7 * g,), (0.6 * g, m.t), (0.95 * g, 1.36 * m.t, 0.47 * m.l))
-    return Tuning("chr-servo", controller, gains, {"data": _fopdt_json(m)})
+    return RuleResult("chr-servo", controller, gains, {"data": _fopdt_json(m)})
 
 
-def cohen_coon(data: ProcessData, controller: str, options: Options) -> Tuning:
+def cohen_coon(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Cohen–Coon, quarter decay ratio (methods.md §4.6)."""
     m = _fopdt(data, "cohen-coon")
     r, g = m.l / m.t, m.t / (m.k * m.l)
@@ -221,10 +221,10 @@ def cohen_coon(data: ProcessData, controller: str, options: Options) -> Tuning:
         (g * (0.9 + r / 12.0), m.l * (30.0 + 3.0 * r) / (9.0 + 20.0 * r)),
         (g * (4.0 / 3.0 + r / 4.0), m.l * (32.0 + 6.0 * r) / (13.0 + 8.0 * r), 4.0 * m.l / (11.0 + 2.0 * r)),
     )
-    return Tuning("cohen-coon", controller, gains, {"data": _fopdt_json(m)})
+    return RuleResult("cohen-coon", controller, gains, {"data": _fopdt_json(m)})
 
 
-def takahashi(data: ProcessData, controller: str, options: Options) -> Tuning:
+def takahashi(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Takahashi discrete PI/PID from the reaction curve (methods.md §4.7), ``τ/Km = 1/R``, ``L = D``.
 
     Native form: velocity form ``Δu(k) = K Δe + Ki e + Kd Δ²e`` with sample
@@ -242,11 +242,11 @@ def takahashi(data: ProcessData, controller: str, options: Options) -> Tuning:
         k = 1.2 * inv / (l + ts) - 0.3 * inv * ts / half
         ki, kd = 0.6 * inv * ts / half, 0.5 * inv / ts
     gains = _gains(k, k * ts / ki, kd * ts / k)
-    return Tuning("takahashi", controller, gains,
+    return RuleResult("takahashi", controller, gains,
                   {"discrete": {"k": k, "ki": ki, "kd": kd, "ts": ts}, "data": {"D": l, "R": tan.r}})
 
 
-def amigo(data: ProcessData, controller: str, options: Options) -> Tuning:
+def amigo(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """AMIGO (Åström–Hägglund, Advanced PID Control 2006, §7) from K, L (tangent) and T = t63 − L.
 
     Integrating process ``Kv·e^{−Ls}/s``: PI ``K = 0.35/(Kv L)``, ``Ti = 13.4 L``;
@@ -258,7 +258,7 @@ def amigo(data: ProcessData, controller: str, options: Options) -> Tuning:
     if data.integrating:
         kv = tan.r
         k, ti, td = (0.35 / (kv * l), 13.4 * l, 0.0) if controller == "PI" else (0.45 / (kv * l), 8.0 * l, 0.5 * l)
-        return Tuning("amigo", controller, _gains(k, ti, td, 0.0), {"data": {"Kv": kv, "L": l, "tau": 0.0}})
+        return RuleResult("amigo", controller, _gains(k, ti, td, 0.0), {"data": {"Kv": kv, "L": l, "tau": 0.0}})
     k0, t = data.static_gain, tan.t63 - l
     tau = l / (l + t)
     if controller == "PI":
@@ -267,7 +267,7 @@ def amigo(data: ProcessData, controller: str, options: Options) -> Tuning:
     else:
         k = (0.2 + 0.45 * t / l) / k0
         ti, td = (0.4 * l + 0.8 * t) / (l + 0.1 * t) * l, 0.5 * l * t / (0.3 * l + t)
-    return Tuning("amigo", controller, _gains(k, ti, td, 0.0 if tau <= 0.5 else 1.0),
+    return RuleResult("amigo", controller, _gains(k, ti, td, 0.0 if tau <= 0.5 else 1.0),
                   {"data": {"K": k0, "L": l, "T": t, "tau": tau}})
 
 
@@ -277,7 +277,7 @@ ITAE_SETPOINT = {"PI": {"K": (0.586, -0.916), "I": (1.03, -0.165)},
                  "PID": {"K": (0.965, -0.85), "I": (0.796, -0.1465), "D": (0.308, 0.929)}}
 
 
-def itae_integral(data: ProcessData, controller: str, options: Options) -> Tuning:
+def itae_integral(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """ITAE rule from the integral-controller experiment (methods.md §4.8).
 
     The critical integral gain ``ki,kr = ω90/|F(jω90)|`` and ``ω_osc = ω90``
@@ -305,7 +305,7 @@ def itae_integral(data: ProcessData, controller: str, options: Options) -> Tunin
     kc = row["K"][0] * theta0 ** row["K"][1] / k
     ti = t / (row["I"][0] + row["I"][1] * theta0)
     td = row["D"][0] * theta0 ** row["D"][1] * t if controller == "PID" else 0.0
-    return Tuning("itae-integral", controller, _gains(kc, ti, td),
+    return RuleResult("itae-integral", controller, _gains(kc, ti, td),
                   {"data": {"ki_kr": kikr, "omega_osc": w, "K": k, "T": t, "theta0": theta0}})
 
 
@@ -326,7 +326,7 @@ def _penalised_itae(data: ProcessData, step: str, period: float, ms_max: float,
     return cost
 
 
-def itae_optimal(data: ProcessData, controller: str, options: Options) -> Tuning:
+def itae_optimal(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Minimise the simulated ITAE of a unit load (or set-point) step subject to ``Ms ≤ ms`` (methods.md §4.9).
 
     Starts from Ziegler–Nichols step-response settings (or AMIGO's where ZN
@@ -358,12 +358,12 @@ def itae_optimal(data: ProcessData, controller: str, options: Options) -> Tuning
     if ms > ms_max * MS_SLACK:
         raise RuleError(f"itae-optimal found no controller with Ms ≤ {ms_max:g} (best Ms {ms:.3g})")
     method = "Nelder-Mead" if controller == "PI" else "BFGS"
-    return Tuning("itae-optimal", controller, gains, {"optimisation": {
+    return RuleResult("itae-optimal", controller, gains, {"optimisation": {
         "method": method, "step": options.step, "iterations": int(res.nit), "evaluations": int(res.nfev),
         "itae": float(res.fun * scale), "ms": ms, "ms_max": ms_max}})
 
 
-def direct_synthesis_unstable(data: ProcessData, controller: str, options: Options) -> Tuning:
+def direct_synthesis_unstable(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """Two-controller direct synthesis for unstable processes with dead time (methods.md §4.10).
 
     ``gains`` is the load controller C2 (the one in feedback with the
@@ -382,13 +382,13 @@ def direct_synthesis_unstable(data: ProcessData, controller: str, options: Optio
         raise RuleError("direct-synthesis-unstable: the load controller has no standard form "
                         f"(kp = {c2.kp:.4g}, ki = {c2.ki:.4g}, kd = {c2.kd:.4g})")
     gains = _gains(c2.kp, c2.kp / c2.ki, c2.kd / c2.kp)
-    return Tuning("direct-synthesis-unstable", controller, gains, {"two_controller": {
+    return RuleResult("direct-synthesis-unstable", controller, gains, {"two_controller": {
         "setpoint_controller": des.setpoint.as_json(), "load_controller": c2.as_json(),
         "setpoint_filter": {"num": list(des.filter_num), "den": list(des.filter_den)},
         "lambda": des.lam, "q": des.q, "ms": des.ms, "match_omegas": list(des.omegas)}})
 
 
-def robust(data: ProcessData, controller: str, options: Options) -> Tuning:
+def robust(data: ProcessData, controller: str, options: Options) -> RuleResult:
     """The project's robust one-point rule (docs/design-rule.md) from the 135° point and the static gain."""
     _stable(data, "robust")
     if data.static_gain is None:
@@ -398,7 +398,7 @@ def robust(data: ProcessData, controller: str, options: Options) -> Tuning:
         des = design(point, data.static_gain, controller, options.ms or 1.4)
     except ValueError as exc:
         raise RuleError(f"robust: {exc}") from None
-    return Tuning("robust", controller, des.gains,
+    return RuleResult("robust", controller, des.gains,
                   {"data": {"omega": point.omega, "gain": point.gain, "phase_deg": point.phase_deg,
                             "model": str(des.model), "model_ms": des.model_ms}})
 
@@ -418,7 +418,7 @@ class Rule:
     controllers: tuple[str, ...]
     when: str
     source: str
-    func: Callable[[ProcessData, str, Options], Tuning]
+    func: Callable[[ProcessData, str, Options], RuleResult]
 
 
 _PPI = ("P", "PI", "PID")
@@ -457,7 +457,7 @@ def default_controller(rule: Rule) -> str:
     return "PI" if "PI" in rule.controllers else rule.controllers[0]
 
 
-def tune(name: str, data: ProcessData, controller: str | None = None, options: Options = Options()) -> Tuning:
+def tune(name: str, data: ProcessData, controller: str | None = None, options: Options = Options()) -> RuleResult:
     """Run the rule ``name``; RuleError for an unknown rule or a controller type it does not define."""
     rule = RULES.get(name)
     if rule is None:

@@ -174,8 +174,9 @@ class Status:
 
 
 # A static gain above this many times |F(jω)| is indistinguishable from an
-# integrating process with the resolution of the mean MV shift.
-_INTEGRATING_RATIO = 200.0
+# integrating process with the resolution of the mean MV shift; the design
+# (point_design) models such a process as an integrator.
+INTEGRATING_RATIO = 200.0
 # Minimum number of whole periods before convergence is judged: one for the
 # start-up transient, two for the first filter corrections, two per estimate.
 _MIN_PERIODS = 5
@@ -434,7 +435,7 @@ class RelayExperiment:
         # tolerance: an integrator seen through noise); a clearly negative one
         # (unstable process, or a load change during the experiment) is reported
         # as it is and refused by the design.
-        integrating = inverse_gain * _INTEGRATING_RATIO <= 1.0 and inverse_gain > -self.config.static_tol
+        integrating = inverse_gain * INTEGRATING_RATIO <= 1.0 and inverse_gain > -self.config.static_tol
         static = math.inf if integrating else point.gain / inverse_gain
         duration = self._t[-1] - self._t[0]
         self.result = Identification(
