@@ -36,6 +36,7 @@ from .auth import Principal, Tokens, require
 from .events import stream
 from .models import (Accepted, Analysis, Applied, ApplyRequest, CodeOut, Health, LoopStatus, Session,
                      SessionSummary, Whoami)
+from .opcua import start_opcua
 
 PREFIX = "/api/v1"
 # The operator page (issue 7): static files using only the public API below.
@@ -226,8 +227,14 @@ class SecurityHeaders:
         await self.app(scope, receive, send_with_headers)
 
 
-def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
-    """The API over the loops of ``config``; ``env_token`` (default: $AUTOTUNER_TOKEN) is an extra operator token."""
+def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "127.0.0.1") -> FastAPI:
+    """The API over the loops of ``config``; ``env_token`` (default: $AUTOTUNER_TOKEN) is an extra operator token.
+
+    With ``config.opcua`` the OPC UA server (docs/opcua.md) runs beside it over
+    the same loops, on ``config.opcua.host`` or else ``host``;
+    ``app.state.opcua_url`` is its endpoint.
+    """
+    env = os.environ.get("AUTOTUNER_TOKEN") if env_token is None else env_token
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -235,9 +242,15 @@ def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
         manager = LoopManager(config, store)
         await manager.start()
         app.state.manager = manager
+        opcua = None
         try:
+            if config.opcua is not None:
+                opcua = await start_opcua(manager, config, env, host)
+                app.state.opcua_url = opcua.url
             yield
         finally:
+            if opcua is not None:  # first: no TUNE from OPC UA while the sessions are being aborted
+                await opcua.stop()
             await manager.stop()
             store.close()
 
@@ -245,7 +258,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None) -> FastAPI:
                   description="Relay-feedback PID autotuner daemon: TUNE / TBRK / TBSY / TE over HTTP (docs/daemon.md).",
                   openapi_url=f"{PREFIX}/openapi.json", docs_url=f"{PREFIX}/docs", redoc_url=None)
     app.state.analyses = {}
-    app.state.tokens = Tokens(config.tokens, os.environ.get("AUTOTUNER_TOKEN") if env_token is None else env_token)
+    app.state.tokens = Tokens(config.tokens, env)
     errors.install(app)
 
     app.add_middleware(SecurityHeaders)

@@ -47,6 +47,11 @@ def _field(loc: tuple[Any, ...]) -> str:
     return text or "body"
 
 
+def validation_message(errors: list[Any]) -> str:
+    """pydantic's errors as one line, each starting with its field: ``amp: Input should be greater than 0``."""
+    return "; ".join(f"{_field(e['loc'])}: {e['msg']}" for e in errors) or "invalid request"
+
+
 def install(app: FastAPI) -> None:
     """Register the handlers that turn every error into an :class:`ErrorBody`."""
 
@@ -60,9 +65,7 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
-        errors = exc.errors()
-        message = "; ".join(f"{_field(e['loc'])}: {e['msg']}" for e in errors) or "invalid request"
-        return _response(422, "invalid", message)
+        return _response(422, "invalid", validation_message(list(exc.errors())))
 
     @app.exception_handler(HTTPException)
     async def http_error(_: Request, exc: HTTPException) -> JSONResponse:

@@ -19,8 +19,12 @@ def serve_command(
     ssl_certfile: Annotated[Path | None, typer.Option(help="TLS certificate (PEM); with --ssl-keyfile serves "
                                                       "HTTPS.")] = None,
     ssl_keyfile: Annotated[Path | None, typer.Option(help="TLS private key (PEM).")] = None,
+    opcua: Annotated[bool, typer.Option("--opcua", help="Also run the OPC UA server (docs/opcua.md; the config's "
+                                        "opcua: section, else its defaults). Needs the opcua extra.")] = False,
+    opcua_port: Annotated[int | None, typer.Option(min=1, max=65535, help="OPC UA port (implies --opcua). "
+                                                   "Default: the config's, else 4840.")] = None,
 ) -> None:
-    """Run the daemon: the REST API of design.md under /api/v1 over the configured loops.
+    """Run the daemon: the REST API of design.md under /api/v1 over the configured loops (and OPC UA with --opcua).
 
     Tokens come from the config (hashed) and from $AUTOTUNER_TOKEN (an operator). The demo without
     --config generates an operator token and prints it once when $AUTOTUNER_TOKEN is unset.
@@ -30,6 +34,7 @@ def serve_command(
 
     from api.app import PREFIX, create_app
     from api.auth import new_token
+    from api.opcua import ENV_USER, endpoint_url, require, with_opcua
 
     from autotuner.service.config import ConfigError, load_config
     from autotuner.service.demo import demo_config
@@ -52,10 +57,37 @@ def serve_command(
     elif not daemon_config.tokens and token is None:
         stderr.print("warning: no tokens in the config and AUTOTUNER_TOKEN unset: every request except "
                      f"{PREFIX}/health will be refused", highlight=False)
+    notes: list[str] = []
+    try:
+        if opcua or opcua_port is not None:
+            daemon_config, notes = with_opcua(daemon_config, opcua_port, demo=config is None)
+        elif daemon_config.opcua is not None:
+            require()
+    except RuntimeError as exc:  # no asyncua
+        bad_input(str(exc))
+    for note in notes:
+        print(note, flush=True)
+    if daemon_config.opcua is not None:
+        users = [user.name for user in daemon_config.opcua.users]
+        if token and ENV_USER not in users:
+            users.insert(0, f"{ENV_USER} (password: the operator token)")
+        print(f"autotuner OPC UA at {endpoint_url(daemon_config.opcua.host or host, daemon_config.opcua.port)}  "
+              f"(users: {', '.join(users) or 'none'}; docs/opcua.md)", flush=True)
     scheme = "http" if ssl_certfile is None else "https"
     print(f"autotuner API at {scheme}://{host}:{port}{PREFIX}  (OpenAPI: {PREFIX}/docs; operator page: "
           f"{scheme}://{host}:{port}/); {len(daemon_config.loops)} loops: "
           f"{', '.join(loop.id for loop in daemon_config.loops)}", flush=True)
-    uvicorn.run(create_app(daemon_config, env_token=token or ""), host=host, port=port, log_level="info",
+    uvicorn.run(create_app(daemon_config, env_token=token or "", host=host), host=host, port=port, log_level="info",
                 ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
                 ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))
+
+
+@app.command("password-hash")
+def password_hash_command(
+    password: Annotated[str, typer.Option(prompt=True, hide_input=True, confirmation_prompt=True,
+                                          help="The password (asked for when not given; read from stdin if piped).")],
+) -> None:
+    """Print the scrypt hash of an OPC UA user's password: the password_hash of the config's opcua.users."""
+    from api.opcua.passwords import hash_password
+
+    print(hash_password(password))

@@ -145,16 +145,57 @@ class Token(Strict):
     sha256: Annotated[str, Field(pattern=r"^[0-9a-fA-F]{64}$")]
 
 
+# A stored OPC UA password hash (api/opcua/passwords.py): a password pasted in clear is refused.
+PASSWORD_HASH_PATTERN = r"^scrypt\$\d+\$\d+\$\d+\$[A-Za-z0-9+/]+=*\$[A-Za-z0-9+/]+=*$"
+SecurityPolicy = Literal["None", "Basic256Sha256_Sign", "Basic256Sha256_SignAndEncrypt"]
+
+
+class OpcUaUser(Strict):
+    """An OPC UA user: its name (recorded in the history as ``opcua:NAME``), its role (as the REST tokens') and
+    the scrypt hash of its password (``autotuner password-hash``)."""
+
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$")]
+    role: Role
+    password_hash: Annotated[str, Field(pattern=PASSWORD_HASH_PATTERN)]
+
+
+class OpcUaConfig(Strict):
+    """The OPC UA server beside the REST API (docs/opcua.md): where it listens, its security policies, its users.
+
+    ``host`` None: the REST API's host. ``certificate``/``private_key``: the
+    server's application certificate (DER or PEM) and key (PEM); both unset:
+    generated on first start and kept beside the history (docs/opcua.md).
+    """
+
+    host: str | None = None
+    port: Annotated[int, Field(ge=1, le=65535)] = 4840
+    security: Annotated[list[SecurityPolicy], Field(min_length=1)] = ["None", "Basic256Sha256_SignAndEncrypt"]
+    certificate: Path | None = None
+    private_key: Path | None = None
+    users: list[OpcUaUser] = []
+
+    @model_validator(mode="after")
+    def _pair(self) -> OpcUaConfig:
+        if (self.certificate is None) != (self.private_key is None):
+            raise ValueError("give both 'certificate' and 'private_key', or neither (then they are generated)")
+        names = [user.name for user in self.users]
+        if len(set(names)) != len(names):
+            raise ValueError("a user name is used twice")
+        return self
+
+
 class DaemonConfig(Strict):
     """The whole file: the history database, the tokens and the loops.
 
     ``history``: an SQLite file (relative to the config file), ``:memory:``,
     or an SQLAlchemy database URL such as ``postgresql+psycopg://user:pw@host/db``
-    (the ``postgres`` extra installs the driver).
+    (the ``postgres`` extra installs the driver). ``opcua``: the OPC UA
+    server's settings (None: no OPC UA server unless ``serve --opcua``).
     """
 
     history: str = "autotuner-history.db"
     tokens: list[Token] = []
+    opcua: OpcUaConfig | None = None
     loops: list[LoopConfig]
 
     @field_validator("history")
@@ -232,4 +273,8 @@ def load_config(path: Path) -> DaemonConfig:
              for loop in config.loops]
     plain_file = config.history != ":memory:" and "://" not in config.history
     history = str(base / config.history) if plain_file else config.history
-    return config.model_copy(update={"loops": loops, "history": history})
+    opcua = config.opcua
+    if opcua is not None and opcua.certificate is not None:
+        opcua = opcua.model_copy(update={"certificate": resolve(opcua.certificate) or opcua.certificate,
+                                         "private_key": resolve(opcua.private_key) or opcua.private_key})
+    return config.model_copy(update={"loops": loops, "history": history, "opcua": opcua})

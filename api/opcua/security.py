@@ -1,0 +1,114 @@
+"""Who may do what on the OPC UA server: users with the REST roles, a permission ruleset, the certificate.
+
+- :class:`Users` checks a username/password against the scrypt hashes
+  (:mod:`api.opcua.passwords`); anonymous sessions and unknown users are
+  refused at ActivateSession, so they can read nothing.
+- :class:`RoleRuleset` decides per request type: a viewer browses, reads and
+  subscribes; an operator (or admin) also calls methods (Tune, Break, Apply,
+  AutoTuningOn/Off). Nobody writes attributes or changes the address space:
+  the loops change only through the methods. asyncua's own roles (Admin,
+  User) cannot say that, hence a ruleset of our own.
+- :func:`ensure_certificate` makes the server's self-signed application
+  certificate and key on first start (for Basic256Sha256) and reuses them after.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import os
+import socket
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from asyncua import ua
+from asyncua.crypto import cert_gen
+from asyncua.crypto.permission_rules import PermissionRuleset, User, UserRole
+from cryptography.x509.oid import ExtendedKeyUsageOID
+
+from api.auth import RANKS
+from autotuner.service.config import OpcUaUser, Role
+
+from .passwords import verify_password
+
+# Request types every activated user may send: session housekeeping, browse, read, subscriptions.
+_READ_TYPES = (
+    "CreateSessionRequest", "CloseSessionRequest", "ActivateSessionRequest", "ReadRequest", "BrowseRequest",
+    "BrowseNextRequest", "GetEndpointsRequest", "FindServersRequest", "TranslateBrowsePathsToNodeIdsRequest",
+    "CreateSubscriptionRequest", "ModifySubscriptionRequest", "DeleteSubscriptionsRequest",
+    "TransferSubscriptionsRequest", "CreateMonitoredItemsRequest", "ModifyMonitoredItemsRequest",
+    "DeleteMonitoredItemsRequest", "PublishRequest", "RepublishRequest", "CloseSecureChannelRequest",
+    "SetMonitoringModeRequest", "SetPublishingModeRequest", "RegisterNodesRequest", "UnregisterNodesRequest",
+)
+READ_REQUESTS = frozenset(ua.NodeId(getattr(ua.ObjectIds, f"{name}_Encoding_DefaultBinary")) for name in _READ_TYPES)
+CALL_REQUEST = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
+
+# The user of the request being processed. asyncua handles one connection's requests in one task, one after
+# the other, and asks the ruleset right before running each; the methods read it to know who called.
+CALLER: contextvars.ContextVar[RoledUser | None] = contextvars.ContextVar("opcua_caller", default=None)
+
+
+@dataclass
+class RoledUser(User):
+    """An asyncua user with the REST role (viewer, operator, admin) of its config entry."""
+
+    api_role: Role = "viewer"
+
+
+class Users:
+    """The user manager asyncua asks at ActivateSession: a known name with its password, or None (refused)."""
+
+    def __init__(self, users: list[OpcUaUser]) -> None:
+        self._users = {user.name: user for user in users}
+
+    def __len__(self) -> int:
+        return len(self._users)
+
+    def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
+                 certificate: Any = None) -> RoledUser | None:
+        """The user ``username`` if ``password`` matches its hash; None (BadUserAccessDenied) otherwise."""
+        entry = self._users.get(username or "")
+        if entry is None or password is None or not verify_password(password, entry.password_hash):
+            return None
+        return RoledUser(role=UserRole.User, name=entry.name, api_role=entry.role)
+
+
+def may_call(user: Any) -> bool:
+    """Whether ``user`` holds the operator role (needed for every method of the loops)."""
+    return isinstance(user, RoledUser) and RANKS[user.api_role] >= RANKS["operator"]
+
+
+class RoleRuleset(PermissionRuleset):
+    """Viewers read and subscribe, operators also call methods; writes and node management are refused to all."""
+
+    def check_validity(self, user: Any, action_type_id: ua.NodeId, body: Any) -> bool:
+        if not isinstance(user, RoledUser):
+            return False  # anonymous, or a session not activated by :class:`Users`
+        CALLER.set(user)
+        if action_type_id in READ_REQUESTS:
+            return True
+        return action_type_id == CALL_REQUEST and may_call(user)
+
+
+def state_dir(history: str) -> Path | None:
+    """Where a generated certificate is kept: beside an SQLite history file; for a database URL in
+    ``$AUTOTUNER_STATE_DIR`` or else the working directory; None for an in-memory history (the demo's): then
+    it lives in a temporary folder as long as the server."""
+    if history == ":memory:":
+        return None
+    if "://" not in history:
+        return Path(history).resolve().parent
+    return Path(os.environ.get("AUTOTUNER_STATE_DIR") or ".").resolve()
+
+
+async def ensure_certificate(folder: Path, app_uri: str) -> tuple[Path, Path]:
+    """The server's certificate (DER) and key (PEM) in ``folder``: made on first use (self-signed, RSA 2048,
+    one year), reused after, made anew when invalid for ``app_uri`` or expired. The key is readable by the
+    owner only."""
+    folder.mkdir(parents=True, exist_ok=True)
+    cert, key = folder / "opcua-server-cert.der", folder / "opcua-server-key.pem"
+    await cert_gen.setup_self_signed_certificate(
+        key, cert, app_uri, socket.gethostname(), [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
+        {"organizationName": "relaytune", "commonName": "autotuner OPC UA server"})
+    key.chmod(0o600)
+    return cert, key

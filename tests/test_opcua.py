@@ -1,0 +1,321 @@
+"""The OPC UA server with a real client (asyncua's) over TCP on localhost, beside the REST API on the same loops.
+
+One daemon for the module (REST through Starlette's TestClient, OPC UA on a
+free port), three simulated loops exp(-0.5·s)/(s+1) at 2.5× real time (40 ms of wall time per sample, so
+the experiment converges on a loaded machine too); a tuning takes about 8 wall seconds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+from asyncua import Client, ua
+from asyncua.crypto import cert_gen
+from cryptography.x509.oid import ExtendedKeyUsageOID
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from api.auth import token_hash
+from api.opcua.address_space import NAMESPACE, PID_PARAMETERS, VARIABLES
+from api.opcua.passwords import hash_password
+from autotuner.service.config import DaemonConfig
+from tests.helpers import free_port
+
+OPERATOR, VIEWER_TOKEN, VIEWER_PASSWORD = "op-secret", "view-token", "viewer-pw"
+API = "/api/v1"
+NAN = math.nan
+LOOPS = ("TIC-1", "TIC-2", "TIC-3")
+
+
+def config(tmp_path, port: int) -> DaemonConfig:
+    loops = [{"id": loop_id, "sim": {"plant": "exp(-0.5*s)/(s+1)"}, "ts": 0.1, "speed": 2.5, "monitor_period": 0.1,
+              "tuning": {"amp": 5.0, "time_limit": 200.0}, "limits": {"pv": [0.0, 100.0], "mv": [0.0, 100.0]}}
+             for loop_id in LOOPS]
+    return DaemonConfig.model_validate({
+        "history": str(tmp_path / "history.sqlite"),
+        "tokens": [{"name": "hmi", "role": "viewer", "sha256": token_hash(VIEWER_TOKEN)}],
+        "opcua": {"port": port, "users": [{"name": "viewer", "role": "viewer",
+                                           "password_hash": hash_password(VIEWER_PASSWORD)}]},
+        "loops": loops})
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("opcua")
+    app = create_app(config(tmp, free_port()), env_token=OPERATOR)
+    with TestClient(app, raise_server_exceptions=False) as rest:
+        yield rest, app.state.opcua_url, tmp
+
+
+def run(coro: Any) -> Any:
+    return asyncio.run(asyncio.wait_for(coro, 120))
+
+
+def client(url: str, user: str | None = "operator", password: str = OPERATOR) -> Client:
+    c = Client(url, timeout=10)
+    if user is not None:
+        c.set_user(user)
+        c.set_password(password)
+    return c
+
+
+async def call(c: Client, loop_id: str, method: str, *args: Any) -> ua.CallMethodResult:
+    """The raw result of a method call (status, outputs) without asyncua's raise on a Bad status."""
+    idx = await c.get_namespace_index(NAMESPACE)
+    kinds = {str: ua.VariantType.String, float: ua.VariantType.Double, bool: ua.VariantType.Boolean}
+    request = ua.CallMethodRequest(ObjectId=ua.NodeId(loop_id, idx), MethodId=ua.NodeId(f"{loop_id}.{method}", idx),
+                                   InputArguments=[ua.Variant(a, kinds[type(a)]) for a in args])
+    return (await c.uaclient.call([request]))[0]
+
+
+async def value(c: Client, loop_id: str, name: str) -> Any:
+    """The variable's value; AssertionError naming it when its status is Bad."""
+    idx = await c.get_namespace_index(NAMESPACE)
+    data = await c.get_node(ua.NodeId(f"{loop_id}.{name}", idx)).read_data_value(raise_on_bad_status=False)
+    assert data.StatusCode.is_good(), f"{loop_id}.{name}: {data.StatusCode.name}"
+    return data.Value.Value
+
+
+async def until(predicate: Callable[[], Any], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not await predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.05)
+
+
+class Changes:
+    """A subscription handler that keeps every data change (by browse name) and every event."""
+
+    def __init__(self) -> None:
+        self.values: dict[str, list[Any]] = {}
+        self.events: list[Any] = []
+        self.names: dict[ua.NodeId, str] = {}
+
+    def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
+        self.values.setdefault(self.names[node.nodeid], []).append(val)
+
+    def event_notification(self, event: Any) -> None:
+        self.events.append(event)
+
+
+def test_browse_the_address_space_with_units_and_stable_ids(daemon):
+    _, url, _ = daemon
+
+    async def main() -> None:
+        async with client(url, "viewer", VIEWER_PASSWORD) as c:
+            idx = await c.get_namespace_index(NAMESPACE)
+            folder = await c.nodes.objects.get_child([f"{idx}:Loops"])
+            loops = await folder.get_children()
+            assert [n.nodeid for n in loops] == [ua.NodeId(i, idx) for i in LOOPS]
+            names = {(await n.read_browse_name()).Name for n in await loops[0].get_children()}
+            assert {v.name for v in VARIABLES} | {"PIDParameters", "Tune", "Break", "Apply", "AutoTuningOn",
+                                                  "AutoTuningOff"} <= names
+            pid = c.get_node(ua.NodeId("TIC-1.PIDParameters", idx))
+            assert {(await n.read_browse_name()).Name for n in await pid.get_children()} == \
+                {v.name for v in PID_PARAMETERS}
+            ti_unit = await c.get_node(ua.NodeId("TIC-1.ti", idx)).get_child(["0:EngineeringUnits"])
+            eu = await ti_unit.read_value()
+            assert eu.DisplayName.Text == "s" and eu.UnitId == 5457219  # UNECE "SEC"
+            assert await value(c, "TIC-1", "TBSY") is False and await value(c, "TIC-1", "Mode") == "AUTO"
+            await until(lambda: _finite(value(c, "TIC-1", "PV")), 10, "the monitor's PV")
+            assert abs(await value(c, "TIC-1", "PV") - 50.0) < 5  # the simulated PLC sits at PV = MV = 50
+            tune = c.get_node(ua.NodeId("TIC-1.Tune", idx))
+            args = await (await tune.get_child(["0:InputArguments"])).read_value()
+            assert [a.Name for a in args] == ["controller", "amp", "hysteresis", "phase", "ms", "apply"]
+
+    run(main())
+
+
+def test_anonymous_and_wrong_passwords_get_nothing_and_nobody_writes(daemon):
+    _, url, _ = daemon
+
+    async def main() -> None:
+        for c in (client(url, None), client(url, "viewer", "wrong"), client(url, "nobody", "x")):
+            with pytest.raises(ua.UaStatusCodeError):
+                async with c:
+                    await value(c, "TIC-1", "PV")
+        for user, password in (("viewer", VIEWER_PASSWORD), ("operator", OPERATOR)):
+            async with client(url, user, password) as c:
+                idx = await c.get_namespace_index(NAMESPACE)
+                with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                    await c.get_node(ua.NodeId("TIC-1.TBSY", idx)).write_value(True)
+                assert await value(c, "TIC-1", "TBSY") is False
+
+    run(main())
+
+
+def test_a_viewers_tune_is_refused_with_a_bad_status(daemon):
+    rest, url, _ = daemon
+
+    async def main() -> None:
+        async with client(url, "viewer", VIEWER_PASSWORD) as c:
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await call(c, "TIC-1", "Tune", "", NAN, NAN, NAN, NAN, "")
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await call(c, "TIC-1", "AutoTuningOn")
+            assert await value(c, "TIC-1", "TBSY") is False
+
+    run(main())
+    assert rest.get(f"{API}/loops/TIC-1/history", headers={"Authorization": f"Bearer {VIEWER_TOKEN}"}).json() == []
+
+
+def test_refused_calls_carry_the_rest_code_and_message(daemon):
+    _, url, _ = daemon
+
+    async def main() -> None:
+        async with client(url) as c:
+            bad = await call(c, "TIC-3", "Tune", "", -1.0, NAN, NAN, NAN, "")
+            assert bad.StatusCode.value == ua.StatusCodes.BadInvalidArgument
+            assert bad.OutputArguments[1].Value == "invalid: amp: Input should be greater than 0"
+            assert bad.InputArgumentResults[1].value == ua.StatusCodes.BadInvalidArgument
+            bad = await call(c, "TIC-3", "Tune", "PIDD", NAN, NAN, NAN, NAN, "maybe")
+            assert bad.StatusCode.value == ua.StatusCodes.BadInvalidArgument
+            assert "controller" in bad.OutputArguments[1].Value and "apply" in bad.OutputArguments[1].Value
+            idle = await call(c, "TIC-3", "Break")
+            assert idle.StatusCode.value == ua.StatusCodes.BadInvalidState
+            assert idle.OutputArguments[1].Value.startswith("idle: ")
+            with pytest.raises(ua.uaerrors.BadInvalidState):  # asyncua's ordinary call raises the Bad status
+                idx = await c.get_namespace_index(NAMESPACE)
+                await c.get_node(ua.NodeId("TIC-3", idx)).call_method(f"{idx}:AutoTuningOff")
+
+    run(main())
+
+
+def test_tune_over_opcua_subscribed_to_pv_and_tbsy_ends_in_the_rest_history(daemon):
+    rest, url, _ = daemon
+
+    async def main() -> dict[str, Any]:
+        async with client(url) as c:
+            idx = await c.get_namespace_index(NAMESPACE)
+            changes = Changes()
+            sub = await c.create_subscription(50, changes)
+            nodes = {name: c.get_node(ua.NodeId(f"TIC-1.{name}", idx)) for name in ("PV", "TBSY", "ite", "TE")}
+            for name, node in nodes.items():
+                changes.names[node.nodeid] = name
+            await sub.subscribe_data_change(list(nodes.values()))
+            await sub.subscribe_events(c.get_node(ua.NodeId("TIC-1", idx)),
+                                       c.get_node(ua.NodeId("TuningErrorEventType", idx)))
+            result = await call(c, "TIC-1", "Tune", "PI", NAN, NAN, NAN, NAN, "true")
+            assert result.StatusCode.is_good(), result
+            sid = result.OutputArguments[0].Value
+            await until(lambda: _async(changes.values.get("TBSY", [])[-1:] == [True]), 10, "TBSY rising")
+            await until(lambda: _not(value(c, "TIC-1", "TBSY")), 60, "the end of the tuning")
+            await until(lambda: _async(changes.values.get("TBSY", [])[-1:] == [False]), 10, "TBSY falling")
+            te, message = await value(c, "TIC-1", "TE"), await value(c, "TIC-1", "message")
+            assert te is False, message
+            out = {name: await value(c, "TIC-1", name) for name in
+                   ("TE", "ite", "session", "pk", "pti", "k", "ti", "omega", "pending_gains", "Mode")}
+            out["P"] = await c.get_node(ua.NodeId("TIC-1.PIDParameters.P", idx)).read_value()
+            out["I"] = await c.get_node(ua.NodeId("TIC-1.PIDParameters.I", idx)).read_value()
+            out["changes"], out["sid"], out["events"] = changes.values, sid, changes.events
+            await sub.delete()
+            return out
+
+    out = run(main())
+    assert out["TE"] is False and out["ite"] == 0 and out["session"] == out["sid"]
+    busy = [x for x in out["changes"]["ite"] if x > 0]  # plant seconds left: counts down, re-estimated per period
+    assert sum(b < a for a, b in zip(busy, busy[1:])) >= 3, busy
+    assert len(out["changes"]["PV"]) >= 5  # the experiment's samples moved the PV
+    assert out["pk"] > 0 and 0 < out["pti"] < math.inf and out["omega"] > 0
+    assert (out["k"], out["ti"]) == (out["P"], out["I"]) == pytest.approx((out["pk"], out["pti"]), rel=1e-5)
+    assert out["pending_gains"] is False and out["Mode"] == "AUTO" and out["events"] == []  # applied, no TE
+    record = rest.get(f"{API}/sessions/{out['sid']}", headers={"Authorization": f"Bearer {VIEWER_TOKEN}"}).json()
+    assert record["user"] == "opcua:operator" and record["outcome"] == "success"
+    assert record["result"]["gains"]["pk"] == pytest.approx(out["pk"])
+
+
+async def _async(x: Any) -> Any:
+    return x
+
+
+async def _not(awaitable: Any) -> bool:
+    return not await awaitable
+
+
+async def _finite(awaitable: Any) -> bool:
+    return math.isfinite(await awaitable)
+
+
+def test_break_restores_the_loop_and_raises_a_te_event(daemon):
+    _, url, _ = daemon
+
+    async def main() -> None:
+        async with client(url) as c:
+            idx = await c.get_namespace_index(NAMESPACE)
+            changes = Changes()
+            sub = await c.create_subscription(50, changes)
+            await sub.subscribe_events(c.get_node(ua.NodeId("TIC-2", idx)),
+                                       c.get_node(ua.NodeId("TuningErrorEventType", idx)))
+            assert (await call(c, "TIC-2", "AutoTuningOn")).StatusCode.is_good()
+            await until(lambda: value(c, "TIC-2", "AutoTuningActive"), 10, "AutoTuningActive")
+            assert await value(c, "TIC-2", "Mode") == "MAN"
+            assert (await call(c, "TIC-2", "Tune", "", NAN, NAN, NAN, NAN, "")).OutputArguments[1].Value \
+                .startswith("busy: ")
+            stopped = await call(c, "TIC-2", "Break")
+            assert stopped.StatusCode.is_good() and stopped.OutputArguments[0].Value
+            await until(lambda: _not(value(c, "TIC-2", "TBSY")), 30, "the break")
+            assert await value(c, "TIC-2", "TE") is True and await value(c, "TIC-2", "ite") == 1
+            await until(lambda: _async(len(changes.events) == 1), 10, "the TE event")
+            event = changes.events[0]
+            assert (event.Loop, event.Ite, event.Session) == ("TIC-2", 1.0, stopped.OutputArguments[0].Value)
+            assert "aborted" in event.Message.Text
+            await until(lambda: value(c, "TIC-2", "Mode"), 10, "the monitor")
+            assert await value(c, "TIC-2", "Mode") == "AUTO"  # restored
+            await sub.delete()
+
+    run(main())
+
+
+def test_concurrent_tune_over_opcua_and_rest_gives_exactly_one_session(daemon):
+    rest, url, _ = daemon
+    results: dict[str, Any] = {}
+    go = threading.Barrier(2)
+
+    def over_rest() -> None:
+        go.wait()
+        results["rest"] = rest.post(f"{API}/loops/TIC-3/tune", headers={"Authorization": f"Bearer {OPERATOR}"})
+
+    async def main() -> None:
+        async with client(url) as c:
+            thread = threading.Thread(target=over_rest)
+            thread.start()
+            go.wait()
+            results["opcua"] = await call(c, "TIC-3", "Tune", "", NAN, NAN, NAN, NAN, "")
+            thread.join()
+            assert (await call(c, "TIC-3", "Break")).StatusCode.is_good()  # whoever started it
+            await until(lambda: _not(value(c, "TIC-3", "TBSY")), 30, "the break")
+
+    run(main())
+    accepted = [results["rest"].status_code == 202, results["opcua"].StatusCode.is_good()]
+    assert accepted.count(True) == 1, (results["rest"].json(), results["opcua"])
+    if accepted[0]:
+        assert results["opcua"].OutputArguments[1].Value.startswith("busy: ")
+    else:
+        assert results["rest"].status_code == 409 and results["rest"].json()["code"] == "busy"
+    history = rest.get(f"{API}/loops/TIC-3/history", headers={"Authorization": f"Bearer {VIEWER_TOKEN}"}).json()
+    assert len(history) == 1
+
+
+def test_basic256sha256_sign_and_encrypt_with_the_generated_certificate(daemon, tmp_path):
+    _, url, tmp = daemon
+    server_cert = tmp / "opcua-server-cert.der"
+    assert server_cert.is_file() and (tmp / "opcua-server-key.pem").stat().st_mode & 0o077 == 0
+
+    async def main() -> None:
+        key, cert = tmp_path / "client-key.pem", tmp_path / "client-cert.der"
+        await cert_gen.setup_self_signed_certificate(key, cert, "urn:test:client", "localhost",
+                                                     [ExtendedKeyUsageOID.CLIENT_AUTH], {"commonName": "test"})
+        c = client(url, "viewer", VIEWER_PASSWORD)
+        await c.set_security_string(f"Basic256Sha256,SignAndEncrypt,{cert},{key},{server_cert}")
+        async with c:
+            assert c.security_policy.Mode == ua.MessageSecurityMode.SignAndEncrypt
+            assert await value(c, "TIC-1", "Mode") in ("AUTO", "MAN")
+
+    run(main())
