@@ -17,12 +17,20 @@ when the read *completed* behind that due time (the Modbus round trip
 included) — what the experiment sees as jitter. CPU is the daemon's CPU
 time (user + system: its process and the worker processes of the design) over
 the wall time, in percent of one core; the plant process's is reported beside it.
+
+With ``opcua`` the daemon also runs its OPC UA server (:mod:`api.opcua`, its
+own thread) and a client in another child process — a SCADA — subscribes to
+every variable of every loop at the monitor's rate for the whole run; the
+number of data changes it received is reported (``opcua_changes``). The
+daemon's CPU then includes the OPC UA server's.
 """
 
 from __future__ import annotations
 
 import asyncio
 import multiprocessing
+import secrets
+import socket
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -58,6 +66,7 @@ class LoadResult:
     cpu_daemon: float
     cpu_plants: float
     failures: dict[str, str]
+    opcua_changes: int | None = None
 
 
 class TimedLink:
@@ -141,9 +150,52 @@ def _plants_main(n: int, plant: str, ts: float, speed: float, conn: Any) -> None
     asyncio.run(main())
 
 
+def _scada_main(url: str, password: str, loop_ids: list[str], period: float, conn: Any) -> None:
+    """Child process: an OPC UA client subscribed to every variable of every loop; "ready", then on "stop" the
+    number of data changes received."""
+    from asyncua import Client, ua
+
+    from api.opcua import ENV_USER
+    from api.opcua.address_space import NAMESPACE, VARIABLES
+
+    class Count:
+        changes = 0
+
+        def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
+            Count.changes += 1
+
+    async def main() -> None:
+        client = Client(url, timeout=30)
+        client.set_user(ENV_USER)
+        client.set_password(password)
+        async with client:
+            idx = await client.get_namespace_index(NAMESPACE)
+            sub = await client.create_subscription(period * 1000.0, Count())
+            for loop_id in loop_ids:
+                await sub.subscribe_data_change([client.get_node(ua.NodeId(f"{loop_id}.{v.name}", idx))
+                                                 for v in VARIABLES])
+            conn.send("ready")
+            await asyncio.get_running_loop().run_in_executor(None, conn.recv)  # "stop"
+        conn.send(Count.changes)
+
+    asyncio.run(main())
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS, plant: str = DEFAULT_PLANT,
-                   amp: float = 5.0, time_limit: float = 600.0) -> LoadResult:
-    """Tune ``n`` simulated loops at once over Modbus TCP; the result with the sampling lateness and CPU."""
+                   amp: float = 5.0, time_limit: float = 600.0, opcua: bool = False,
+                   monitor_period: float = 1.0) -> LoadResult:
+    """Tune ``n`` simulated loops at once over Modbus TCP; the result with the sampling lateness and CPU.
+
+    ``opcua``: also publish them over OPC UA to a subscribed client (module
+    docstring); ``monitor_period``: the loops' monitor period, wall seconds
+    (also the OPC UA publishing rate).
+    """
     parse_process(plant)  # a bad expression fails here, not in the child
     ours, theirs = multiprocessing.Pipe()
     child = multiprocessing.get_context("spawn").Process(target=_plants_main, args=(n, plant, ts, speed, theirs),
@@ -154,21 +206,43 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
         ports = await loop.run_in_executor(None, _receive, ours, child)
         config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
             {"id": f"L{i:03d}", "link": f"modbus://127.0.0.1:{port}/1", "ts": ts, "speed": speed, "apply": True,
-             "tuning": {"amp": amp, "time_limit": time_limit}} for i, port in enumerate(ports)]})
+             "monitor_period": monitor_period, "tuning": {"amp": amp, "time_limit": time_limit}}
+            for i, port in enumerate(ports)], "opcua": {"port": _free_port()} if opcua else None})
         history = History(config.history)
         manager = LoopManager(config, history)
         links: list[TimedLink] = []
         for item in manager.loops.values():
             stamp_reads(item, links)
         await manager.start()
+        server = scada = None
         try:
+            if opcua:
+                from api.opcua import start_opcua
+
+                password = secrets.token_urlsafe(16)
+                server = await start_opcua(manager, config, password, "127.0.0.1")
+                scada_conn, scada_end = multiprocessing.Pipe()
+                scada = multiprocessing.get_context("spawn").Process(
+                    target=_scada_main, args=(server.url, password, list(manager.loops), monitor_period, scada_end),
+                    daemon=True)
+                scada.start()
+                await loop.run_in_executor(None, _receive, scada_conn, scada)  # subscribed
             cpu0, wall0 = time.process_time() + design_cpu(), time.monotonic()
             for loop_id in manager.loops:
                 manager.tune(loop_id, TuneRequest(), "loadbench")
             await asyncio.gather(*(manager.wait(loop_id) for loop_id in manager.loops))
             wall = time.monotonic() - wall0
             cpu = 100.0 * (time.process_time() + design_cpu() - cpu0) / wall
+            if scada is not None:
+                scada_conn.send("stop")
+                changes = await loop.run_in_executor(None, _receive, scada_conn, scada)
         finally:
+            if scada is not None:
+                scada.join(10)
+                if scada.is_alive():
+                    scada.kill()
+            if server is not None:
+                await server.stop()
             await manager.stop()
             history.close()
         ours.send("stop")
@@ -183,21 +257,31 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
                                 + [np.zeros(0)])
     p50, p99 = np.percentile(late, [50, 99]) if late.size else (float("nan"),) * 2
     return LoadResult(n, n - len(failures), wall, int(late.size), float(p50), float(p99),
-                      float(late.max()) if late.size else float("nan"), cpu, cpu_plants, failures)
+                      float(late.max()) if late.size else float("nan"), cpu, cpu_plants, failures,
+                      changes if opcua else None)
 
 
 def table_rows(results: list[LoadResult]) -> list[list[str]]:
-    """Rows of the markdown table of the docs (and of the command's table)."""
+    """Rows of the markdown table of the docs (and of the command's table); the OPC UA column when measured."""
+    opcua = any(r.opcua_changes is not None for r in results)
     return [[str(r.loops), f"{r.succeeded}/{r.loops}", f"{r.wall:.1f}", str(r.samples), f"{r.late_p50:.2f}",
              f"{r.late_p99:.2f}", f"{r.late_max:.1f}", f"{r.cpu_daemon:.0f}", f"{r.cpu_plants:.0f}"]
+            + ([str(r.opcua_changes if r.opcua_changes is not None else "-")] if opcua else [])
             for r in results]
 
 
 HEADERS = ["loops", "ok", "wall s", "samples", "p50 ms", "p99 ms", "max ms", "CPU daemon %", "CPU plants %"]
+OPCUA_HEADER = "OPC UA changes"
+
+
+def headers(results: list[LoadResult]) -> list[str]:
+    """The table's column names (with :data:`OPCUA_HEADER` when OPC UA was measured)."""
+    return HEADERS + ([OPCUA_HEADER] if any(r.opcua_changes is not None for r in results) else [])
 
 
 def markdown(results: list[LoadResult]) -> str:
     """The results as a markdown table."""
-    lines = ["| " + " | ".join(HEADERS) + " |", "|" + "---:|" * len(HEADERS)]
+    names = headers(results)
+    lines = ["| " + " | ".join(names) + " |", "|" + "---:|" * len(names)]
     lines += ["| " + " | ".join(row) + " |" for row in table_rows(results)]
     return "\n".join(lines)

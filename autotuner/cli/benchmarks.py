@@ -51,17 +51,28 @@ def loadbench_command(
     ts: Annotated[float, typer.Option(min=0.001, help="Sample time, plant seconds.")] = 0.1,
     plant: Annotated[str, typer.Option(help="Process transfer function in s.")] = "exp(-0.5*s)/(s+1)",
     as_markdown: Annotated[bool, typer.Option("--markdown", help="Print a markdown table.")] = False,
+    opcua: Annotated[bool, typer.Option("--opcua", help="Also publish the loops over OPC UA to a client subscribed "
+                                        "to all their variables (docs/opcua.md). Needs the opcua extra.")] = False,
+    monitor_period: Annotated[float, typer.Option(min=0.05, max=60.0, help="The loops' monitor period (and OPC UA "
+                                                  "publishing interval), wall seconds.")] = 1.0,
 ) -> None:
     """Benchmark: N simulated loops tuned at once over Modbus TCP (localhost); sampling lateness and CPU.
 
     Not a test: it takes about a minute per run at the defaults (docs/daemon.md, "Load benchmark").
     """
-    from autotuner.benchmarks.load import HEADERS, markdown, run_load, table_rows
+    from autotuner.benchmarks.load import headers, markdown, run_load, table_rows
 
     parse_plant(plant)
+    if opcua:
+        from api.opcua import require
+
+        try:
+            require()
+        except RuntimeError as exc:
+            bad_input(str(exc))
     results = []
     for n in loops or [1, 10, 25, 50]:
-        result = asyncio.run(run_load(n, speed, ts, plant))
+        result = asyncio.run(run_load(n, speed, ts, plant, opcua=opcua, monitor_period=monitor_period))
         results.append(result)
         for loop_id, message in result.failures.items():
             stderr.print(f"{n} loops: {loop_id} failed: {message}", highlight=False, markup=False)
@@ -71,7 +82,7 @@ def loadbench_command(
         print(f"{title}\n\n{markdown(results)}")
     else:
         table = Table(title=title, title_justify="left")
-        for name in HEADERS:
+        for name in headers(results):
             table.add_column(name, justify="right")
         for row in table_rows(results):
             table.add_row(*row)
