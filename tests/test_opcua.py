@@ -1,8 +1,8 @@
 """The OPC UA server with a real client (asyncua's) over TCP on localhost, beside the REST API on the same loops.
 
 One daemon for the module (REST through Starlette's TestClient, OPC UA on a
-free port), three simulated loops exp(-0.5·s)/(s+1) at 2.5× real time (40 ms of wall time per sample, so
-the experiment converges on a loaded machine too); a tuning takes about 8 wall seconds.
+free port), three simulated loops exp(-0.5·s)/(s+1) at 2× real time (50 ms of wall time per sample, so
+the experiment converges on a loaded machine too); a tuning takes about 10 wall seconds.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ LOOPS = ("TIC-1", "TIC-2", "TIC-3")
 
 
 def config(tmp_path, port: int) -> DaemonConfig:
-    loops = [{"id": loop_id, "sim": {"plant": "exp(-0.5*s)/(s+1)"}, "ts": 0.1, "speed": 2.5, "monitor_period": 0.1,
+    loops = [{"id": loop_id, "sim": {"plant": "exp(-0.5*s)/(s+1)"}, "ts": 0.1, "speed": 2.0, "monitor_period": 0.1,
               "tuning": {"amp": 5.0, "time_limit": 200.0}, "limits": {"pv": [0.0, 100.0], "mv": [0.0, 100.0]}}
              for loop_id in LOOPS]
     return DaemonConfig.model_validate({
