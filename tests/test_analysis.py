@@ -139,6 +139,26 @@ def test_analysis_agrees_with_an_independent_computation(plant, kind):
             assert new["mv"][-1] == pytest.approx(-1.0, abs=0.03)
 
 
+def test_the_stored_model_is_analysed_and_old_results_are_fitted_again():
+    """A result with ``design.model`` is analysed on that model, not on one refitted through its point; a result
+    stored before the design key existed gets the refitted one."""
+    result, old = result_for(TIC)
+    fitted = analyse(result, 1.4, old.as_json())["model"]
+    # A model through the same point with another static gain (what a design of another family could use).
+    other = "1.2*exp(-3.1*s)/(6.5*s+1)"
+    stored = analyse({**result, "design": {"model": other}}, 1.4, old.as_json())["model"]
+    assert (stored["kind"], stored["k"], stored["t"], stored["l"]) == ("FOPDT", pytest.approx(1.2),
+                                                                       pytest.approx(6.5), pytest.approx(3.1))
+    assert fitted["k"] == pytest.approx(1.5, rel=0.05) and fitted["k"] != pytest.approx(1.2, rel=0.05)
+    # The model a real design stored: the same as fitting again (12 digits in the expression).
+    process = parse_process(TIC)
+    point = exact_point(process, 135.0)
+    d = design(point, process.static_gain(), "PI", 1.4)
+    same = analyse({**result, "design": {"model": str(d.model)}}, 1.4, old.as_json())["model"]
+    assert same["kind"] == fitted["kind"] and same["text"] == fitted["text"]
+    assert [same[k] for k in "ktl"] == pytest.approx([fitted[k] for k in "ktl"], rel=1e-9)
+
+
 def test_unstable_or_missing_old_gains():
     result, old = result_for(TIC)
     aggressive = Gains(k=old.k * 8, ti=old.ti / 4).as_json()

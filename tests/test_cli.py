@@ -47,7 +47,15 @@ def _invoke(*args: str):
 def check_contract(doc: dict, controller: str = "PI") -> None:
     """Keys and types of the design.md JSON for a successful tuning of PLANT."""
     assert set(doc) == {"tbsy", "te", "ite", "message", "controller", "point", "static_gain", "gains", "design",
-                        "experiment"}
+                        "forms", "experiment"}
+    # The gains in parallel and series form, from the standard form (a PI's series form is itself).
+    g = doc["gains"]
+    assert doc["forms"]["parallel"] == {"kp": g["pk"], "ki": pytest.approx(g["pk"] / g["pti"]),
+                                        "kd": pytest.approx(g["pk"] * g["ptd"])}
+    if controller == "PI":
+        assert doc["forms"]["series"] == {"k": g["pk"], "ti": g["pti"], "td": 0.0}
+    else:  # designs keep Td <= Ti/4: the series form exists
+        assert set(doc["forms"]["series"]) == {"k", "ti", "td"}
     assert set(doc["design"]) == {"model", "ms_model", "ms_target", "noise_gain", "notes"}
     assert doc["design"]["notes"] == [] and isinstance(doc["design"]["model"], str)
     assert doc["design"]["ms_model"] == pytest.approx(doc["design"]["ms_target"], abs=0.01)

@@ -85,7 +85,8 @@ def test_result_json_shape_on_success_and_failure():
     text = json.dumps(ok, allow_nan=False)
     assert json.loads(text) == ok
     assert set(ok) == {"tbsy", "te", "ite", "message", "controller", "point", "static_gain", "gains", "design",
-                       "experiment"}
+                       "forms", "experiment"}
+    assert set(ok["forms"]) == {"parallel", "series"} and set(ok["forms"]["parallel"]) == {"kp", "ki", "kd"}
     assert set(ok["design"]) == {"model", "ms_model", "ms_target", "noise_gain", "notes"}
     assert ok["design"]["notes"] == [] and ok["design"]["ms_model"] == pytest.approx(1.4, abs=0.01)
     assert ok["te"] is False and ok["ite"] == 0 and ok["tbsy"] is False
@@ -95,7 +96,8 @@ def test_result_json_shape_on_success_and_failure():
 
     failed = tune(PlantSim(process, ts), RelayConfig(amp=1.0, pv_limits=(-0.1, 0.1))).as_json()
     assert failed["te"] is True and failed["ite"] == int(Code.PV_OUT_OF_LIMITS)
-    assert failed["gains"] is None and failed["design"] is None and "limits" in failed["message"]
+    assert failed["gains"] is None and failed["design"] is None and failed["forms"] is None
+    assert "limits" in failed["message"]
 
 
 def test_unstable_process_is_stabilised_by_the_design():

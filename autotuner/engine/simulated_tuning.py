@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from autotuner.engine.control.gains import forms_json
 from autotuner.engine.design.point_design import Design, design
 from autotuner.engine.design.unstable_design import Refusal
 from autotuner.engine.design.process_data import exact_point
@@ -80,6 +81,7 @@ class TuneResult:
             "static_gain": None if ident is None or math.isinf(ident.static_gain) else float(ident.static_gain),
             "gains": None if des is None else des.gains.as_json(),
             "design": None if des is None else design_json(des),
+            "forms": None if des is None else forms_json(des.gains),
             "experiment": {
                 "duration": float(self.trace.t[-1] - self.trace.t[0]) if len(self.trace.t) else 0.0,
                 "periods": None if ident is None else round(ident.periods, 2),

@@ -33,6 +33,7 @@ import numpy as np
 
 from autotuner.engine.design.closed_loop import check_gains, closed_loop_step, controller_response
 from autotuner.engine.design.point_design import fit_model
+from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.plant.process import Process
 from autotuner.engine.experiment.relay import Point
@@ -66,7 +67,12 @@ def point_of(result: dict[str, Any]) -> Point:
 
 
 def model_of(result: dict[str, Any]) -> Process:
-    """The model the design fitted through the result's point and static gain (null static gain: integrating)."""
+    """The model the design used: the result's ``design.model`` (an expression, stored since the design key
+    exists); for a result stored before that, the model fitted again through its point and static gain (null
+    static gain: integrating)."""
+    stored = (result.get("design") or {}).get("model")
+    if stored:
+        return parse_process(stored)
     static_gain = result.get("static_gain")
     return fit_model(point_of(result), math.inf if static_gain is None else float(static_gain))
 
