@@ -36,7 +36,7 @@ import cantools
 
 from autotuner.engine.control.gains import Gains
 
-from .link import LinkError, LoopState, Mode, TuneFlags, checked
+from .link import LinkError, LoopState, Mode, TuneFlags, Watchdog, checked, float32_step
 
 #: Frames the node sends (cyclic status, gains on request) and the link reads.
 PROCESS, STATUS, SETPOINT = "AT_Process", "AT_Status", "AT_Setpoint"
@@ -45,6 +45,9 @@ GAINS = ("AT_Gains1", "AT_Gains2", "AT_Gains3")
 CMD_MV, CMD_MODE, CMD_SP, CMD_FLAGS = "AT_CmdMV", "AT_CmdMode", "AT_CmdSP", "AT_CmdFlags"
 CMD_GAINS = ("AT_CmdGains1", "AT_CmdGains2", "AT_CmdGains3")
 CMD_APPLY, REQUEST = "AT_CmdGainsApply", "AT_Request"
+#: Optional frames of the hand-back watchdog (a DBC without them: the device has no watchdog).
+CMD_WATCHDOG, HEARTBEAT = "AT_CmdWatchdog", "AT_Heartbeat"
+WATCHDOG_SIGNALS: dict[str, tuple[str, ...]] = {CMD_WATCHDOG: ("WdMV", "WdTime", "WdMode"), HEARTBEAT: ("Counter",)}
 
 #: Every message name a DBC must define, with the signals each must carry.
 REQUIRED: dict[str, tuple[str, ...]] = {
@@ -97,6 +100,28 @@ def load_dbc(dbc: str | Path | None = None) -> cantools.database.can.Database:
     if missing:
         raise ValueError(f"DBC {path} lacks {', '.join(missing)} (see docs/can.md)")
     return db
+
+
+def has_watchdog(db: cantools.database.can.Database) -> bool:
+    """Whether the DBC has the watchdog's frames with their signals (AT_CmdWatchdog, AT_Heartbeat)."""
+    for name, signals in WATCHDOG_SIGNALS.items():
+        try:
+            have = {s.name for s in db.get_message_by_name(name).signals}
+        except KeyError:
+            return False
+        if not set(signals) <= have:
+            return False
+    return True
+
+
+def signal_step(db: cantools.database.can.Database, message: str, signal: str, value: float) -> float:
+    """The coding step of a DBC signal near the engineering ``value`` (float: its spacing; integer: its scale)."""
+    sig = db.get_message_by_name(message).get_signal_by_name(signal)
+    scale = abs(float(sig.scale))
+    if not sig.is_float:
+        return scale
+    raw = (value - float(sig.offset)) / float(sig.scale)
+    return scale * (float32_step(raw) if sig.length == 32 else math.ulp(raw))
 
 
 def ti_to_wire(ti: float) -> float:
@@ -180,6 +205,7 @@ class CanLink:
         self.interface = interface
         self.channel = channel
         self.db = load_dbc(dbc)
+        self._watchdog = has_watchdog(self.db)
         self.timeout = float(timeout)
         self.stale_after = stale_after
         self.bus_kwargs = bus_kwargs
@@ -463,3 +489,18 @@ class CanLink:
         """Send TBSY, TE and ite (AT_CmdFlags); TUNE and TBRK are the node's own."""
         await self._send((CMD_FLAGS, {"TBSY": int(flags.tbsy), "TE": int(flags.te),
                                       "ITE": checked("ite", float(flags.ite))}))
+
+    def mv_resolution(self, mv: float) -> float:
+        """The coding step of AT_CmdMV.HV (sent) plus that of AT_Process.MV (received) near ``mv``."""
+        return signal_step(self.db, CMD_MV, "HV", mv) + signal_step(self.db, PROCESS, "MV", mv)
+
+    async def write_watchdog(self, watchdog: Watchdog) -> None:
+        """AT_CmdWatchdog (nothing if the DBC has no watchdog frames)."""
+        if self._watchdog:
+            await self._send((CMD_WATCHDOG, {"WdMV": checked("watchdog MV", float(watchdog.mv)),
+                                             "WdTime": float(watchdog.timeout), "WdMode": int(Mode(watchdog.mode))}))
+
+    async def write_heartbeat(self, counter: int) -> None:
+        """AT_Heartbeat (nothing if the DBC has no watchdog frames)."""
+        if self._watchdog:
+            await self._send((HEARTBEAT, {"Counter": counter % 65536}))

@@ -30,9 +30,10 @@ import can
 from autotuner.engine.checks import finite
 from autotuner.engine.control.gains import Gains
 
-from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, GAINS, PROCESS, REQUEST, RX_POLL,
-                       SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire, load_dbc, open_bus)
-from .link import LinkError, Mode
+from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, CMD_WATCHDOG, GAINS, HEARTBEAT,
+                       PROCESS, REQUEST, RX_POLL, SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire,
+                       has_watchdog, load_dbc, open_bus)
+from .link import LinkError, Mode, Watchdog
 from .simplc import SimulatedPlc
 
 log = logging.getLogger(__name__)
@@ -57,8 +58,10 @@ class CanPlcNode:
         self.stats = {"sent": 0, "applied": 0, "rejected": 0, "ignored": 0, "send_errors": 0}
         self._counter = 0
         self._staged: dict[str, dict[str, Any]] = {}
-        self._cmds = {self.db.get_message_by_name(n).frame_id: self.db.get_message_by_name(n)
-                      for n in (CMD_MV, CMD_MODE, CMD_SP, CMD_FLAGS, *CMD_GAINS, CMD_APPLY, REQUEST)}
+        names = (CMD_MV, CMD_MODE, CMD_SP, CMD_FLAGS, *CMD_GAINS, CMD_APPLY, REQUEST)
+        if has_watchdog(self.db):
+            names += (CMD_WATCHDOG, HEARTBEAT)
+        self._cmds = {self.db.get_message_by_name(n).frame_id: self.db.get_message_by_name(n) for n in names}
         self._task: asyncio.Task[None] | None = None
         self._notifier: can.Notifier | None = None
 
@@ -180,6 +183,11 @@ class CanPlcNode:
         elif name == REQUEST:
             if v["All"]:
                 self.publish(gains=True)
+        elif name == CMD_WATCHDOG:
+            plc.watchdog = Watchdog(timeout=finite("watchdog time", v["WdTime"]),
+                                    mv=finite("watchdog MV", v["WdMV"]), mode=Mode(int(v["WdMode"])))
+        elif name == HEARTBEAT:
+            plc.heartbeat = int(v["Counter"])
 
 
 async def serve_can(plc: SimulatedPlc, interface: str = "virtual", channel: str = "autotuner",

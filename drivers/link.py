@@ -48,6 +48,29 @@ class TuneFlags:
     ite: float = 0.0
 
 
+@dataclass(frozen=True)
+class Watchdog:
+    """The device-side watchdog of the hand-back (docs/handback.md).
+
+    While ``timeout`` > 0 the device expects the tuner's heartbeat; when the
+    heartbeat counter has not changed for ``timeout`` seconds of the device's
+    clock, the device falls back on its own: it holds ``mv`` in MAN until its
+    PID unit tracks it, then switches to ``mode``, clears TBSY and shows TE
+    with ite :attr:`autotuner.engine.outcome.Code.WATCHDOG_FALLBACK`.
+    ``timeout`` 0 disarms it.
+    """
+
+    timeout: float = 0.0
+    mv: float = 0.0
+    mode: Mode = Mode.AUTO
+
+
+def float32_step(value: float) -> float:
+    """The spacing of IEEE float32 numbers at ``value`` (what a float32 register or signal can resolve)."""
+    exponent = math.frexp(abs(value))[1] if value != 0.0 and math.isfinite(value) else -125
+    return math.ldexp(1.0, max(exponent, -125) - 24)
+
+
 def checked(name: str, value: float) -> float:
     """``value`` if finite, else a LinkError naming the signal (a NaN is never data)."""
     if not math.isfinite(value):
@@ -96,3 +119,13 @@ class Link(Protocol):
 
     async def write_flags(self, flags: TuneFlags) -> None:
         """Publish TBSY, TE and ite to the device (TUNE and TBRK are the device's inputs)."""
+
+    def mv_resolution(self, mv: float) -> float:
+        """How far an MV read back may be from ``mv`` written, near ``mv`` (engineering units): the coding's step
+        of the manual MV plus that of the actual MV."""
+
+    async def write_watchdog(self, watchdog: Watchdog) -> None:
+        """Arm (timeout > 0: fallback MV and mode) or disarm the device's watchdog; nothing if the device has none."""
+
+    async def write_heartbeat(self, counter: int) -> None:
+        """The heartbeat of the device's watchdog (a counter, mod 65536); nothing if the device has none."""

@@ -32,7 +32,7 @@ from pymodbus.exceptions import ModbusException
 
 from autotuner.engine.control.gains import Gains
 
-from .link import LinkError, LoopState, Mode, TuneFlags
+from .link import LinkError, LoopState, Mode, TuneFlags, Watchdog
 from .modbus_map import (
     BIT_TABLES,
     COIL,
@@ -426,3 +426,22 @@ class ModbusLink:
         """TBSY, TE and ite (those the map has; the handshake is optional)."""
         values = {"tbsy": float(flags.tbsy), "te": float(flags.te), "ite": float(flags.ite)}
         await self._write({s: v for s, v in values.items() if s in self.map})
+
+    def mv_resolution(self, mv: float) -> float:
+        """The coding step of ``hv`` (written) plus that of ``mv`` (read back) near ``mv``."""
+        return self.map["hv"].resolution(mv) + self.map["mv"].resolution(mv)
+
+    async def write_watchdog(self, watchdog: Watchdog) -> None:
+        """``wd_mv`` and ``wd_mode`` (when arming), then ``wd_time``, in one request with the default map;
+        nothing if the map has no ``wd_time``."""
+        if "wd_time" not in self.map:
+            return
+        values = {"wd_time": float(watchdog.timeout)}
+        if watchdog.timeout > 0.0:
+            values |= {"wd_mv": float(watchdog.mv), "wd_mode": float(int(Mode(watchdog.mode)))}
+        await self._write({s: v for s, v in values.items() if s in self.map})
+
+    async def write_heartbeat(self, counter: int) -> None:
+        """``heartbeat`` = ``counter`` mod 65536 (nothing if the map has none)."""
+        if "heartbeat" in self.map:
+            await self._write({"heartbeat": float(counter % 65536)})

@@ -46,6 +46,8 @@ from typing import Any, Mapping
 
 from pymodbus.client.mixin import ModbusClientMixin
 
+from .link import float32_step
+
 __all__ = [
     "TABLES",
     "TYPES",
@@ -94,11 +96,13 @@ ORDERS = ("big", "little")
 
 GAIN_SIGNALS = ("k", "ti", "td", "nd", "b", "c")
 FLAG_SIGNALS = ("tune", "tbrk", "tbsy", "te", "ite")
-SIGNALS = ("pv", "mv", "hv", "sp", "mode", *GAIN_SIGNALS, *FLAG_SIGNALS)
+# The hand-back watchdog (docs/handback.md): heartbeat counter, timeout (device seconds, 0 = off), fallback MV, mode.
+WATCHDOG_SIGNALS = ("heartbeat", "wd_time", "wd_mv", "wd_mode")
+SIGNALS = ("pv", "mv", "hv", "sp", "mode", *GAIN_SIGNALS, *FLAG_SIGNALS, *WATCHDOG_SIGNALS)
 # What a map must have for the tuner to run an experiment and report on it.
 REQUIRED = frozenset({"pv", "mv", "hv", "sp", "mode", "k", "ti"})
 # What the tuner writes: these must be in a writable table.
-WRITABLE = frozenset({"hv", "mode", *GAIN_SIGNALS, "tbsy", "te", "ite"})
+WRITABLE = frozenset({"hv", "mode", *GAIN_SIGNALS, "tbsy", "te", "ite", *WATCHDOG_SIGNALS})
 # Boolean signals (the handshake bits) and the rest (numbers).
 BOOL_SIGNALS = frozenset({"tune", "tbrk", "tbsy", "te"})
 
@@ -172,6 +176,15 @@ class Register:
         kind = {HOLDING: "holding register", INPUT: "input register", COIL: "coil",
                 DISCRETE: "discrete input"}[self.table]
         return f"{kind} {self.address}" + ("" if self.is_bit else f" ({self.type})")
+
+    def resolution(self, value: float) -> float:
+        """The step of the coding near the engineering ``value``: ``|scale|`` for an integer, a float32's or
+        float64's spacing (times ``|scale|``) for a float."""
+        if self.type in _INT_RANGE:
+            return abs(self.scale)
+        raw = (value - self.offset) / self.scale
+        step = float32_step(raw) if self.type == "float32" else math.ulp(raw)
+        return abs(self.scale) * step
 
     # -- coding ------------------------------------------------------------
 
@@ -368,6 +381,11 @@ def _default() -> ModbusMap:
             "c": Register(HOLDING, 14, f32),
             "ite": Register(HOLDING, 16, f32),
             "mode": Register(HOLDING, 18, "uint16"),
+            # The hand-back watchdog: heartbeat counter, then timeout, fallback MV and mode (one write).
+            "heartbeat": Register(HOLDING, 19, "uint16"),
+            "wd_time": Register(HOLDING, 20, f32),
+            "wd_mv": Register(HOLDING, 22, f32),
+            "wd_mode": Register(HOLDING, 24, "uint16"),
             # Coils: the handshake bits.
             "tune": Register(COIL, 0, "bool"),
             "tbrk": Register(COIL, 1, "bool"),

@@ -64,6 +64,8 @@ _FC_TABLE = {1: COIL, 5: COIL, 15: COIL, 2: DISCRETE, 4: INPUT, 3: HOLDING, 6: H
              22: HOLDING, 23: HOLDING}
 # Order of the four blocks of a non-shared SimDevice.
 _BLOCK_ORDER = (COIL, DISCRETE, HOLDING, INPUT)
+# Watchdog signals → fields of :class:`drivers.link.Watchdog`.
+_WATCHDOG_FIELDS = {"wd_time": "timeout", "wd_mv": "mv", "wd_mode": "mode"}
 # An unused bit at the top of the address space keeps an empty bit table valid for pymodbus.
 _FILLER_BIT = 65535
 
@@ -80,6 +82,10 @@ def _plc_value(plc: SimulatedPlc, signal: str) -> float:
         return ti_to_wire(plc.gains.ti)
     if signal in ("k", "td", "nd", "b", "c"):
         return float(getattr(plc.gains, signal))
+    if signal == "heartbeat":
+        return float(plc.heartbeat)
+    if signal in _WATCHDOG_FIELDS:
+        return float(getattr(plc.watchdog, _WATCHDOG_FIELDS[signal]))
     flag = getattr(plc.flags, signal)
     return float(flag)
 
@@ -221,9 +227,11 @@ class ModbusPlcServer:
         plc = self.plc
         if any(not math.isfinite(v) for v in written.values()):
             return ExcCodes.ILLEGAL_VALUE
-        if "mode" in written:
-            if written["mode"] not in (0.0, 1.0):
+        for name in ("mode", "wd_mode"):
+            if name in written and written[name] not in (0.0, 1.0):
                 return ExcCodes.ILLEGAL_VALUE
+        if written.get("wd_time", 0.0) < 0.0:
+            return ExcCodes.ILLEGAL_VALUE
         gains = {s: written[s] for s in ("k", "ti", "td", "nd", "b", "c") if s in written}
         new_gains = None
         if gains:
@@ -242,6 +250,13 @@ class ModbusPlcServer:
             plc.hv = written["hv"]
         if new_gains is not None and new_gains != plc.gains:
             plc.set_gains(new_gains)
+        if "heartbeat" in written:
+            plc.heartbeat = int(written["heartbeat"])
+        watchdog = {f: written[s] for s, f in _WATCHDOG_FIELDS.items() if s in written}
+        if watchdog:
+            if "mode" in watchdog:
+                watchdog["mode"] = Mode(int(watchdog["mode"]))
+            plc.watchdog = dataclasses.replace(plc.watchdog, **watchdog)
         flags = {s: written[s] for s in ("tune", "tbrk", "tbsy", "te") if s in written}
         update: dict[str, object] = {s: bool(v) for s, v in flags.items()}
         if "ite" in written:

@@ -13,7 +13,7 @@ from typing import Any
 
 from autotuner.engine.control.gains import Gains
 
-from .link import LinkError, LoopState, Mode, TuneFlags, checked
+from .link import LinkError, LoopState, Mode, TuneFlags, Watchdog, checked
 from .simplc import SimulatedPlc
 
 
@@ -71,3 +71,15 @@ class SimLink:
         self._call()
         plc = self.plc
         plc.flags = TuneFlags(tune=plc.flags.tune, tbrk=plc.flags.tbrk, tbsy=flags.tbsy, te=flags.te, ite=flags.ite)
+
+    def mv_resolution(self, mv: float) -> float:
+        """0: the MV goes to the PLC and back as the same float."""
+        return 0.0
+
+    async def write_watchdog(self, watchdog: Watchdog) -> None:
+        self._call()
+        self.plc.watchdog = watchdog
+
+    async def write_heartbeat(self, counter: int) -> None:
+        self._call()
+        self.plc.heartbeat = counter % 65536

@@ -3,8 +3,17 @@
 It is what the simulated plant servers (Modbus, CAN) expose: PV, MV, SP,
 mode (MAN/AUTO), the PID gains, the manual MV, and the TUNE/TBRK/TBSY/TE/ite
 bits. In MAN the PID unit copies the manual MV to its output and tracks it,
-so returning to AUTO is bumpless, as on the real block. Faults can be
+so returning to AUTO is bumpless, as on the real block: the tuner writes
+the saved MV, waits until the actual MV reads it back (the unit has ticked
+in MAN with it and its state tracks it), and only then writes AUTO; the
+first AUTO output is then the saved MV (docs/handback.md). Faults can be
 injected for tests: a PV that reads NaN.
+
+The hand-back watchdog (:class:`drivers.link.Watchdog`): while ``watchdog``
+is armed and ``heartbeat`` has not changed for its timeout (plant seconds),
+the PLC falls back by itself, bumplessly the same way: one tick in MAN at
+the fallback MV, then the fallback mode, TBSY cleared, TE set and ite
+:attr:`Code.WATCHDOG_FALLBACK`, the watchdog disarmed.
 
 Time is the plant's: :meth:`tick` advances one sample; :func:`run` ticks in
 real time (or ``speed`` times faster), deadline-scheduled so it does not drift.
@@ -25,7 +34,9 @@ from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.design.process_data import exact_point
 from autotuner.engine.simulated_tuning import default_sample_time
 
-from .link import Mode, TuneFlags
+from autotuner.engine.outcome import Code
+
+from .link import Mode, TuneFlags, Watchdog
 
 
 def safe_gains(process: Process) -> Gains:
@@ -51,6 +62,8 @@ class SimulatedPlc:
     mode: Mode = Mode.AUTO
     flags: TuneFlags = field(default_factory=TuneFlags)
     nan_pv: bool = False
+    heartbeat: int = 0
+    fallbacks: int = 0
 
     def __post_init__(self) -> None:
         if self.ts <= 0.0:
@@ -64,6 +77,19 @@ class SimulatedPlc:
         self.mv = self.mv0
         self.pv = self.sim.measure()
         self.pid.reset(self.mv0, self.sp, self.pv)
+        self._watchdog = Watchdog()
+        self._beat = (self.heartbeat, self.sim.t)  # the last heartbeat value seen and when it changed
+        self._falling_back = False
+
+    @property
+    def watchdog(self) -> Watchdog:
+        """The hand-back watchdog as armed by the tuner (timeout 0: off)."""
+        return self._watchdog
+
+    @watchdog.setter
+    def watchdog(self, watchdog: Watchdog) -> None:
+        self._watchdog = watchdog
+        self._beat = (self.heartbeat, self.sim.t)  # arming starts the timeout afresh
 
     @property
     def t(self) -> float:
@@ -83,8 +109,27 @@ class SimulatedPlc:
         """The PV as the PLC serves it (NaN while the fault is injected)."""
         return math.nan if self.nan_pv else self.pv
 
+    def _check_watchdog(self) -> None:
+        """Fall back when the armed watchdog's heartbeat has been still for its timeout."""
+        if self._falling_back:  # the last tick ran in MAN at the fallback MV: the unit tracks it, resume
+            self._falling_back = False
+            self.mode = Mode(self._watchdog.mode)
+            self._watchdog = Watchdog()
+            self.fallbacks += 1
+            self.flags = TuneFlags(tune=self.flags.tune, tbrk=self.flags.tbrk, tbsy=False, te=True,
+                                   ite=float(Code.WATCHDOG_FALLBACK))
+            return
+        if self.heartbeat != self._beat[0]:
+            self._beat = (self.heartbeat, self.sim.t)
+            return
+        if self._watchdog.timeout > 0.0 and self.sim.t - self._beat[1] >= self._watchdog.timeout:
+            self._falling_back = True
+            self.mode = Mode.MAN
+            self.hv = self._watchdog.mv
+
     def tick(self) -> None:
         """One sample: controller output from the current PV, then the plant advances ``ts``."""
+        self._check_watchdog()
         man = self.mode is Mode.MAN
         self.mv = self.pid.step(self.sim.t, self.sp, self.pv, man=man, hv=self.hv if man else None)
         if not man:

@@ -18,12 +18,12 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.outcome import Code
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config
-from autotuner.service.link_session import tune_link
+from autotuner.service.link_session import HandBack, tune_link
 from autotuner.engine.simulated_tuning import default_sample_time
-from drivers.can_link import (CMD_SP, REQUIRED, CanLink, default_dbc, gains_from_wire, gains_to_wire, load_dbc,
-                              ti_from_wire, ti_to_wire)
+from drivers.can_link import (CMD_SP, REQUIRED, WATCHDOG_SIGNALS, CanLink, default_dbc, gains_from_wire,
+                              gains_to_wire, load_dbc, ti_from_wire, ti_to_wire)
 from drivers.can_node import serve_can
-from drivers.link import LinkError, Mode, TuneFlags
+from drivers.link import LinkError, Mode, TuneFlags, Watchdog
 from drivers.simplc import SimulatedPlc, run
 
 PLANT = "exp(-s)/(2*s+1)"
@@ -83,6 +83,7 @@ IDS = {
     "AT_Process": 0x100, "AT_Status": 0x101, "AT_Setpoint": 0x102,
     "AT_Gains1": 0x110, "AT_Gains2": 0x111, "AT_Gains3": 0x112,
     "AT_CmdMV": 0x200, "AT_CmdMode": 0x201, "AT_CmdSP": 0x202, "AT_CmdFlags": 0x203,
+    "AT_CmdWatchdog": 0x204, "AT_Heartbeat": 0x205,
     "AT_CmdGains1": 0x210, "AT_CmdGains2": 0x211, "AT_CmdGains3": 0x212, "AT_CmdGainsApply": 0x213,
     "AT_Request": 0x220,
 }
@@ -94,7 +95,7 @@ def test_default_dbc_ships_with_the_package_and_has_the_documented_ids():
     assert {m.name: m.frame_id for m in DB.messages} == IDS
     for m in DB.messages:
         assert not m.is_extended_frame and m.frame_id <= 0x7FF
-        assert {s.name for s in m.signals} == set(REQUIRED[m.name])
+        assert {s.name for s in m.signals} == set({**REQUIRED, **WATCHDOG_SIGNALS}[m.name])
     load_dbc()  # passes its own check
 
 
@@ -232,6 +233,24 @@ def test_writes_reach_the_plc():
             assert await until(lambda: plc.mode is Mode.AUTO)
             with pytest.raises(LinkError):
                 await link.write_mv(math.nan)
+    arun(main())
+
+
+def test_the_watchdog_frames_arm_the_node_and_a_silent_heartbeat_makes_it_fall_back():
+    async def main():
+        async with rig() as (plc, node, link):
+            await link.write_mode(Mode.MAN)
+            await link.write_mv(70.0)
+            await link.write_heartbeat(1)
+            await link.write_watchdog(Watchdog(timeout=0.5, mv=50.0, mode=Mode.AUTO))  # WdTime: 0.1 s steps
+            assert await until(lambda: plc.watchdog.timeout > 0.0 and plc.heartbeat == 1)
+            assert plc.watchdog == Watchdog(timeout=0.5, mv=50.0, mode=Mode.AUTO)
+            assert 0.5 / plc.ts < 100
+            for _ in range(200):
+                plc.tick()
+                if plc.fallbacks:
+                    break
+            assert plc.fallbacks == 1 and plc.mode is Mode.AUTO and plc.flags.ite == 22.0
     arun(main())
 
 
@@ -403,7 +422,7 @@ def test_own_dbc_with_scaled_integer_signals(tmp_path):
 HIL_SPEED = 10.0
 
 
-async def tune_over_can(fault=None, fault_after: float = 0.3):
+async def tune_over_can(fault=None, fault_after: float = 0.3, handback=None):
     """The real-time session on a simulated plant behind a CAN node, run HIL_SPEED times faster than real time."""
     process = parse_process(PLANT)
     ts = default_sample_time(process)
@@ -420,7 +439,7 @@ async def tune_over_can(fault=None, fault_after: float = 0.3):
     try:
         # tolerances for a shared CI machine: timing jitter at 10x real time scatters the estimates
         cfg = field_config(RelayConfig(amp=5.0, time_limit=500.0, phase_tol_deg=2.0, gain_tol=0.02))
-        result = await tune_link(link, cfg, ts, speed=HIL_SPEED)
+        result = await tune_link(link, cfg, ts, speed=HIL_SPEED, handback=handback)
         await asyncio.sleep(3 * plc.ts / HIL_SPEED)  # the plant takes the restored MV
     finally:
         halt.set()
@@ -445,10 +464,13 @@ def test_session_over_can_node_goes_silent():
     def silence(plc, node):
         node.silent = True
 
-    result, plc, (mode, gains) = arun(tune_over_can(silence), limit=10.0)
+    result, plc, (mode, gains) = arun(tune_over_can(silence, handback=HandBack(window=1.0, track_timeout=0.3)),
+                                      limit=10.0)
     assert result.code is Code.LINK_FAULT, result.message
-    assert "stale PV" in result.message and "NOT RESTORED" not in result.message
-    assert plc.mode is mode and plc.gains == gains  # restored through the silent node's receiver
+    # The hand-back writes the saved MV (the silent node still receives) but never AUTO unconfirmed: it cannot read
+    # the MV back, so the loop is reported not restored and stays in MAN at the saved MV.
+    assert "stale PV" in result.message and "LOOP NOT RESTORED" in result.message
+    assert plc.mode is Mode.MAN and plc.hv == 50.0 and plc.gains == gains
 
 
 def test_session_over_can_nan_pv():

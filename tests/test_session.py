@@ -12,7 +12,7 @@ from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.outcome import Code
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config
-from autotuner.service.link_session import tune_link
+from autotuner.service.link_session import HandBack, tune_link
 from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import Mode
 from drivers.simlink import SimLink
@@ -31,27 +31,44 @@ def analytic(w: float) -> complex:
     return cmath.exp(-s) / (2 * s + 1)
 
 
-async def session(link_kwargs=None, *, apply=False, stop_after=None, mode=Mode.AUTO, **config):
+async def session(link_kwargs=None, *, apply=False, stop_after=None, mode=Mode.AUTO, handback=None, ticks=None,
+                  stop_at_relay=False, **config):
     process = parse_process(PLANT)
     ts = default_sample_time(process) * 100 / SAMPLES_PER_PERIOD
     plc = SimulatedPlc(process, ts=ts / 5)
     plc.mode = mode
     before = (plc.mode, plc.gains, plc.hv)
+    if ticks is not None:  # record (mode, actual MV) after every tick
+        tick = plc.tick
+
+        def recorded() -> None:
+            tick()
+            ticks.append((plc.mode, plc.mv))
+
+        plc.tick = recorded
     halt = asyncio.Event()
     plant = asyncio.create_task(run(plc, SPEED, halt))
     stop = asyncio.Event()
     if stop_after is not None:
         asyncio.get_running_loop().call_later(stop_after, stop.set)
     link = SimLink(plc, **(link_kwargs or {}))
+    watcher = None
+    if stop_at_relay:  # TBRK once the relay holds the MV at a level
+        async def at_relay() -> None:
+            await until(lambda: plc.mode is Mode.MAN and abs(plc.mv - before[2]) > 2.0, 20.0, "the relay to run")
+            stop.set()
+
+        watcher = asyncio.create_task(at_relay())
     try:
         cfg = field_config(RelayConfig(amp=5.0, time_limit=500.0, **config))
-        result = await tune_link(link, cfg, ts,
-                                 apply=apply, speed=SPEED, stop=stop)
+        result = await tune_link(link, cfg, ts, apply=apply, speed=SPEED, stop=stop, handback=handback)
         for _ in range(3):  # let the plant take the restored MV
             plc.tick()
     finally:
         halt.set()
         await plant
+        if watcher is not None:
+            await watcher
     return result, plc, before
 
 
@@ -96,11 +113,51 @@ def test_link_loss_ends_with_link_fault_and_the_loop_is_restored_when_it_returns
     assert plc.mode is mode and plc.gains == gains
 
 
-def test_a_link_that_never_returns_is_reported_as_not_restored(monkeypatch):
-    monkeypatch.setattr("autotuner.service.link_session.RESTORE_WINDOW", 1.0)
-    result, _, _ = asyncio.run(session({"outage": (60, 10**9)}))
+def test_the_hand_back_is_bumpless_the_first_auto_output_is_the_saved_mv():
+    ticks: list[tuple[Mode, float]] = []
+    result, plc, (_, _, saved_mv) = asyncio.run(session(stop_at_relay=True, ticks=ticks))
+    assert result.code is Code.ABORTED
+    first_auto = next(i for i in range(1, len(ticks)) if ticks[i][0] is Mode.AUTO and ticks[i - 1][0] is Mode.MAN)
+    assert ticks[first_auto - 1][1] == saved_mv  # the last MAN tick ran at the saved MV: the unit tracked it
+    # One sample of a PI from where it tracked: far below the relay's amplitude (5), which a switch from the last
+    # relay level would show.
+    assert abs(ticks[first_auto][1] - saved_mv) < 0.01 * 5.0
+    assert any(abs(mv - saved_mv) > 2.0 for mode, mv in ticks[:first_auto] if mode is Mode.MAN)  # the relay ran
+
+
+def test_a_link_that_never_returns_is_reported_as_not_restored():
+    result, plc, _ = asyncio.run(session({"outage": (60, 10**9)}, handback=HandBack(window=1.0)))
     assert result.code is Code.LINK_FAULT
     assert "LOOP NOT RESTORED" in result.message
+    assert plc.mode is Mode.MAN  # left where the outage found it (the daemon retries; see test_handback.py)
+
+
+def test_the_watchdog_hands_the_loop_back_when_the_heartbeat_stops():
+    async def scenario():
+        process = parse_process(PLANT)
+        ts = default_sample_time(process) * 100 / SAMPLES_PER_PERIOD
+        plc = SimulatedPlc(process, ts=ts / 5)
+        saved_mv = plc.hv
+        halt = asyncio.Event()
+        plant = asyncio.create_task(run(plc, SPEED, halt))
+        link = SimLink(plc)
+        # An outage from the 60th call on: the session goes silent with the loop at a relay level.
+        link.outage = (60, 10**9)
+        task = asyncio.create_task(tune_link(link, RelayConfig(amp=5.0), ts, speed=SPEED,
+                                             handback=HandBack(window=30.0, watchdog=0.5)))
+        await until(lambda: plc.fallbacks == 1, 20.0, "the watchdog to fall back")
+        mode, mv, flags = plc.mode, plc.mv, plc.flags
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        halt.set()
+        await plant
+        return mode, mv, flags, saved_mv
+
+    mode, mv, flags, saved_mv = asyncio.run(scenario())
+    assert mode is Mode.AUTO
+    assert abs(mv - saved_mv) < 0.01 * 5.0  # bumpless: one PI sample from the saved MV
+    assert flags.tbsy is False and flags.te is True and flags.ite == float(Code.WATCHDOG_FALLBACK)
 
 
 def test_nan_pv_is_never_used_as_data():

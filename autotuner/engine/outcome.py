@@ -34,6 +34,10 @@ class Code(IntEnum):
     UNSTABLE_DEAD_TIME_TOO_LONG = 17
     DERIVATIVE_DROPPED = 18
     ROBUSTNESS_MISSED = 19
+    # The hand-back (te true): 20-22.
+    LOOP_NOT_RESTORED = 20
+    OPERATOR_INTERVENTION = 21
+    WATCHDOG_FALLBACK = 22
 
 
 MESSAGES: dict[Code, str] = {
@@ -57,6 +61,9 @@ MESSAGES: dict[Code, str] = {
     Code.UNSTABLE_DEAD_TIME_TOO_LONG: "refused: the dead time is too long for this controller on an unstable process",
     Code.DERIVATIVE_DROPPED: "warning: PID was asked for but the design has no derivative action",
     Code.ROBUSTNESS_MISSED: "warning: the design misses its Ms target on the model",
+    Code.LOOP_NOT_RESTORED: "LOOP NOT RESTORED: the loop could not be handed back yet; the restore is retried",
+    Code.OPERATOR_INTERVENTION: "the loop was changed by hand after the daemon stopped: left as found, not restored",
+    Code.WATCHDOG_FALLBACK: "the device's watchdog handed the loop back (the tuner's heartbeat stopped)",
 }
 
 # Codes reported with te false: gains computed, but a target was missed (the message names it).

@@ -5,9 +5,13 @@ over in MAN, samples it on a deadline schedule (sample k is due at
 ``start + k·ts``, so delays do not accumulate), feeds the experiment the
 *measured* sample times (jitter then does not bias the identified point),
 and whatever way the experiment ends — success, TBRK, PV limits, link loss,
-cancellation (Ctrl-C, SIGTERM) — writes the saved MV back and returns the
-loop to its saved mode (the PID unit tracks the manual MV, so the return to
-AUTO is bumpless). New gains are written only on success and only if asked.
+cancellation (Ctrl-C, SIGTERM) — hands the loop back (:func:`hand_back`):
+the saved MV is written, read back from the device until the PID unit has
+taken it (it tracks the manual MV in MAN), and only then the saved mode is
+written, so the first AUTO output is the saved MV (docs/handback.md). While
+the session owns the loop the device's watchdog is armed and fed a
+heartbeat, so a tuner that dies leaves a loop that falls back by itself.
+New gains are written only on success and only if asked.
 
 ``speed`` runs a simulated plant's clock faster than the wall clock: the
 session then samples every ``ts/speed`` wall seconds and scales the measured
@@ -21,22 +25,24 @@ import multiprocessing
 import os
 import threading
 import time
+import math
 from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags
+from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags, Watchdog
 
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Status
 from autotuner.engine.simulated_tuning import Trace, TuneResult, result_of
 
-# How long a failing link is retried to put the loop back, wall seconds.
-RESTORE_WINDOW = 30.0
-# Handshake bits (TBSY, ite) are refreshed this often, wall seconds.
+# Handshake bits (TBSY, ite) and the watchdog's heartbeat are written this often, wall seconds.
 FLAGS_PERIOD = 0.5
+# Pauses between read-backs while the device tracks the saved MV, wall seconds (growing from the first).
+TRACK_POLL = (0.01, 0.1)
 # How often a design worker checks that the process that started it still lives, seconds.
 PARENT_CHECK = 0.5
 # Worker processes of the design (see _designed), started on first use, and the CPU seconds they spent.
@@ -61,29 +67,95 @@ async def deadlines(period: float) -> AsyncIterator[float]:
         k += 1
 
 
-async def _restore(link: Link, saved: LoopState) -> str:
-    """Saved MV, then saved mode; '' on success, else why the loop is not restored.
+@dataclass
+class HandBack:
+    """How loops are handed back; wall seconds (docs/handback.md, config key ``handback``).
 
-    A loop left in MAN at a relay level is the worst outcome, so the restore
-    keeps trying, with growing pauses, for ``RESTORE_WINDOW`` seconds.
+    ``window``: one restore keeps trying this long (then the loop is *not
+    restored*; the daemon retries it later). ``track_timeout``: longest wait,
+    per try, for the device's MV to read back the saved MV before the mode is
+    written. ``watchdog``: the device's watchdog timeout armed while a session
+    owns the loop (0: not armed). ``cap``: a monotonic time after which no
+    new try starts (set by a daemon that shuts down, so its hand-back is
+    bounded); infinite normally.
     """
-    deadline = time.monotonic() + RESTORE_WINDOW
+
+    window: float = 30.0
+    track_timeout: float = 5.0
+    watchdog: float = 0.0
+    cap: float = math.inf
+
+
+class NotTracking(Exception):
+    """The device does not take the saved MV (its actual MV does not read it back in time)."""
+
+
+async def track(link: Link, mv: float, timeout: float) -> LoopState:
+    """Write the manual MV ``mv`` and read the loop back until its actual MV is ``mv`` within the link's resolution.
+
+    The state read last; NotTracking after ``timeout`` wall seconds. On a
+    PLC whose PID unit tracks the manual MV in MAN, an actual MV equal to the
+    written one means the unit has run with it: its state follows, and the
+    next AUTO output starts from ``mv``.
+    """
+    await link.write_mv(mv)
+    tolerance = link.mv_resolution(mv)
+    deadline = time.monotonic() + timeout
+    pause = TRACK_POLL[0]
+    while True:
+        state = await link.read_state()
+        if abs(state.mv - mv) <= tolerance:
+            return state
+        if time.monotonic() + pause > deadline:
+            raise NotTracking(f"the actual MV reads {state.mv:g} after {timeout:g} s, not the {mv:g} written "
+                              f"(mode {Mode(state.mode).name}): the device does not take the manual MV")
+        await asyncio.sleep(pause)
+        pause = min(2.0 * pause, TRACK_POLL[1])
+
+
+async def hand_back_once(link: Link, saved: LoopState, track_timeout: float) -> None:
+    """One try of the bumpless hand-back: saved MV until read back, watchdog off, saved mode, mode read back.
+
+    Raises LinkError or NotTracking.
+    """
+    await track(link, saved.mv, track_timeout)
+    await link.write_watchdog(Watchdog())
+    await link.write_mode(Mode(saved.mode))
+    state = await link.read_state()
+    if state.mode is not Mode(saved.mode):
+        raise NotTracking(f"mode reads {Mode(state.mode).name} after {Mode(saved.mode).name} was written")
+
+
+def not_restored(saved: LoopState, why: str) -> str:
+    """The message of a loop that could not be handed back."""
+    return f"LOOP NOT RESTORED ({why}): the daemon retries; or set mode {Mode(saved.mode).name} and MV {saved.mv:g} by hand"
+
+
+async def hand_back(link: Link, saved: LoopState, handback: HandBack) -> str:
+    """Hand the loop back to ``saved``'s MV and mode, bumplessly; '' on success, else why it is not restored.
+
+    A loop left in MAN at a relay level is the worst outcome, so it keeps
+    trying, with growing pauses, for ``handback.window`` seconds (and not
+    past ``handback.cap``).
+    """
+    deadline = min(time.monotonic() + handback.window, handback.cap)
     pause = 0.1
     while True:
         try:
-            await link.write_mv(saved.mv)
-            await link.write_mode(Mode(saved.mode))
+            await hand_back_once(link, saved, handback.track_timeout)
             return ""
-        except LinkError as exc:
+        except (LinkError, NotTracking) as exc:
             if time.monotonic() + pause > deadline:
-                return f"LOOP NOT RESTORED ({exc}): set mode {Mode(saved.mode).name} and MV {saved.mv:g} by hand"
+                return not_restored(saved, str(exc))
             await asyncio.sleep(pause)
             pause = min(2.0 * pause, 2.0)
 
 
-async def _publish(link: Link, flags: TuneFlags) -> None:
+async def _publish(link: Link, flags: TuneFlags, heartbeat: int | None = None) -> None:
     try:
         await link.write_flags(flags)
+        if heartbeat is not None:
+            await link.write_heartbeat(heartbeat)
     except LinkError:
         pass  # the handshake is informative; the experiment's own I/O reports link faults
 
@@ -98,8 +170,17 @@ async def tune_link(
     speed: float = 1.0,
     stop: asyncio.Event | None = None,
     on_status: Callable[[Status], None] | None = None,
+    handback: HandBack | None = None,
+    on_saved: Callable[[LoopState, tuple[float, float]], None] | None = None,
 ) -> TuneResult:
-    """Run the experiment on the loop behind ``link`` every ``ts`` plant seconds and design ``controller``."""
+    """Run the experiment on the loop behind ``link`` every ``ts`` plant seconds and design ``controller``.
+
+    ``handback``: how the loop is handed back (default :class:`HandBack`());
+    its watchdog time is wall seconds, written to the device as ``speed``
+    times as many device seconds. ``on_saved(saved, relay_levels)`` is called
+    once the loop's state is read, before the loop is touched.
+    """
+    handback = HandBack() if handback is None else handback
     if not ts > 0.0 or not speed > 0.0:
         raise ValueError(f"sample time and speed must be positive, got ts={ts}, speed={speed}")
     try:
@@ -108,13 +189,19 @@ async def tune_link(
         return TuneResult.failed(Code.LINK_FAULT, f"cannot read the loop: {exc}", controller)
 
     experiment = RelayExperiment(config, mv0=saved.mv)
+    if on_saved is not None:
+        on_saved(saved, experiment.levels)
     times: list[float] = []
     pvs: list[float] = []
     mvs: list[float] = []
     restore_error = ""
+    handed_back = False
+    beats = 0
     try:
         await _publish(link, TuneFlags(tbsy=True, te=False, ite=0.0))
         await link.write_mv(saved.mv)
+        if handback.watchdog > 0.0:
+            await link.write_watchdog(Watchdog(timeout=handback.watchdog * speed, mv=saved.mv, mode=saved.mode))
         await link.write_mode(Mode.MAN)
         start = time.monotonic()
         flags_due = start
@@ -141,16 +228,18 @@ async def tune_link(
                 on_status(status)
             if time.monotonic() >= flags_due:
                 flags_due += FLAGS_PERIOD
-                await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite))
+                beats += 1
+                await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite), beats)
     except LinkError as exc:
         experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
     except asyncio.CancelledError:
         experiment.abort()
-        restore_error = await _restore(link, saved)
+        handed_back = True  # the caller sees how it went in the device's state; the result goes with the cancel
+        await hand_back(link, saved, handback)
         raise
     finally:
-        if not restore_error:
-            restore_error = await _restore(link, saved)
+        if not handed_back:
+            restore_error = await hand_back(link, saved, handback)
     result = await _designed(experiment, controller, ms, _trace(times, pvs, mvs), restore_error)
     if result.ok and apply:
         try:
@@ -158,7 +247,8 @@ async def tune_link(
         except LinkError as exc:
             result = TuneResult(Code.LINK_FAULT, f"gains not written: {exc}", controller,
                                 result.identification, result.design, result.trace)
-    await _publish(link, TuneFlags(tbsy=False, te=not result.ok, ite=float(result.code)))
+    ite = Code.LOOP_NOT_RESTORED if restore_error else result.code
+    await _publish(link, TuneFlags(tbsy=False, te=not result.ok, ite=float(ite)))
     if on_status is not None:
         on_status(experiment.status())
     return result

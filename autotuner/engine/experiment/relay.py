@@ -232,6 +232,11 @@ class RelayExperiment:
     # -- public interface -------------------------------------------------
 
     @property
+    def levels(self) -> tuple[float, float]:
+        """The relay's two MV levels (low, high), MV units: where the experiment holds the MV between switches."""
+        return (self._mv_low, self._mv_high)
+
+    @property
     def done(self) -> bool:
         """True once the experiment has ended (successfully or not)."""
         return self.stage is Stage.DONE
