@@ -2,8 +2,9 @@
 
 ``create_app(config)`` builds it; its lifespan opens the history, starts the
 :class:`~autotuner.service.daemon.LoopManager` (simulated plants, crash recovery) and
-on shutdown (SIGTERM/SIGINT through uvicorn) aborts running experiments and
-restores their loops. Reads need a viewer token, TUNE/TBRK/apply an operator;
+on shutdown aborts running experiments and hands their loops back. Served by
+:func:`api.server.serve`, SIGTERM/SIGINT do that *before* uvicorn waits for
+open connections (docs/handback.md). Reads need a viewer token, TUNE/TBRK/apply an operator;
 ``GET /api/v1/health`` needs none. The OpenAPI description is at
 ``/api/v1/openapi.json`` (interactive: ``/api/v1/docs``).
 """
@@ -251,6 +252,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
         finally:
             if opcua is not None:  # first: no TUNE from OPC UA while the sessions are being aborted
                 await opcua.stop()
+            app.state.unrestored = await manager.shutdown()
             await manager.stop()
             store.close()
 

@@ -5,7 +5,10 @@ MV, relay, ...) and a monitor reading while it is idle (time, PV, SP, MV,
 mode); docs/daemon.md lists the fields. Non-finite numbers are sent as null.
 
 The stream starts with the current state; a comment line every
-``KEEPALIVE`` seconds keeps proxies from closing an idle stream.
+``KEEPALIVE`` seconds keeps proxies from closing an idle stream. It ends
+when the daemon stops (after every loop is handed back, with a last
+``state``), so the server's wait for open connections never holds up a
+shutdown.
 """
 
 from __future__ import annotations
@@ -39,16 +42,18 @@ def frame(event: str, data: dict[str, Any]) -> str:
 
 
 async def stream(manager: LoopManager, loop_id: str) -> AsyncIterator[str]:
-    """The loop's events until the client goes away."""
+    """The loop's events until the client goes away or the daemon stops."""
     queue = manager.subscribe(loop_id)
     try:
         yield frame("state", manager.get(loop_id).as_json())
-        while True:
+        while not manager.streams_closed or not queue.empty():
             try:
                 event = await asyncio.wait_for(queue.get(), KEEPALIVE)
             except TimeoutError:
                 yield ": keep-alive\n\n"
                 continue
+            if event["event"] == "end":
+                return
             yield frame(event["event"], event["data"])
     finally:
         manager.unsubscribe(loop_id, queue)

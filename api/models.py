@@ -62,6 +62,18 @@ class Whoami(BaseModel):
     role: Literal["viewer", "operator", "admin"]
 
 
+class RestoreStatus(BaseModel):
+    """A loop the daemon could not hand back yet (``ite`` 20): the session, the mode and MV it restores, since when
+    (UTC), how many tries so far and why the last one failed; retried with back-off (docs/handback.md)."""
+
+    session: str
+    mode: Literal["MAN", "AUTO"]
+    mv: float
+    since: str
+    attempts: int
+    last_error: str
+
+
 class LoopStatus(BaseModel):
     """A loop: the PIDAT outputs (tbsy, te, ite), the stage and progress (0–1), the last point and gains, and
     the live values.
@@ -73,6 +85,7 @@ class LoopStatus(BaseModel):
     pending_gains: idle, and that session succeeded with gains not applied.
     monitor_error: why the monitor cannot read the loop, null when fine.
     defaults: the settings a TUNE without a body runs with.
+    restore: the loop is not handed back yet (te true, ite 20, TUNE refused), null when it is.
     """
 
     id: str
@@ -100,6 +113,7 @@ class LoopStatus(BaseModel):
     pending_gains: bool
     monitor_error: str | None
     defaults: TuneDefaults
+    restore: RestoreStatus | None = None
 
 
 class Accepted(BaseModel):
@@ -125,7 +139,7 @@ class SessionSummary(BaseModel):
     user: str
     started_at: str
     finished_at: str | None
-    state: Literal["running", "finished", "interrupted"]
+    state: Literal["running", "finished", "interrupted", "not_restored"]
     request: dict[str, Any]
     saved: dict[str, Any] | None
     gains_before: GainsOut | None

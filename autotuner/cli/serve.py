@@ -28,11 +28,12 @@ def serve_command(
 
     Tokens come from the config (hashed) and from $AUTOTUNER_TOKEN (an operator). The demo without
     --config generates an operator token and prints it once when $AUTOTUNER_TOKEN is unset.
-    SIGTERM/SIGINT abort running experiments and restore their loops before the daemon exits.
+    SIGTERM/SIGINT abort running experiments and hand every loop back first, within handback.shutdown seconds
+    (docs/handback.md), then the daemon exits 0; 3 if a loop could not be handed back (recorded; the next
+    start resumes its restore).
     """
-    import uvicorn
-
     from api.app import PREFIX, create_app
+    from api.server import serve
     from api.auth import new_token
     from api.opcua import ENV_USER, endpoint_url, require, with_opcua
 
@@ -77,9 +78,13 @@ def serve_command(
     print(f"autotuner API at {scheme}://{host}:{port}{PREFIX}  (OpenAPI: {PREFIX}/docs; operator page: "
           f"{scheme}://{host}:{port}/); {len(daemon_config.loops)} loops: "
           f"{', '.join(loop.id for loop in daemon_config.loops)}", flush=True)
-    uvicorn.run(create_app(daemon_config, env_token=token or "", host=host), host=host, port=port, log_level="info",
-                ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
-                ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))
+    status = serve(create_app(daemon_config, env_token=token or "", host=host), host=host, port=port,
+                   log_level="info", ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
+                   ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))
+    if status:
+        stderr.print(f"LOOP NOT RESTORED at shutdown: see the log; the next start resumes the restore "
+                     f"(exit {status})", highlight=False)
+        raise typer.Exit(status)
 
 
 @app.command("password-hash")

@@ -184,8 +184,38 @@ class OpcUaConfig(Strict):
         return self
 
 
+class HandBackConfig(Strict):
+    """How the daemon hands loops back (docs/handback.md); wall seconds.
+
+    window: one restore at the end of a session keeps trying this long before
+    the loop is *not restored* (code 20). retry_first, retry_max: a loop not
+    restored is tried again after ``retry_first``, the pause doubling up to
+    ``retry_max``, for as long as the daemon runs. track_timeout: longest
+    wait, per try, for the device's MV to read back the saved MV before AUTO
+    is written. shutdown: SIGTERM/SIGINT hand every loop back within this
+    bound (the process exits about ``shutdown + 5`` s after the signal at
+    most). watchdog: the device's watchdog timeout while the daemon owns a
+    loop (the heartbeat goes every 0.5 s); 0 does not arm it.
+    """
+
+    window: PositiveFloat = 30.0
+    retry_first: PositiveFloat = 1.0
+    retry_max: PositiveFloat = 60.0
+    track_timeout: PositiveFloat = 5.0
+    shutdown: PositiveFloat = 20.0
+    watchdog: Annotated[float, Field(ge=0.0, le=3600.0)] = 10.0
+
+    @model_validator(mode="after")
+    def _ordered(self) -> HandBackConfig:
+        if self.retry_first > self.retry_max:
+            raise ValueError(f"retry_first ({self.retry_first:g}) must not exceed retry_max ({self.retry_max:g})")
+        if 0.0 < self.watchdog <= 1.0:
+            raise ValueError(f"watchdog must be 0 (off) or longer than the 0.5 s heartbeat twice, got {self.watchdog:g}")
+        return self
+
+
 class DaemonConfig(Strict):
-    """The whole file: the history database, the tokens and the loops.
+    """The whole file: the history database, the tokens, the loops and how they are handed back.
 
     ``history``: an SQLite file (relative to the config file), ``:memory:``,
     or an SQLAlchemy database URL such as ``postgresql+psycopg://user:pw@host/db``
@@ -197,6 +227,7 @@ class DaemonConfig(Strict):
     tokens: list[Token] = []
     opcua: OpcUaConfig | None = None
     loops: list[LoopConfig]
+    handback: HandBackConfig = HandBackConfig()
 
     @field_validator("history")
     @classmethod

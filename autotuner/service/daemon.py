@@ -10,10 +10,25 @@ outcome and writes gains only on success when asked. Each session is an
 asyncio task, so loops tune concurrently and none waits for another's I/O.
 
 Every session goes to the :class:`History`: who, when, the settings, the
-loop's saved state (before the experiment touches it), the result, the gains
-after and a downsampled trace. On :meth:`LoopManager.start`, a session still
-recorded as running (the daemon died during it) is closed as interrupted and
-its loop is put back from the saved state.
+loop's saved state (before the experiment touches it) with the relay's MV
+levels, the result, the gains after and a downsampled trace.
+
+Restore until it holds (docs/handback.md): a loop whose session could not
+hand it back is *not restored* — recorded so in the history, ``ite``
+:attr:`Code.LOOP_NOT_RESTORED` in its status (and on the device when it can
+be written), logged at ERROR — and tried again with back-off for as long as
+the daemon runs, and after a restart. On :meth:`LoopManager.start`, a session
+still recorded as running (the daemon died during it) is recovered the same
+way. Each try first reads the loop and compares it with what the session left:
+MAN at one of the recorded relay levels or at the saved MV (within the link's
+resolution) is untouched and is handed back; already in its saved mode is
+taken as handed back (by the device's watchdog, or by hand); anything else is
+an operator's intervention, never overwritten: recorded (code
+:attr:`Code.OPERATOR_INTERVENTION`) and left as found.
+
+:meth:`LoopManager.shutdown` (SIGTERM/SIGINT) aborts every session and hands
+every loop back first, within a bound, then ends the event streams; loops it
+could not hand back stay recorded as not restored for the next start.
 
 Live events go to subscribers (the API's Server-Sent Events) through bounded
 queues; a slow subscriber loses events, it never delays the sampling.
@@ -56,25 +71,28 @@ from dataclasses import dataclass, field
 from typing import Any
 
 
-from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags
+from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags, Watchdog
 from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc, run
 
 from autotuner.engine.design.analysis import usable_gains
-from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
+from autotuner.service.config import DaemonConfig, HandBackConfig, LoopConfig, TuneRequest
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
-from autotuner.service.history import History, downsample
+from autotuner.service.history import History, downsample, now, state_of
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.relay import RelayConfig, Stage, Status
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, field_config, open_link
-from autotuner.service.link_session import close_design_pool, tune_link
+from autotuner.service.link_session import (HandBack, NotTracking, close_design_pool, hand_back_once, not_restored,
+                                            tune_link)
 from autotuner.engine.simulated_tuning import TuneResult
 
 # Events kept per subscriber before the oldest are dropped.
 QUEUE_EVENTS = 1000
-# How long :meth:`LoopManager.stop` waits for aborted sessions to restore their loops, wall seconds.
-STOP_WAIT = 40.0
+# How long :meth:`LoopManager.stop` waits for the watch tasks to end, wall seconds.
+STOP_WAIT = 10.0
+# Past the shutdown's bound, how long a try already under way may still finish, wall seconds.
+SHUTDOWN_GRACE = 2.0
 # Who the history records for sessions started by the device's TUNE bit.
 PLC_USER = "plc"
 # Longest pause between two tries of a watch task whose link fails, wall seconds.
@@ -86,7 +104,8 @@ log = logging.getLogger("autotuner.service.daemon")
 class Refused(Exception):
     """A request the loop's state does not allow.
 
-    ``code``: not_found, busy, group_busy, idle, nothing_to_apply, or link
+    ``code``: not_found, busy, group_busy, idle, nothing_to_apply, not_restored
+    (the loop is not handed back yet), stopping (the daemon shuts down), or link
     (the device could not be written).
     """
 
@@ -173,6 +192,44 @@ class _Tap:
 
 
 @dataclass
+class Pending:
+    """A loop not handed back yet: session ``sid`` saved ``saved`` and held the MV at ``levels``.
+
+    ``code`` and ``final``: the result code and history state the session gets
+    once the loop is back. ``since``: UTC, ISO 8601.
+    """
+
+    sid: str
+    saved: LoopState
+    levels: tuple[float, ...]
+    code: Code
+    final: str
+    error: str
+    since: str = field(default_factory=now)
+    attempts: int = 1
+
+    def as_json(self) -> dict[str, Any]:
+        """The ``restore`` member of the loop's status."""
+        return {"session": self.sid, "mode": Mode(self.saved.mode).name, "mv": self.saved.mv, "since": self.since,
+                "attempts": self.attempts, "last_error": self.error}
+
+
+def found(state: LoopState, pending: Pending, tolerance: float) -> str:
+    """How the loop is now, against what the interrupted session left (``tolerance``: the link's MV resolution).
+
+    ``left``: MAN at one of the relay levels or at the saved MV (untouched:
+    hand it back); ``back``: in its saved mode (AUTO, or MAN at the saved MV):
+    handed back already; ``changed``: anything else (an operator's intervention).
+    """
+    near = [pending.saved.mv, *pending.levels]
+    if state.mode is Mode.MAN and any(abs(state.mv - mv) <= tolerance for mv in near):
+        return "left"
+    if state.mode is Mode(pending.saved.mode) is Mode.AUTO:
+        return "back"
+    return "changed"
+
+
+@dataclass
 class Loop:
     """One loop at run time: its config, how to reach it, its tuning state and its last monitored values.
 
@@ -202,6 +259,9 @@ class Loop:
     saved: LoopState | None = None
     tap: _Tap | None = None
     applying: bool = False
+    pending: Pending | None = None
+    restorer: asyncio.Task[None] | None = None
+    handback: HandBack | None = None
 
     @property
     def busy(self) -> bool:
@@ -261,7 +321,15 @@ class Loop:
             "pending_gains": self.pending_gains,
             "monitor_error": self.monitor_error,
             "defaults": settings_of(c, TuneRequest()).as_json(),
-        }
+        } | self._restore_status()
+
+    def _restore_status(self) -> dict[str, Any]:
+        """While the loop is not handed back: te, ite 20 and the message override the session's, plus ``restore``."""
+        p = self.pending
+        if p is None:
+            return {"restore": None}
+        return {"te": True, "ite": float(Code.LOOP_NOT_RESTORED), "message": not_restored(p.saved, p.error),
+                "session": p.sid, "restore": p.as_json()}
 
 
 def _finite(x: float | None) -> float | None:
@@ -274,9 +342,18 @@ class LoopManager:
     def __init__(self, config: DaemonConfig, history: History) -> None:
         self.history = history
         self.loops: dict[str, Loop] = {c.id: self._loop(c) for c in config.loops}
+        self.handback_config: HandBackConfig = config.handback
         self._halt = asyncio.Event()
         self._polling = False
         self._plants: list[asyncio.Task[None]] = []
+        self._stopping = False
+        self._shutdown: asyncio.Task[list[str]] | None = None
+        self._streams_closed = False
+
+    def _handback(self) -> HandBack:
+        """The hand-back of a new session (its watchdog time is wall seconds; the session scales it)."""
+        c = self.handback_config
+        return HandBack(window=c.window, track_timeout=c.track_timeout, watchdog=c.watchdog)
 
     @staticmethod
     def _loop(config: LoopConfig) -> Loop:
@@ -284,33 +361,96 @@ class LoopManager:
         return Loop(config, connector(config, plc), plc=plc)
 
     async def start(self) -> None:
-        """Start the simulated plants and put back the loops of sessions a crash left running."""
+        """Start the simulated plants; put back the loops of sessions a crash left running or not restored.
+
+        One try each, at once and together; a loop that cannot be handed back
+        yet (its device offline) is retried in the background: the start
+        never waits for a device.
+        """
         for loop in self.loops.values():
             if loop.plc is not None:
                 self._plants.append(asyncio.create_task(run(loop.plc, loop.config.speed, self._halt)))
-        for record in self.history.running():
-            await self._recover(record)
+        recovered = [loop for record in (*self.history.running(), *self.history.not_restored())
+                     if (loop := self._recover(record)) is not None]
+        done = await asyncio.gather(*(self._try_restore(loop) for loop in recovered))
+        for loop, ok in zip(recovered, done):
+            if not ok:
+                loop.restorer = asyncio.create_task(self._restore_until_held(loop))
         self._polling = True
         for loop_id, loop in self.loops.items():
             loop.latest = self.history.latest(loop_id)
             loop.watcher = asyncio.create_task(self._watch(loop))
 
-    async def stop(self) -> None:
-        """Stop the watch tasks (monitor, handshake), abort every running session (TBRK), wait until their loops
-        are restored, stop the plants."""
+    async def shutdown(self) -> list[str]:
+        """Abort every session (TBRK) and hand every loop back first, within ``handback.shutdown`` seconds, then
+        end the event streams; the ids of the loops not handed back (recorded so, logged CRITICAL: the next start
+        resumes their restore). Once: later calls wait for the first one."""
+        if self._shutdown is None:
+            self._shutdown = asyncio.create_task(self._hand_back_all())
+        return await asyncio.shield(self._shutdown)
+
+    async def _hand_back_all(self) -> list[str]:
+        bound = self.handback_config.shutdown
+        deadline = time.monotonic() + bound
+        self._stopping = True
         self._polling = False  # also ends a watch whose link call swallowed the cancellation (3.11's wait_for)
         watchers = [loop.watcher for loop in self.loops.values() if loop.watcher is not None]
         for watcher in watchers:
             watcher.cancel()
-        if watchers:
-            await asyncio.wait(watchers, timeout=STOP_WAIT)
-        for loop in self.loops.values():
-            loop.watcher = None
+        restorers = [loop.restorer for loop in self.loops.values() if loop.restorer is not None]
+        for restorer in restorers:
+            restorer.cancel()
         tasks = [loop.task for loop in self.loops.values() if loop.task is not None]
         for loop in self.loops.values():
             loop.stop.set()
+        for loop in self.loops.values():
+            if loop.handback is not None:
+                loop.handback.cap = deadline  # no hand-back try of a session starts past the bound
+        log.warning("stopping: %d experiment(s) aborted, every loop handed back first (at most %g s)",
+                    len(tasks), bound)
         if tasks:
-            await asyncio.wait(tasks, timeout=STOP_WAIT)
+            await asyncio.wait(tasks, timeout=bound + SHUTDOWN_GRACE)
+        if restorers:
+            await asyncio.wait(restorers, timeout=SHUTDOWN_GRACE)
+        last = [loop for loop in self.loops.values() if loop.pending is not None]  # a last try for each
+        if last and time.monotonic() < deadline:
+            tries = [asyncio.create_task(self._try_restore(loop)) for loop in last]
+            await asyncio.wait(tries, timeout=max(deadline - time.monotonic(), 0.0) + SHUTDOWN_GRACE)
+        if watchers:
+            await asyncio.wait(watchers, timeout=STOP_WAIT)
+        unrestored: list[str] = []
+        for loop in self.loops.values():
+            loop.watcher = loop.restorer = None
+            if loop.task is not None and loop.session is not None:  # its hand-back did not end within the bound
+                self.history.finish(loop.session, TuneResult.failed(
+                    Code.LOOP_NOT_RESTORED, "the daemon stopped before the loop was handed back",
+                    "PI").as_json(), None, None, "not_restored")
+                unrestored.append(loop.config.id)
+            elif loop.pending is not None:
+                unrestored.append(loop.config.id)
+        for loop_id in unrestored:
+            loop = self.loops[loop_id]
+            what = "its hand-back did not end" if loop.pending is None else loop.pending.error
+            log.critical("loop %s: LOOP NOT RESTORED at shutdown (%s); recorded: the next start resumes the "
+                         "restore", loop_id, what)
+        self.close_streams()
+        return unrestored
+
+    def close_streams(self) -> None:
+        """End every event stream (the daemon stops): a last ``state`` event, then the end."""
+        self._streams_closed = True
+        for loop in self.loops.values():
+            self._publish(loop, "state", loop.as_json())
+            self._publish(loop, "end", {})
+
+    @property
+    def streams_closed(self) -> bool:
+        """The event streams have ended (a new one ends at once)."""
+        return self._streams_closed
+
+    async def stop(self) -> None:
+        """:meth:`shutdown` (if not done yet), then stop the plants and the design's workers."""
+        await self.shutdown()
         self._halt.set()
         await asyncio.gather(*self._plants)
         await asyncio.to_thread(close_design_pool)
@@ -325,8 +465,13 @@ class LoopManager:
     def tune(self, loop_id: str, request: TuneRequest, user: str) -> str:
         """TUNE: start a session on an idle loop; its id. Refused if the loop or its group is busy."""
         loop = self.get(loop_id)
+        if self._stopping:
+            raise Refused("stopping", "the daemon is stopping")
         if loop.busy:
             raise Refused("busy", f"loop {loop_id!r} is tuning (session {loop.session})")
+        if loop.pending is not None:
+            raise Refused("not_restored", f"loop {loop_id!r} is not handed back yet (session {loop.pending.sid}): "
+                                          f"{loop.pending.error}")
         if loop.applying:
             raise Refused("busy", f"gains are being written to loop {loop_id!r}")
         group = loop.config.group
@@ -435,16 +580,28 @@ class LoopManager:
             if stage_changed:
                 self._publish(loop, "state", loop.as_json())
 
+        levels: tuple[float, ...] = ()
+        restore_error = ""
+
+        def on_saved(saved: LoopState, relay_levels: tuple[float, float]) -> None:
+            nonlocal levels
+            loop.saved, levels = saved, relay_levels
+            self.history.saved(sid, saved, relay_levels)
+
+        def on_handed_back(error: str) -> None:
+            nonlocal restore_error
+            restore_error = error
+
         result: TuneResult | None = None
         gains_after: Gains | None = None
         state = "finished"
+        loop.handback = self._handback()
         try:
             await link.open()
-            saved = loop.saved = await link.read_state()
-            self.history.saved(sid, saved)
             result = await tune_link(tap, config, loop.config.ts, settings.controller, settings.ms, settings.apply,
-                                     speed, loop.stop, on_status)
-            gains_after = await _gains(link, saved, result, settings.apply)
+                                     speed, loop.stop, on_status, loop.handback, on_saved, on_handed_back)
+            if loop.saved is not None:
+                gains_after = await _gains(link, loop.saved, result, settings.apply)
         except LinkError as exc:
             result = TuneResult.failed(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", settings.controller)
         except asyncio.CancelledError:
@@ -452,15 +609,22 @@ class LoopManager:
             raise
         finally:
             await link.close()
-            if result is None:  # cancelled: tune_link has restored the loop
+            if result is None:  # cancelled: tune_link has handed the loop back (or said why not)
                 result = TuneResult.failed(Code.ABORTED, "aborted: the daemon stopped", settings.controller)
             loop.result = result.as_json()
             applied_by = user if result.ok and settings.apply else None
-            self.history.finish(sid, loop.result, gains_after, downsample(result.trace), state, applied_by)
+            if restore_error and loop.saved is not None:
+                loop.pending = Pending(sid, loop.saved, levels, result.code, state, restore_error)
+                log.error("loop %s: LOOP NOT RESTORED at the end of session %s (%s); retrying",
+                          loop.config.id, sid, restore_error)
+            self.history.finish(sid, loop.result, gains_after, downsample(result.trace),
+                                "not_restored" if loop.pending is not None else state, applied_by)
             loop.latest = self.history.latest(loop.config.id)
-            if loop.saved is not None:  # what the session left: its restored mode and the gains read back
+            if loop.saved is not None and loop.pending is None:  # what the session left: its mode, the gains read
                 loop.mode, loop.gains = Mode(loop.saved.mode), gains_after
-            loop.task, loop.tap, loop.saved = None, None, None
+            loop.task, loop.tap, loop.saved, loop.handback = None, None, None, None
+            if loop.pending is not None and not self._stopping:
+                loop.restorer = asyncio.create_task(self._restore_until_held(loop))
             self._publish(loop, "state", loop.as_json())
 
     async def _watch(self, loop: Loop) -> None:
@@ -574,18 +738,93 @@ class LoopManager:
             return
         log.info("loop %s: TUNE from the device started session %s", loop_id, sid)
 
-    async def _recover(self, record: dict[str, Any]) -> None:
-        """Close a session a crash left running; put its loop back from the saved state if it was touched."""
+    def _recover(self, record: dict[str, Any]) -> Loop | None:
+        """A session the last run left running or not restored: its loop, now pending a restore (None: nothing to
+        restore — the session never touched its loop, or the loop is no longer configured)."""
         loop = self.loops.get(record["loop"])
-        message = "interrupted: the daemon stopped during the session"
-        if record["saved"] is not None and loop is not None:
-            message += await _restore(loop.connect(), record["saved"])
-        elif record["saved"] is not None:
-            message += f"; loop {record['loop']!r} is no longer configured: check it by hand"
-        result = TuneResult.failed(Code.ABORTED, message, record["request"].get("controller", "PI")).as_json()
-        self.history.finish(record["id"], result, None, None, "interrupted")
-        if loop is not None:
-            loop.session, loop.result = record["id"], result
+        saved = record["saved"]
+        if record["state"] == "running":
+            message = "interrupted: the daemon stopped during the session"
+            if saved is None:
+                message += " (before it touched the loop)"
+            elif loop is None:
+                message += f"; loop {record['loop']!r} is no longer configured: check it by hand"
+            result = TuneResult.failed(Code.ABORTED, message, record["request"].get("controller", "PI")).as_json()
+            self.history.finish(record["id"], result, None, None,
+                                "not_restored" if saved is not None and loop is not None else "interrupted")
+            code, final = Code.ABORTED, "interrupted"
+        else:
+            result = record["result"]
+            code, final = Code(int(result["ite"])) if result else Code.ABORTED, "interrupted"
+            if loop is None:
+                log.critical("loop %s: session %s left it not restored, and it is no longer configured: check it "
+                             "by hand", record["loop"], record["id"])
+        if loop is None or saved is None:
+            return None
+        loop.session, loop.result = record["id"], result
+        loop.pending = Pending(record["id"], state_of(saved), tuple(saved.get("relay_levels", ())), code, final,
+                               "not tried since the daemon started")
+        return loop
+
+    async def _restore_until_held(self, loop: Loop) -> None:
+        """Try the pending restore of ``loop`` again and again, the pause doubling from ``retry_first`` up to
+        ``retry_max`` seconds, until it is dealt with (or the daemon stops)."""
+        pause = self.handback_config.retry_first
+        while loop.pending is not None and not self._stopping:
+            await asyncio.sleep(pause)
+            if await self._try_restore(loop):
+                return
+            pause = min(2.0 * pause, self.handback_config.retry_max)
+
+    async def _try_restore(self, loop: Loop) -> bool:
+        """One try at the pending restore of ``loop``; True when it is dealt with (handed back, found back, or
+        left as an operator set it), False when it must be tried again."""
+        p = loop.pending
+        assert p is not None
+        loop_id = loop.config.id
+        saved = p.saved
+        link = loop.connect()
+        try:
+            await link.open()
+            state = await link.read_state()
+            how = found(state, p, link.mv_resolution(saved.mv))
+            if how == "left":
+                await hand_back_once(link, saved, self.handback_config.track_timeout)
+                code, message = p.code, f"loop restored to {Mode(saved.mode).name} with MV {saved.mv:g}"
+                log.info("loop %s: %s (session %s, try %d)", loop_id, message, p.sid, p.attempts)
+            else:
+                await link.write_watchdog(Watchdog())  # it must not override what is there now, later
+                if how == "back":
+                    flags = await link.read_flags()
+                    by_watchdog = flags.ite == float(Code.WATCHDOG_FALLBACK)
+                    code = Code.WATCHDOG_FALLBACK if by_watchdog else p.code
+                    message = (f"found back in {state.mode.name} with MV {state.mv:g}: "
+                               + ("handed back by the device's watchdog" if by_watchdog else "nothing written"))
+                    log.warning("loop %s: %s (session %s)", loop_id, message, p.sid)
+                else:
+                    code = Code.OPERATOR_INTERVENTION
+                    message = (f"left as found: mode {state.mode.name}, MV {state.mv:g}, not the relay's or the "
+                               f"saved {Mode(saved.mode).name} at MV {saved.mv:g} (an operator's intervention): "
+                               "not restored")
+                    log.warning("loop %s: %s (session %s)", loop_id, message, p.sid)
+            await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(code)))
+        except (LinkError, NotTracking) as exc:
+            p.attempts += 1
+            p.error = str(exc) or type(exc).__name__
+            log.error("loop %s: LOOP NOT RESTORED (session %s, %d tries): %s", loop_id, p.sid, p.attempts, p.error)
+            with contextlib.suppress(LinkError):  # TE and ite 20 on the device, when it can be written
+                await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(Code.LOOP_NOT_RESTORED)))
+            self._publish(loop, "state", loop.as_json())
+            return False
+        finally:
+            await link.close()
+        self.history.restored(p.sid, p.final, message, int(code))
+        loop.pending = None
+        loop.result = {**(loop.result or {}), "ite": int(code), "te": True,
+                       "message": f"{(loop.result or {}).get('message', '')}; {message}"}
+        loop.latest = self.history.latest(loop_id)
+        self._publish(loop, "state", loop.as_json())
+        return True
 
 
 def _watching(config: LoopConfig) -> str:
@@ -613,21 +852,6 @@ async def _gains(link: Link, saved: LoopState, result: TuneResult, apply: bool) 
         return (await link.read_state()).gains
     except LinkError:
         return result.design.gains if result.ok and apply else saved.gains
-
-
-async def _restore(link: Link, saved: dict[str, Any]) -> str:
-    """Write the saved MV and mode back and clear TBSY (TE set, ite = ABORTED); '' or why it failed."""
-    try:
-        await link.open()
-        try:
-            await link.write_mv(saved["mv"])
-            await link.write_mode(Mode[saved["mode"]])
-            await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(Code.ABORTED)))
-        finally:
-            await link.close()
-    except LinkError as exc:
-        return f"; LOOP NOT RESTORED ({exc}): set mode {saved['mode']} and MV {saved['mv']:g} by hand"
-    return f"; loop restored to {saved['mode']} with MV {saved['mv']:g}"
 
 
 def _str(path: Any) -> str | None:

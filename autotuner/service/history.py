@@ -4,7 +4,10 @@ A session is written when it is requested (state ``running``), again when
 the loop's state — mode, MV, SP, gains — has been saved, before the
 experiment touches the loop (so a daemon that crashes mid-experiment can put
 the loop back on its next start), and when it ends
-(``finished``, or ``interrupted`` when a restart found it still running),
+(``finished``, or ``interrupted`` when a restart found it still running;
+``not_restored`` while its loop could not be handed back — the daemon retries
+it, also after a restart, and :meth:`History.restored` then gives the row its
+final state),
 with the result, the gains after and a downsampled trace. Gains written to the
 controller are recorded as applied (``applied_at``, ``applied_by``): at the
 end of a session asked to apply them, or later by ``POST /loops/{id}/apply``
@@ -132,9 +135,11 @@ class History:
             db.execute(_SESSIONS.insert().values(id=sid, loop=loop, user=user, started_at=now(), state="running",
                                                  request=json.dumps(request)))
 
-    def saved(self, sid: str, saved: LoopState) -> None:
-        """Record the loop's state before session ``sid`` touches it (what a restart after a crash restores)."""
-        self._write(sid, saved=json.dumps(state_json(saved)))
+    def saved(self, sid: str, saved: LoopState, relay_levels: tuple[float, ...] = ()) -> None:
+        """Record the loop's state before session ``sid`` touches it (what a restart after a crash restores), and
+        the MV levels the experiment will hold it at (``relay_levels``: how a restart tells the loop as the session
+        left it from one an operator changed)."""
+        self._write(sid, saved=json.dumps({**state_json(saved), "relay_levels": [float(x) for x in relay_levels]}))
 
     def finish(self, sid: str, result: dict[str, Any], gains_after: Gains | None,
                trace: dict[str, list[float]] | None, state: str = "finished", applied_by: str | None = None) -> None:
@@ -149,6 +154,25 @@ class History:
                     gains_after=None if gains_after is None else json.dumps(gains_after.as_json()),
                     trace=None if trace is None else json.dumps(trace, allow_nan=False),
                     applied_at=None if applied_by is None else at, applied_by=applied_by)
+
+    def restored(self, sid: str, state: str, message: str, code: int | None = None) -> None:
+        """A ``not_restored`` session whose loop has now been dealt with: its final ``state``, a message that says
+        how (appended to the result's message) and, if given, the result's new ``code`` (te stays true)."""
+        rows = self._read(sa.select(_SESSIONS.c.result).where(_SESSIONS.c.id == sid))
+        result = _load(rows[0]["result"]) if rows else None
+        values: dict[str, Any] = {"state": state}
+        if result is not None:
+            result["message"] = f"{result['message']}; {message}"
+            if code is not None:
+                result["ite"] = code
+            values["result"] = json.dumps(result, allow_nan=False)
+        self._write(sid, **values)
+
+    def not_restored(self) -> list[dict[str, Any]]:
+        """Sessions whose loops were not handed back (the daemon retries them)."""
+        rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.state == "not_restored")
+                          .order_by(_SESSIONS.c.started_at))
+        return [_record(row, with_trace=False) for row in rows]
 
     def applied(self, sid: str, user: str, gains_after: Gains) -> None:
         """Record that ``user`` had the gains of session ``sid`` written now; ``gains_after``: read back."""

@@ -172,6 +172,7 @@ async def tune_link(
     on_status: Callable[[Status], None] | None = None,
     handback: HandBack | None = None,
     on_saved: Callable[[LoopState, tuple[float, float]], None] | None = None,
+    on_handed_back: Callable[[str], None] | None = None,
 ) -> TuneResult:
     """Run the experiment on the loop behind ``link`` every ``ts`` plant seconds and design ``controller``.
 
@@ -234,12 +235,16 @@ async def tune_link(
         experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
     except asyncio.CancelledError:
         experiment.abort()
-        handed_back = True  # the caller sees how it went in the device's state; the result goes with the cancel
-        await hand_back(link, saved, handback)
+        handed_back = True
+        restore_error = await hand_back(link, saved, handback)
+        if on_handed_back is not None:
+            on_handed_back(restore_error)
         raise
     finally:
         if not handed_back:
             restore_error = await hand_back(link, saved, handback)
+            if on_handed_back is not None:
+                on_handed_back(restore_error)
     result = await _designed(experiment, controller, ms, _trace(times, pvs, mvs), restore_error)
     if result.ok and apply:
         try:

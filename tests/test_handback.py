@@ -1,0 +1,361 @@
+"""Fault injection with real processes: the daemon (`autotuner serve --config`) and an external simulated PLC
+(`autotuner sim --modbus`) as subprocesses, the PLC read by a separate Modbus client (docs/handback.md,
+docs/reliability.md).
+
+Every wait is a condition with a generous deadline; the plant runs 20× real time, so each test takes seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from pymodbus.client import ModbusTcpClient
+
+from autotuner.engine.outcome import Code
+from drivers.modbus_map import DEFAULT_MAP
+from helpers import free_port
+
+SPEED = 20.0
+TOKEN = "handback-test-token"
+SAVED_MV = 50.0  # the simulated PLC starts steady in AUTO at MV 50
+AMP = 5.0
+# A hand-back that is not bumpless starts AUTO at a relay level, 0.6·AMP (47) or AMP (55) from the saved MV. The first
+# AUTO reading of a client polling over TCP comes a few PLC ticks after the switch, the PI already moving the MV by
+# then (more, the further the PV is from the SP): the readings are checked against a fraction of the bump.
+FIRST_AUTO_TOL = 0.1 * AMP
+# Generous deadlines for a loaded 2-core machine (waits end as soon as the condition holds).
+START = 60.0
+WAIT = 30.0
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float, what: str) -> Any:
+    """Poll ``predicate`` every 20 ms until it returns something true (returned); AssertionError after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+        time.sleep(0.02)
+
+
+class Plc:
+    """An `autotuner sim --modbus` process and a Modbus client of our own reading (and, as an operator, writing) it."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.port = free_port()
+        self.log_path = tmp / f"plc-{self.port}.log"
+        self.log = open(self.log_path, "w")  # noqa: SIM115 - closed in close(); a file, never a pipe left unread
+        self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "sim", "--modbus",
+                                      f"127.0.0.1:{self.port}", "--speed", str(SPEED)],
+                                     stdout=self.log, stderr=subprocess.STDOUT, text=True)
+        wait_for(lambda: "serving" in self.log_path.read_text() or self.proc.poll() is not None, START,
+                 "the simulated PLC to serve")
+        assert self.proc.poll() is None, self.log_path.read_text()
+        self.client = ModbusTcpClient("127.0.0.1", port=self.port, timeout=1.0, retries=0)
+        assert self.client.connect()
+        self.stopped = False
+
+    @property
+    def url(self) -> str:
+        return f"modbus://127.0.0.1:{self.port}/1?timeout=0.3&retries=0"
+
+    def _holding(self, signal_name: str) -> float:
+        reg = DEFAULT_MAP[signal_name]
+        r = self.client.read_holding_registers(reg.address, count=reg.size, device_id=1)
+        assert not r.isError(), r
+        return DEFAULT_MAP.decode(signal_name, r.registers)
+
+    def _input(self, signal_name: str) -> float:
+        reg = DEFAULT_MAP[signal_name]
+        r = self.client.read_input_registers(reg.address, count=reg.size, device_id=1)
+        assert not r.isError(), r
+        return DEFAULT_MAP.decode(signal_name, r.registers)
+
+    def read(self) -> dict[str, Any]:
+        """Mode, actual MV, PV, manual MV, TBSY, TE, ite and the watchdog time, as the PLC serves them now."""
+        coils = self.client.read_coils(0, count=4, device_id=1)
+        assert not coils.isError(), coils
+        return {"mode": "AUTO" if self._holding("mode") == 1.0 else "MAN", "mv": self._input("mv"),
+                "pv": self._input("pv"), "hv": self._holding("hv"), "tbsy": coils.bits[2], "te": coils.bits[3],
+                "ite": self._holding("ite"), "wd_time": self._holding("wd_time")}
+
+    def write_hv(self, mv: float) -> None:
+        """An operator's manual MV."""
+        r = self.client.write_registers(DEFAULT_MAP["hv"].address, DEFAULT_MAP.encode("hv", mv), device_id=1)
+        assert not r.isError(), r
+
+    def freeze(self) -> None:
+        """The PLC stops answering (SIGSTOP): requests time out, its state is kept."""
+        self.proc.send_signal(signal.SIGSTOP)
+        self.stopped = True
+
+    def thaw(self) -> None:
+        self.proc.send_signal(signal.SIGCONT)
+        self.stopped = False
+
+    def close(self) -> None:
+        self.client.close()
+        if self.stopped:
+            self.thaw()
+        self.proc.kill()
+        self.proc.wait()
+        self.log.close()
+
+
+class Daemon:
+    """An `autotuner serve --config` process over one loop ``L1`` on ``plc``, with its history in ``tmp``."""
+
+    def __init__(self, tmp: Path, plc: Plc, **handback: float) -> None:
+        self.tmp = tmp
+        self.history = tmp / "history.sqlite"
+        settings = {"window": 2.0, "retry_first": 0.3, "retry_max": 1.0, "track_timeout": 2.0, "shutdown": 8.0,
+                    "watchdog": 0.0} | handback
+        config = {"history": str(self.history), "handback": settings, "loops": [{
+            "id": "L1", "link": plc.url, "ts": 0.3, "speed": SPEED, "monitor_period": 0.2,
+            "tuning": {"controller": "PI", "amp": AMP, "time_limit": 2000}, "limits": {"pv": [0, 100],
+                                                                                        "mv": [0, 100]}}]}
+        self.config = tmp / "daemon.yaml"
+        self.config.write_text(json.dumps(config))  # JSON is YAML
+        self.port = free_port()
+        self.base = f"http://127.0.0.1:{self.port}/api/v1"
+        self.headers = {"Authorization": f"Bearer {TOKEN}"}
+        self.log = open(tmp / f"daemon-{self.port}.log", "w")  # noqa: SIM115 - closed in close()
+        self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(self.config),
+                                      "--port", str(self.port)], env={**os.environ, "AUTOTUNER_TOKEN": TOKEN},
+                                     stdout=self.log, stderr=subprocess.STDOUT, text=True)
+        try:
+            wait_for(self._up, START, "the daemon to answer")
+        except AssertionError as exc:
+            self.close()
+            raise AssertionError(f"{exc}\n{self.output()}") from None
+
+    def _up(self) -> bool:
+        assert self.proc.poll() is None, self.output()
+        try:
+            return httpx.get(f"{self.base}/health", timeout=2.0).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    def output(self) -> str:
+        return (self.tmp / f"daemon-{self.port}.log").read_text()
+
+    def status(self) -> dict[str, Any]:
+        return httpx.get(f"{self.base}/loops/L1", headers=self.headers, timeout=5.0).json()
+
+    def tune(self) -> str:
+        r = httpx.post(f"{self.base}/loops/L1/tune", headers=self.headers, json={}, timeout=5.0)
+        assert r.status_code == 202, r.text
+        return r.json()["session"]
+
+    def abort(self) -> None:
+        r = httpx.post(f"{self.base}/loops/L1/break", headers=self.headers, timeout=5.0)
+        assert r.status_code == 202, r.text
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        self.log.close()
+
+
+def history_row(path: Path, sid: str) -> dict[str, Any]:
+    """The session's row, read from the history database file directly (another process wrote it)."""
+    with sqlite3.connect(path) as db:
+        db.row_factory = sqlite3.Row
+        row = db.execute("SELECT * FROM sessions WHERE id = ?", (sid,)).fetchone()
+    record = dict(row)
+    record["result"] = json.loads(record["result"]) if record["result"] else None
+    return record
+
+
+@pytest.fixture
+def plc(tmp_path) -> Iterator[Plc]:
+    p = Plc(tmp_path)
+    try:
+        yield p
+    finally:
+        p.close()
+
+
+@contextmanager
+def daemon(tmp: Path, plc: Plc, **handback: float) -> Iterator[Daemon]:
+    d = Daemon(tmp, plc, **handback)
+    try:
+        yield d
+    finally:
+        d.close()
+
+
+def at_relay_level(plc: Plc) -> dict[str, Any]:
+    """The PLC in MAN with its MV at one of the relay's levels (the experiment holds the loop)."""
+    def relay() -> dict[str, Any] | None:
+        now = plc.read()
+        return now if now["mode"] == "MAN" and abs(now["mv"] - SAVED_MV) > 0.5 * AMP else None
+
+    return wait_for(relay, WAIT, "the relay to hold the MV at a level")
+
+
+def first_auto(plc: Plc, timeout: float = WAIT) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Read the PLC as fast as it answers until it is in AUTO: its first AUTO reading and every reading before."""
+    seen: list[dict[str, Any]] = []
+
+    def auto() -> dict[str, Any] | None:
+        seen.append(plc.read())
+        return seen[-1] if seen[-1]["mode"] == "AUTO" else None
+
+    return wait_for(auto, timeout, "the loop back in AUTO"), seen
+
+
+def pv_after(plc: Plc, seconds: float) -> list[float]:
+    """The PV read for ``seconds`` of wall time (a measurement window, not a synchronisation)."""
+    end = time.monotonic() + seconds
+    pvs = []
+    while time.monotonic() < end:
+        pvs.append(plc.read()["pv"])
+    return pvs
+
+
+def test_the_hand_back_is_bumpless_on_the_device(tmp_path, plc):
+    """TBRK with the relay at a level: the first AUTO output the PLC serves is the saved MV and the PV is not
+    bumped. Before the fix the PLC resumed AUTO from the last relay level (MV 45 or 55, saved 50)."""
+    with daemon(tmp_path, plc) as d:
+        sid = d.tune()
+        during = [at_relay_level(plc)]
+        # One relay period (15 plant s = 0.75 s wall) of PV while the relay runs: the band the hand-back must keep.
+        during += [plc.read() for _ in range(50)]
+        d.abort()
+        auto, before = first_auto(plc)
+        assert abs(auto["mv"] - SAVED_MV) < FIRST_AUTO_TOL, (auto, before[-3:])
+        pvs = pv_after(plc, 1.5)
+        band = (min(r["pv"] for r in during), max(r["pv"] for r in during))
+        assert band[0] - 0.5 <= min(pvs) and max(pvs) <= band[1] + 0.5, (band, min(pvs), max(pvs))
+        wait_for(lambda: d.status()["tbsy"] is False, WAIT, "the session to end")
+        row = history_row(d.history, sid)
+        assert row["state"] == "finished" and row["result"]["ite"] == int(Code.ABORTED)
+        assert json.loads(row["saved"])["relay_levels"] == [47.0, 55.0]
+
+
+def test_sigterm_with_an_event_stream_open_hands_back_first_and_exits_0(tmp_path, plc):
+    with daemon(tmp_path, plc, shutdown=8.0) as d:
+        sid = d.tune()
+        lines: list[str] = []
+        ended = threading.Event()
+
+        def listen() -> None:
+            with httpx.stream("GET", f"{d.base}/loops/L1/events", headers=d.headers, timeout=60.0) as r:
+                for line in r.iter_lines():
+                    lines.append(line)
+            ended.set()
+
+        reader = threading.Thread(target=listen, daemon=True)
+        reader.start()
+        wait_for(lambda: any(line.startswith("event: sample") for line in lines), WAIT, "samples on the stream")
+        at_relay_level(plc)
+        signalled = time.monotonic()
+        d.proc.send_signal(signal.SIGTERM)
+        d.proc.send_signal(signal.SIGINT)  # a second Ctrl-C changes nothing: the hand-back goes on
+        assert d.proc.wait(timeout=8.0 + 10.0) == 0, d.output()
+        took = time.monotonic() - signalled
+        assert ended.wait(5.0), "the event stream did not end"
+        now = plc.read()
+        assert now["mode"] == "AUTO" and now["tbsy"] is False and now["wd_time"] == 0.0, now
+        row = history_row(d.history, sid)
+        assert row["state"] == "finished" and row["result"]["ite"] == int(Code.ABORTED), row
+        assert took < 8.0 + 5.0, took  # the documented bound: handback.shutdown + 5 s
+        assert "again: the hand-back of every loop goes on" in d.output()
+
+
+def test_sigkill_then_the_device_watchdog_hands_the_loop_back(tmp_path, plc):
+    with daemon(tmp_path, plc, watchdog=1.5) as d:
+        sid = d.tune()
+        armed = at_relay_level(plc)
+        assert armed["wd_time"] == 1.5 * SPEED  # wall seconds × speed = the PLC's seconds
+        d.proc.kill()
+        d.proc.wait()
+        auto, before = first_auto(plc, timeout=WAIT)
+    assert before[0]["mode"] == "MAN" and abs(before[0]["mv"] - SAVED_MV) > 0.5 * AMP  # left at a relay level
+    # The PV has drifted for the watchdog's time at a relay level, so the PI moves faster after the switch: twice the
+    # tolerance, still well below the bump.
+    assert abs(auto["mv"] - SAVED_MV) < 2 * FIRST_AUTO_TOL, auto
+    assert auto["tbsy"] is False and auto["te"] is True and auto["ite"] == float(Code.WATCHDOG_FALLBACK)
+    # The next start finds it handed back: nothing written, recorded.
+    with daemon(tmp_path, plc, watchdog=1.5) as d:
+        row = wait_for(lambda: (r := history_row(d.history, sid))["state"] != "running" and r, WAIT, "recovery")
+        assert row["state"] == "interrupted" and row["result"]["ite"] == int(Code.WATCHDOG_FALLBACK), row
+        assert "handed back by the device's watchdog" in row["result"]["message"]
+        assert d.status()["restore"] is None
+
+
+def test_a_plc_outage_longer_than_the_restore_window_is_retried_until_the_loop_is_back(tmp_path, plc):
+    with daemon(tmp_path, plc, window=1.0, retry_first=0.3, retry_max=1.0) as d:
+        sid = d.tune()
+        at_relay_level(plc)
+        plc.freeze()
+        status = wait_for(lambda: (s := d.status())["restore"] is not None and s, WAIT, "the loop not restored")
+        assert status["ite"] == float(Code.LOOP_NOT_RESTORED) and status["te"] is True and status["tbsy"] is False
+        assert "LOOP NOT RESTORED" in status["message"] and status["restore"]["session"] == sid
+        assert history_row(d.history, sid)["state"] == "not_restored"
+        attempts = wait_for(lambda: (n := d.status()["restore"]["attempts"]) >= 3 and n, WAIT, "retries")
+        assert attempts >= 3
+        assert "loop L1: LOOP NOT RESTORED" in d.output()
+        plc.thaw()
+        wait_for(lambda: d.status()["restore"] is None, WAIT, "the restore to succeed once the PLC answers")
+        now = plc.read()
+        assert now["mode"] == "AUTO" and now["tbsy"] is False and now["te"] is True, now
+        assert now["ite"] == float(Code.LINK_FAULT)  # the session's own outcome once the loop is back
+        row = history_row(d.history, sid)
+        assert row["state"] == "finished" and "loop restored to AUTO with MV 50" in row["result"]["message"]
+
+
+def test_sigterm_while_the_plc_is_unreachable_exits_nonzero_and_the_next_start_restores(tmp_path, plc):
+    with daemon(tmp_path, plc, shutdown=3.0, window=30.0) as d:
+        sid = d.tune()
+        at_relay_level(plc)
+        plc.freeze()
+        d.proc.send_signal(signal.SIGTERM)
+        assert d.proc.wait(timeout=3.0 + 10.0) == 3, d.output()
+        assert "CRITICAL" in d.output() or "LOOP NOT RESTORED at shutdown" in d.output()
+        assert history_row(d.history, sid)["state"] == "not_restored"
+    plc.thaw()
+    with daemon(tmp_path, plc) as d:
+        row = wait_for(lambda: (r := history_row(d.history, sid))["state"] != "not_restored" and r, WAIT,
+                       "the next start to restore the loop")
+        assert row["state"] == "interrupted" and "loop restored to AUTO with MV 50" in row["result"]["message"]
+        now = plc.read()
+        assert now["mode"] == "AUTO" and now["tbsy"] is False, now
+
+
+def test_an_operators_intervention_between_a_sigkill_and_the_restart_is_kept_and_recorded(tmp_path, plc):
+    with daemon(tmp_path, plc) as d:
+        sid = d.tune()
+        at_relay_level(plc)
+        d.proc.kill()
+        d.proc.wait()
+    plc.write_hv(20.0)  # the operator takes the loop by hand: MAN at 20
+    wait_for(lambda: plc.read()["mv"] == 20.0, WAIT, "the PLC to apply the operator's MV")
+    with daemon(tmp_path, plc) as d:
+        row = wait_for(lambda: (r := history_row(d.history, sid))["state"] != "running" and r, WAIT, "recovery")
+        assert row["state"] == "interrupted" and row["result"]["ite"] == int(Code.OPERATOR_INTERVENTION), row
+        assert "left as found: mode MAN, MV 20" in row["result"]["message"]
+        wait_for(lambda: plc.read()["ite"] == float(Code.OPERATOR_INTERVENTION), WAIT, "TE/ite on the PLC")
+        status = d.status()
+        assert status["ite"] == float(Code.OPERATOR_INTERVENTION) and status["restore"] is None
+        for _ in range(20):  # the daemon keeps its hands off: the loop stays as the operator set it
+            now = plc.read()
+            assert now["mode"] == "MAN" and now["mv"] == 20.0 and now["hv"] == 20.0, now
+        assert "an operator's intervention" in d.output()
