@@ -29,6 +29,8 @@ from drivers.modbus_map import DEFAULT_MAP
 from helpers import free_port
 
 SPEED = 20.0
+# The simulated PLC's cycle, plant seconds: 200 cycles per wall second at SPEED, light on a shared machine.
+PLC_TS = 0.1
 TOKEN = "handback-test-token"
 SAVED_MV = 50.0  # the simulated PLC starts steady in AUTO at MV 50
 AMP = 5.0
@@ -61,7 +63,7 @@ class Plc:
         self.log_path = tmp / f"plc-{self.port}.log"
         self.log = open(self.log_path, "w")  # noqa: SIM115 - closed in close(); a file, never a pipe left unread
         self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "sim", "--modbus",
-                                      f"127.0.0.1:{self.port}", "--speed", str(SPEED)],
+                                      f"127.0.0.1:{self.port}", "--speed", str(SPEED), "--ts", str(PLC_TS)],
                                      stdout=self.log, stderr=subprocess.STDOUT, text=True)
         wait_for(lambda: "serving" in self.log_path.read_text() or self.proc.poll() is not None, START,
                  "the simulated PLC to serve")
@@ -126,7 +128,7 @@ class Daemon:
         settings = {"window": 2.0, "retry_first": 0.3, "retry_max": 1.0, "track_timeout": 2.0, "shutdown": 8.0,
                     "watchdog": 0.0} | handback
         config = {"history": str(self.history), "handback": settings, "loops": [{
-            "id": "L1", "link": plc.url, "ts": 0.3, "speed": SPEED, "monitor_period": 0.2,
+            "id": "L1", "link": plc.url, "ts": 0.3, "speed": SPEED, "monitor_period": 0.5,
             "tuning": {"controller": "PI", "amp": AMP, "time_limit": 2000}, "limits": {"pv": [0, 100],
                                                                                         "mv": [0, 100]}}]}
         self.config = tmp / "daemon.yaml"
@@ -216,18 +218,19 @@ def first_auto(plc: Plc, timeout: float = WAIT) -> tuple[dict[str, Any], list[di
 
     def auto() -> dict[str, Any] | None:
         seen.append(plc.read())
-        return seen[-1] if seen[-1]["mode"] == "AUTO" else None
+        return seen[-1] if seen[-1]["mode"] == "AUTO" else None  # polled every 20 ms: 0.4 plant s, 4 PLC cycles
 
     return wait_for(auto, timeout, "the loop back in AUTO"), seen
 
 
-def pv_after(plc: Plc, seconds: float) -> list[float]:
-    """The PV read for ``seconds`` of wall time (a measurement window, not a synchronisation)."""
+def readings(plc: Plc, seconds: float) -> list[dict[str, Any]]:
+    """The PLC read every 20 ms for ``seconds`` of wall time (a measurement window, not a synchronisation)."""
     end = time.monotonic() + seconds
-    pvs = []
+    seen = []
     while time.monotonic() < end:
-        pvs.append(plc.read()["pv"])
-    return pvs
+        seen.append(plc.read())
+        time.sleep(0.02)
+    return seen
 
 
 def test_the_hand_back_is_bumpless_on_the_device(tmp_path, plc):
@@ -236,12 +239,12 @@ def test_the_hand_back_is_bumpless_on_the_device(tmp_path, plc):
     with daemon(tmp_path, plc) as d:
         sid = d.tune()
         during = [at_relay_level(plc)]
-        # One relay period (15 plant s = 0.75 s wall) of PV while the relay runs: the band the hand-back must keep.
-        during += [plc.read() for _ in range(50)]
+        # A relay period (15 plant s = 0.75 s wall) of PV while the relay runs: the band the hand-back must keep.
+        during += readings(plc, 1.0)
         d.abort()
         auto, before = first_auto(plc)
         assert abs(auto["mv"] - SAVED_MV) < FIRST_AUTO_TOL, (auto, before[-3:])
-        pvs = pv_after(plc, 1.5)
+        pvs = [r["pv"] for r in readings(plc, 1.5)]
         band = (min(r["pv"] for r in during), max(r["pv"] for r in during))
         assert band[0] - 0.5 <= min(pvs) and max(pvs) <= band[1] + 0.5, (band, min(pvs), max(pvs))
         wait_for(lambda: d.status()["tbsy"] is False, WAIT, "the session to end")
@@ -355,7 +358,6 @@ def test_an_operators_intervention_between_a_sigkill_and_the_restart_is_kept_and
         wait_for(lambda: plc.read()["ite"] == float(Code.OPERATOR_INTERVENTION), WAIT, "TE/ite on the PLC")
         status = d.status()
         assert status["ite"] == float(Code.OPERATOR_INTERVENTION) and status["restore"] is None
-        for _ in range(20):  # the daemon keeps its hands off: the loop stays as the operator set it
-            now = plc.read()
+        for now in readings(plc, 1.0):  # the daemon keeps its hands off: the loop stays as the operator set it
             assert now["mode"] == "MAN" and now["mv"] == 20.0 and now["hv"] == 20.0, now
         assert "an operator's intervention" in d.output()

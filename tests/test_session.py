@@ -144,7 +144,7 @@ def test_the_watchdog_hands_the_loop_back_when_the_heartbeat_stops():
         # An outage from the 60th call on: the session goes silent with the loop at a relay level.
         link.outage = (60, 10**9)
         task = asyncio.create_task(tune_link(link, RelayConfig(amp=5.0), ts, speed=SPEED,
-                                             handback=HandBack(window=30.0, watchdog=0.5)))
+                                             handback=HandBack(window=30.0, watchdog=2.0)))
         await until(lambda: plc.fallbacks == 1, 20.0, "the watchdog to fall back")
         mode, mv, flags = plc.mode, plc.mv, plc.flags
         task.cancel()
