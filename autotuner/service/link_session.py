@@ -229,8 +229,9 @@ async def tune_link(
                 on_status(status)
             if time.monotonic() >= flags_due:
                 flags_due += FLAGS_PERIOD
-                beats += 1
-                await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite), beats)
+                beats += 1  # the heartbeat only feeds an armed watchdog: no extra request otherwise
+                await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite),
+                               beats if handback.watchdog > 0.0 else None)
     except LinkError as exc:
         experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
     except asyncio.CancelledError:
