@@ -333,3 +333,22 @@ def test_warning_result_exits_0_with_te_false_and_the_notes_in_the_message() -> 
     assert doc["design"]["notes"] and doc["design"]["notes"][0] in doc["message"]
     human = _invoke("tune", "--controller", "PID", "--noise", "0.01")
     assert human.exit_code == 0 and "warning" in human.stdout and "design note" in human.stdout
+
+
+def test_bench_field_runs_every_scenario_on_a_batch(tmp_path: Path) -> None:
+    from autotuner.benchmarks.design_bench import default_batch
+    from autotuner.benchmarks.field_bench import SCENARIOS
+
+    lines = default_batch().read_text().splitlines()
+    batch = tmp_path / "one.csv"
+    batch.write_text("\n".join([lines[0], lines[1]]) + "\n")  # P1-001, exp(-s)/(0.02*s+1)
+    out = tmp_path / "field.md"
+    result = _invoke("bench", "--field", "--batch", str(batch), "--workers", "1", "--output", str(out))
+    assert result.exit_code == 0, result.output
+    for scenario in SCENARIOS:
+        assert f"| {scenario.name} | 1 |" in result.stdout
+        assert f"### {scenario.name}" in out.read_text()
+    assert "field scenarios:" in result.stdout and "of 14 runs tuned with Ms ≤ 1.6" in result.stdout
+    assert "ZN PI:" in result.stdout and "AH PID:" in result.stdout
+    clean = next(line for line in result.stdout.splitlines() if line.startswith("| clean"))
+    assert "| 1 | 1 | 1 (100.0 %) |" in clean  # the undisturbed run tunes and keeps Ms ≤ 1.6

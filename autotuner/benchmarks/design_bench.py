@@ -22,10 +22,12 @@ import csv
 import math
 import os
 import statistics
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -39,6 +41,8 @@ from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.engine.design.robustness import Plant, log_grid, migo
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.simulated_tuning import EXPERIMENT_SAMPLES_PER_PERIOD, phase_frequency, tune
+
+T = TypeVar("T")
 
 NOISE_FRACTION = 0.01
 AH_RADIUS = 0.5
@@ -202,10 +206,15 @@ def design_one(row: dict[str, str]) -> DesignRow:
     )
 
 
+def pool_map(work: Callable[[dict[str, str]], T], rows: list[dict[str, str]], workers: int | None = None) -> list[T]:
+    """``work`` on every row in a pool of ``workers`` processes (default: all cores), results in row order."""
+    with ProcessPoolExecutor(max_workers=workers or os.cpu_count()) as pool:
+        return list(pool.map(work, rows, chunksize=1))
+
+
 def run_batch(rows: list[dict[str, str]], workers: int | None = None, design_only: bool = False) -> list:
     """Benchmark every row (experiment and design, or with ``design_only`` the rule alone), on all cores."""
-    with ProcessPoolExecutor(max_workers=workers or os.cpu_count()) as pool:
-        return list(pool.map(design_one if design_only else run_one, rows, chunksize=1))
+    return pool_map(design_one if design_only else run_one, rows, workers)
 
 
 _COLUMNS = (

@@ -22,8 +22,13 @@ def bench(
     output: Annotated[Path | None, typer.Option(help="Also write the table (markdown) to this file.")] = None,
     design_only: Annotated[bool, typer.Option("--design-only", help="Only the design rule, from the exact "
                                               "135° point and static gain (no experiment).")] = False,
+    field: Annotated[bool, typer.Option("--field", help="Field conditions: every process under load steps, "
+                                        "drift, noise, quantisation and a non-steady start "
+                                        "(docs/field-benchmark.md).")] = False,
 ) -> None:
     """Benchmark the experiment and the design on every process of a batch against the usual relay tuners."""
+    if field and design_only:
+        bad_input("--field and --design-only exclude each other")
     from autotuner.benchmarks.design_bench import default_batch, format_table, load_batch, run_batch
     from autotuner.engine.plant.expression import parse_process
 
@@ -36,6 +41,19 @@ def bench(
         bad_input(f"bad batch {batch}: missing column {exc}")
     except (OSError, ValueError) as exc:  # unreadable file, bad expression
         bad_input(f"bad batch {batch}: {exc}")
+    if field:
+        from autotuner.benchmarks.field_bench import (per_scenario_tables, run_field, run_unstable, summary,
+                                                      unstable_table)
+
+        results = run_field(rows, workers)
+        table, line = summary(results)
+        unstable = unstable_table(run_unstable(workers)) if batch is None else ""
+        print(f"{table}\n\n{line}" + (f"\n\nunstable processes:\n\n{unstable}" if unstable else ""))
+        if output is not None:
+            output.write_text(f"{table}\n\n{line}\n\n" + (f"## Unstable processes\n\n{unstable}\n\n" if unstable
+                                                              else "") + f"## Per scenario\n\n{per_scenario_tables(results)}")
+        stderr.print(f"{len(rows)} processes in {time.perf_counter() - start:.1f} s wall time", highlight=False)
+        return
     table = format_table(run_batch(rows, workers, design_only))
     print(table)
     if output is not None:

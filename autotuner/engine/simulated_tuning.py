@@ -182,7 +182,7 @@ def result_of(experiment: RelayExperiment, trace: Trace, controller: str, ms: fl
     if ident is not None:
         try:
             des = design(ident.point, ident.static_gain, controller, ms, noise_std=ident.noise_std,
-                         amp=experiment.config.amp)
+                         amp=experiment.config.amp, static_gain_std=ident.static_gain_std)
         except Refusal as exc:
             code, message = exc.code, f"{MESSAGES[exc.code]}: {exc}"
         except ValueError as exc:

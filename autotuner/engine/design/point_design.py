@@ -67,6 +67,10 @@ DEFAULT_ND = 10.0
 MV_NOISE_BUDGET = 0.1
 # Lowest derivative filter factor N used to keep within that budget; below it the derivative goes.
 ND_MIN = 2.0
+# Relative 2σ spread of the static gain from which its uncertainty enters the model family, and the
+# largest spread considered (beyond, the estimate is no better than a guess within ±50 %).
+STATIC_SPREAD_MIN = 0.05
+STATIC_SPREAD_MAX = 0.5
 # Relative slack on the Ms checks (the grid and the optimiser's tolerance).
 _MS_SLACK = 1e-3
 
@@ -169,11 +173,23 @@ def fit_resonant(point: Point, static_gain: float, delay: float) -> Process | No
                            text=f"resonant model (ζ = {zeta:.3g})")
 
 
-def model_family(point: Point, static_gain: float) -> list[tuple[Process, float]]:
-    """The models the stable design holds to its target, each with its Ms margin (best guess first)."""
+def model_family(point: Point, static_gain: float, static_gain_std: float = math.inf) -> list[tuple[Process, float]]:
+    """The models the stable design holds to its target, each with its Ms margin (best guess first).
+
+    With a finite standard error of the static gain above :data:`STATIC_SPREAD_MIN` of it (a
+    disturbed or noisy experiment), the first-order models through the point with the static gain
+    ``2σ`` lower and higher join the family, so a static gain the experiment got wrong within its
+    own error cannot cost the robustness.
+    """
     model = fit_model(point, static_gain)
     bound = fit_lag_bound(point, static_gain)
     family = [(model, 1.0)] + ([] if bound is None else [(bound, BOUND_MARGIN)])
+    if math.isfinite(static_gain) and math.isfinite(static_gain_std):
+        spread = min(2.0 * static_gain_std / static_gain, STATIC_SPREAD_MAX)
+        if spread > STATIC_SPREAD_MIN:
+            for gain in (max(static_gain * (1.0 - spread), 1.01 * point.gain), static_gain * (1.0 + spread)):
+                if gain > point.gain:
+                    family.append((fit_model(point, gain), 1.0))
     if math.isfinite(static_gain) and static_gain <= point.gain:
         # A resonance: the lightly damped end (no dead time, the best guess: it reports the model)
         # and the dead time leaving 90° to it, then the dead-time model as the third extreme.
@@ -232,13 +248,14 @@ def _stable_gains(family: list[tuple[Process, float]], omega: float, controller:
 
 
 def design(point: Point, static_gain: float, controller: str = "PI", ms: float = 1.4, nd: float = DEFAULT_ND,
-           noise_std: float = 0.0, amp: float | None = None) -> Design:
+           noise_std: float = 0.0, amp: float | None = None, static_gain_std: float = math.inf) -> Design:
     """Robust PI or PID gains (standard form) from the identified point and static gain.
 
     ``ms`` is the required maximum sensitivity (1.2–2.0 is the usual range).
     ``noise_std`` (PV units) is the measured noise and ``amp`` (MV units) the
     relay amplitude: with both, a PID keeps its MV noise within
-    ``MV_NOISE_BUDGET·amp``. Raises :class:`Refusal` (with an outcome code) for
+    ``MV_NOISE_BUDGET·amp``. ``static_gain_std`` (same unit as the static
+    gain; inf: unknown) widens the model family (:func:`model_family`). Raises :class:`Refusal` (with an outcome code) for
     an unstable process no PI/PID of this kind stabilises robustly, ValueError
     for data no design applies to.
     """
@@ -248,6 +265,9 @@ def design(point: Point, static_gain: float, controller: str = "PI", ms: float =
         raise ValueError(f"Ms must be between 1.05 and 4, got {ms}")
     w = log_grid(point.omega)
     notes: list[tuple[Code, str]] = []
+    if static_gain < 0.0 and -static_gain >= INTEGRATING_RATIO * point.gain:
+        # An unstable pole this slow is an integrator at the experiment's frequencies (as in the relay).
+        static_gain = math.inf
     if math.isfinite(static_gain) and static_gain < 0.0:
         fit_model(point, math.inf)  # the same checks of the point as the stable path
         lag = -math.radians(point.phase_deg)
@@ -260,7 +280,7 @@ def design(point: Point, static_gain: float, controller: str = "PI", ms: float =
                 f"Ms {ms:g} is out of reach of a {controller} on this unstable process (dead time {ratio:.2f} × the "
                 f"unstable time constant): designed for Ms {target:.2f} on the model")))
     else:
-        family = model_family(point, static_gain)
+        family = model_family(point, static_gain, static_gain_std)
         target = ms
         best = _stable_gains(family, point.omega, controller, ms, nd, w)
     model = family[0][0]

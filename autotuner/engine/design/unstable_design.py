@@ -113,6 +113,13 @@ def _best(plant: Plant, omega: float, ms: float, ratios: tuple[float, ...], nd: 
     return max((migo([plant], omega, ms, r, nd, w) for r in ratios), key=lambda m: m.ki)
 
 
+def _finite(best: MigoResult, model: Process) -> MigoResult:
+    if not (math.isfinite(best.k) and math.isfinite(best.ti)):
+        raise Refusal(Code.NOT_STABILISABLE, f"no finite gains bound the loop's robustness on the model {model} "
+                      "(a dead time too short to be identified?)")
+    return best
+
+
 def design_gains(model: Process, omega: float, controller: str, ms: float, nd: float) -> tuple[MigoResult, float]:
     """MIGO gains on the unstable model and the Ms target they were designed for (``ms`` or raised).
 
@@ -120,12 +127,15 @@ def design_gains(model: Process, omega: float, controller: str, ms: float, nd: f
     :data:`MS_CAP` admits a stabilising controller with integral action.
     """
     plant = Plant(model.freqresp, integrators=model.integrator_count, rhp_poles=model.rhp_pole_count)
-    w = log_grid(omega)
-    coarse = log_grid(omega, n=1000)  # enough to tell whether a target is feasible
+    # The grid must reach where the dead time turns the loop round (ωD ≈ π) even for a short dead time:
+    # a high gain is admissible until there.
+    above = max(1e2, 30.0 / (omega * model.delay)) if model.delay > 0.0 else 1e3
+    w = log_grid(omega, above=above, n=3000 + int(300 * math.log10(above / 1e2)))
+    coarse = log_grid(omega, above=above, n=1000)  # enough to tell whether a target is feasible
     ratios = TD_RATIOS if controller == "PID" else (0.0,)
     first = _best(plant, omega, ms, ratios, nd, w)
     if first.ki > 0.0:
-        return first, ms
+        return _finite(first, model), ms
     # Feasibility grows with the target: bisect the ladder for its first feasible step.
     ladder = [min(ms + MS_STEP * i, MS_CAP) for i in range(1, int(math.ceil((MS_CAP - ms) / MS_STEP)) + 1)]
     if ladder and _best(plant, omega, ladder[-1], ratios, nd, coarse).ki > 0.0:
@@ -137,7 +147,7 @@ def design_gains(model: Process, omega: float, controller: str, ms: float, nd: f
             else:
                 lo = mid
         target = min(ladder[hi] + MS_HEADROOM, MS_CAP)
-        return _best(plant, omega, target, ratios, nd, w), target
+        return _finite(_best(plant, omega, target, ratios, nd, w), model), target
     raise Refusal(Code.NOT_STABILISABLE, (
         f"no {controller} with integral action keeps Ms ≤ {MS_CAP:g} on the model {model}"
         + ("; PID may: tune with --controller PID" if controller == "PI" else "")))
