@@ -1,5 +1,8 @@
 """Response bodies of the API (they make the OpenAPI description; the request body is autotuner.service.config.TuneRequest).
 
+Pydantic lives here, at the boundary: the result inside is the engine's ``TuneResult`` and its one
+encoder ``as_json``; tests/test_result_types.py checks these models against the keys it gives.
+
 Units: ``ite`` plant seconds left while busy, the code when done; ``point.omega``
 rad/s, ``phase_deg`` degrees (negative for lag); gains in the standard (ISA)
 form, times in seconds; ``t`` of a trace in plant seconds; times of day

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -36,21 +36,27 @@ LIMIT_SAMPLES = 20000
 class Trace:
     """Recorded samples: times (s), PV, and the MV held from each sample on."""
 
-    t: np.ndarray
-    pv: np.ndarray
-    mv: np.ndarray
+    t: np.ndarray = field(metadata={"description": "sample times, plant seconds"})
+    pv: np.ndarray = field(metadata={"description": "PV at each sample, PV units"})
+    mv: np.ndarray = field(metadata={"description": "MV held from each sample on, MV units"})
 
 
 @dataclass(frozen=True)
 class TuneResult:
-    """Outcome of one tuning; ``code`` is 0 on success, otherwise the error code shown in ``ite``."""
+    """Outcome of one tuning; ``code`` is 0 on success, otherwise the error code shown in ``ite``.
 
-    code: Code
-    message: str
-    controller: str
-    identification: Identification | None
-    design: Design | None
-    trace: Trace
+    :meth:`as_json` is the one encoder of a result: the CLI's ``--json``, the daemon's loop status and
+    history, and the REST sessions all carry what it gives.
+    """
+
+    code: Code = field(metadata={"description": "outcome, the value ite shows once the tuning has ended"})
+    message: str = field(metadata={"description": "what happened, for people ('ok', or why not)"})
+    controller: str = field(metadata={"description": "controller type designed: PI or PID"})
+    identification: Identification | None = field(
+        metadata={"description": "what the experiment identified (point, static gain, length); None if nothing"})
+    design: Design | None = field(
+        metadata={"description": "gains with the model they were designed on, Ms there and notes; None if none"})
+    trace: Trace = field(metadata={"description": "the experiment's samples"})
 
     @classmethod
     def failed(cls, code: Code, message: str, controller: str) -> TuneResult:
