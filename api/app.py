@@ -74,8 +74,8 @@ async def health(manager: Manager) -> dict[str, Any]:
 
 
 @router.get("/codes", response_model=list[CodeOut], tags=["health"])
-async def codes() -> list[dict[str, Any]]:
-    """Every outcome code ``ite`` can show once a session has ended (no token needed: it holds no plant data)."""
+async def codes(_: Viewer) -> list[dict[str, Any]]:
+    """Every outcome code ``ite`` can show once a session has ended (a read like any other: viewer token)."""
     return [{"value": int(c), "name": c.name, "message": MESSAGES[c], "warning": c in WARNINGS} for c in Code]
 
 

@@ -265,7 +265,8 @@ def test_the_page_is_served_with_a_strict_content_security_policy_and_the_api_wi
 def test_codes_lists_every_outcome_code_for_the_page(client):
     from autotuner.engine.outcome import MESSAGES, WARNINGS
 
-    codes = client.get(f"{API}/codes").json()
+    assert client.get(f"{API}/codes").status_code == 401  # reads need a viewer (design.md)
+    codes = client.get(f"{API}/codes", headers=auth(VIEWER)).json()
     assert [c["value"] for c in codes] == [int(c) for c in Code]
     for c in codes:
         code = Code(c["value"])
