@@ -35,6 +35,7 @@ import concurrent.futures
 import contextlib
 import logging
 import math
+import os
 import tempfile
 import threading
 from collections.abc import Awaitable, Callable
@@ -152,6 +153,16 @@ class OpcUaServer:
         self._thread = None
         if self._scratch is not None:
             self._scratch.cleanup()
+
+    def cpu_time(self) -> float | None:
+        """CPU seconds (user + system) the server's thread has used so far; None where /proc is missing."""
+        thread = self._thread
+        try:
+            stat = Path(f"/proc/self/task/{thread.native_id}/stat").read_text()  # type: ignore[union-attr]
+        except (AttributeError, OSError):
+            return None
+        utime, stime = stat.rpartition(")")[2].split()[11:13]  # fields 14 and 15 of proc(5)
+        return (int(utime) + int(stime)) / os.sysconf("SC_CLK_TCK")
 
     # -- the server's thread ----------------------------------------------------------------------------------
 

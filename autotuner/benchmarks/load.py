@@ -21,8 +21,9 @@ the wall time, in percent of one core; the plant process's is reported beside it
 With ``opcua`` the daemon also runs its OPC UA server (:mod:`api.opcua`, its
 own thread) and a client in another child process — a SCADA — subscribes to
 every variable of every loop at the monitor's rate for the whole run; the
-number of data changes it received is reported (``opcua_changes``). The
-daemon's CPU then includes the OPC UA server's.
+number of data changes it received is reported (``opcua_changes``), and the
+CPU of the server's thread (``cpu_opcua``, % of a core). The daemon's CPU
+includes it.
 """
 
 from __future__ import annotations
@@ -67,6 +68,7 @@ class LoadResult:
     cpu_plants: float
     failures: dict[str, str]
     opcua_changes: int | None = None
+    cpu_opcua: float | None = None
 
 
 class TimedLink:
@@ -120,11 +122,11 @@ def lateness(starts: list[float], done: list[float], period: float) -> np.ndarra
     return t - (starts[0] + period * np.arange(len(t)))
 
 
-def _receive(conn: Any, child: Any) -> Any:
-    """The plant process's next message; RuntimeError if it dies first (it never answers then)."""
+def _receive(conn: Any, child: Any, what: str = "plant") -> Any:
+    """The ``what`` process's next message; RuntimeError if it dies first (it never answers then)."""
     while not conn.poll(0.2):
         if not child.is_alive():
-            raise RuntimeError(f"the plant process ended (exit code {child.exitcode}) before it answered")
+            raise RuntimeError(f"the {what} process ended (exit code {child.exitcode}) before it answered")
     return conn.recv()
 
 
@@ -226,16 +228,19 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
                     target=_scada_main, args=(server.url, password, list(manager.loops), monitor_period, scada_end),
                     daemon=True)
                 scada.start()
-                await loop.run_in_executor(None, _receive, scada_conn, scada)  # subscribed
+                await loop.run_in_executor(None, _receive, scada_conn, scada, "OPC UA client")  # subscribed
             cpu0, wall0 = time.process_time() + design_cpu(), time.monotonic()
+            opcua0 = None if server is None else server.cpu_time()
             for loop_id in manager.loops:
                 manager.tune(loop_id, TuneRequest(), "loadbench")
             await asyncio.gather(*(manager.wait(loop_id) for loop_id in manager.loops))
             wall = time.monotonic() - wall0
             cpu = 100.0 * (time.process_time() + design_cpu() - cpu0) / wall
+            opcua1 = None if server is None else server.cpu_time()
+            cpu_opcua = None if opcua0 is None or opcua1 is None else 100.0 * (opcua1 - opcua0) / wall
             if scada is not None:
                 scada_conn.send("stop")
-                changes = await loop.run_in_executor(None, _receive, scada_conn, scada)
+                changes = await loop.run_in_executor(None, _receive, scada_conn, scada, "OPC UA client")
         finally:
             if scada is not None:
                 scada.join(10)
@@ -258,7 +263,7 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
     p50, p99 = np.percentile(late, [50, 99]) if late.size else (float("nan"),) * 2
     return LoadResult(n, n - len(failures), wall, int(late.size), float(p50), float(p99),
                       float(late.max()) if late.size else float("nan"), cpu, cpu_plants, failures,
-                      changes if opcua else None)
+                      changes if opcua else None, cpu_opcua if opcua else None)
 
 
 def table_rows(results: list[LoadResult]) -> list[list[str]]:
@@ -266,17 +271,18 @@ def table_rows(results: list[LoadResult]) -> list[list[str]]:
     opcua = any(r.opcua_changes is not None for r in results)
     return [[str(r.loops), f"{r.succeeded}/{r.loops}", f"{r.wall:.1f}", str(r.samples), f"{r.late_p50:.2f}",
              f"{r.late_p99:.2f}", f"{r.late_max:.1f}", f"{r.cpu_daemon:.0f}", f"{r.cpu_plants:.0f}"]
-            + ([str(r.opcua_changes if r.opcua_changes is not None else "-")] if opcua else [])
+            + ([str(r.opcua_changes if r.opcua_changes is not None else "-"),
+                "-" if r.cpu_opcua is None else f"{r.cpu_opcua:.1f}"] if opcua else [])
             for r in results]
 
 
 HEADERS = ["loops", "ok", "wall s", "samples", "p50 ms", "p99 ms", "max ms", "CPU daemon %", "CPU plants %"]
-OPCUA_HEADER = "OPC UA changes"
+OPCUA_HEADERS = ["OPC UA changes", "CPU OPC UA %"]
 
 
 def headers(results: list[LoadResult]) -> list[str]:
-    """The table's column names (with :data:`OPCUA_HEADER` when OPC UA was measured)."""
-    return HEADERS + ([OPCUA_HEADER] if any(r.opcua_changes is not None for r in results) else [])
+    """The table's column names (with :data:`OPCUA_HEADERS` when OPC UA was measured)."""
+    return HEADERS + (OPCUA_HEADERS if any(r.opcua_changes is not None for r in results) else [])
 
 
 def markdown(results: list[LoadResult]) -> str:
