@@ -9,7 +9,8 @@ first one starts :meth:`~autotuner.service.daemon.LoopManager.shutdown`
 (abort every experiment, hand every loop back within ``handback.shutdown``
 seconds, end the event streams) and only then tells uvicorn to exit; a
 second one is logged and changes nothing. The exit status is 0 when every
-loop was handed back, :data:`NOT_RESTORED_EXIT` otherwise.
+loop was handed back, :data:`NOT_RESTORED_EXIT` otherwise (and uvicorn's 3
+when the server could not start).
 """
 
 from __future__ import annotations
@@ -25,7 +26,9 @@ import uvicorn
 from fastapi import FastAPI
 
 # Exit status of a daemon that stopped with loops it could not hand back (recorded; the next start resumes them).
-NOT_RESTORED_EXIT = 3
+NOT_RESTORED_EXIT = 4
+# Exit status of a server that could not start (uvicorn's own).
+STARTUP_FAILURE = 3
 # uvicorn's own wait for requests still open once the loops are handed back and the streams ended, seconds.
 GRACEFUL_WAIT = 3.0
 
@@ -89,4 +92,6 @@ def serve(app: FastAPI, **options: Any) -> int:
     config = uvicorn.Config(app, timeout_graceful_shutdown=GRACEFUL_WAIT, **options)
     server = DaemonServer(config, app)
     server.run()
+    if not server.started:  # the lifespan's start failed (uvicorn.run would exit 3 too)
+        return STARTUP_FAILURE
     return server.exit_status

@@ -331,7 +331,7 @@ def test_sigterm_while_the_plc_is_unreachable_exits_nonzero_and_the_next_start_r
         at_relay_level(plc)
         plc.freeze()
         d.proc.send_signal(signal.SIGTERM)
-        assert d.proc.wait(timeout=3.0 + 10.0) == 3, d.output()
+        assert d.proc.wait(timeout=3.0 + 10.0) == 4, d.output()
         assert "CRITICAL" in d.output() or "LOOP NOT RESTORED at shutdown" in d.output()
         assert history_row(d.history, sid)["state"] == "not_restored"
     plc.thaw()

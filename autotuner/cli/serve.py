@@ -29,11 +29,11 @@ def serve_command(
     Tokens come from the config (hashed) and from $AUTOTUNER_TOKEN (an operator). The demo without
     --config generates an operator token and prints it once when $AUTOTUNER_TOKEN is unset.
     SIGTERM/SIGINT abort running experiments and hand every loop back first, within handback.shutdown seconds
-    (docs/handback.md), then the daemon exits 0; 3 if a loop could not be handed back (recorded; the next
+    (docs/handback.md), then the daemon exits 0; 4 if a loop could not be handed back (recorded; the next
     start resumes its restore).
     """
     from api.app import PREFIX, create_app
-    from api.server import serve
+    from api.server import NOT_RESTORED_EXIT, serve
     from api.auth import new_token
     from api.opcua import ENV_USER, endpoint_url, require, with_opcua
 
@@ -81,9 +81,10 @@ def serve_command(
     status = serve(create_app(daemon_config, env_token=token or "", host=host), host=host, port=port,
                    log_level="info", ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
                    ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))
-    if status:
+    if status == NOT_RESTORED_EXIT:
         stderr.print(f"LOOP NOT RESTORED at shutdown: see the log; the next start resumes the restore "
                      f"(exit {status})", highlight=False)
+    if status:
         raise typer.Exit(status)
 
 

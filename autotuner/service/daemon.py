@@ -406,8 +406,8 @@ class LoopManager:
         for loop in self.loops.values():
             if loop.handback is not None:
                 loop.handback.cap = deadline  # no hand-back try of a session starts past the bound
-        log.warning("stopping: %d experiment(s) aborted, every loop handed back first (at most %g s)",
-                    len(tasks), bound)
+        log.log(logging.WARNING if tasks or restorers else logging.INFO,
+                "stopping: %d experiment(s) aborted, every loop handed back first (at most %g s)", len(tasks), bound)
         if tasks:
             await asyncio.wait(tasks, timeout=bound + SHUTDOWN_GRACE)
         if restorers:
