@@ -20,8 +20,8 @@ set-point response has no resonance peak on the model.
 
 Beyond that batch (docs/design-notes.md):
 
-* a gain at ω* above the static gain (``|F(jω*)| > K0``) is a resonance no
-  lag explains; the family then also holds the underdamped second-order
+* a gain at ω* clearly above the static gain (``|F(jω*)| > 1.1·K0``) is a
+  resonance no lag explains; the family then also holds the underdamped second-order
   models through the point with no dead time and with the dead time that
   leaves 90° to the resonance (the lightly damped end and the other end);
 * a negative static gain is an unstable process: the design of
@@ -67,6 +67,9 @@ DEFAULT_ND = 10.0
 MV_NOISE_BUDGET = 0.1
 # Lowest derivative filter factor N used to keep within that budget; below it the derivative goes.
 ND_MIN = 2.0
+# A gain at ω* this many times the static gain or more is a resonance; below, a gain at ω* near
+# the static gain is a dead-time dominant process seen with a small error (the dead-time model).
+RESONANCE_RATIO = 1.1
 # Relative 2σ spread of the static gain from which its uncertainty enters the model family, and the
 # largest spread considered (beyond, the estimate is no better than a guess within ±50 %).
 STATIC_SPREAD_MIN = 0.05
@@ -190,7 +193,7 @@ def model_family(point: Point, static_gain: float, static_gain_std: float = math
             for gain in (max(static_gain * (1.0 - spread), 1.01 * point.gain), static_gain * (1.0 + spread)):
                 if gain > point.gain:
                     family.append((fit_model(point, gain), 1.0))
-    if math.isfinite(static_gain) and static_gain <= point.gain:
+    if math.isfinite(static_gain) and RESONANCE_RATIO * static_gain < point.gain:
         # A resonance: the lightly damped end (no dead time, the best guess: it reports the model)
         # and the dead time leaving 90° to it, then the dead-time model as the third extreme.
         lag = -math.radians(point.phase_deg)
