@@ -35,6 +35,7 @@ from autotuner.service.history import History
 from . import errors
 from .auth import Principal, Tokens, require
 from .events import stream
+from .gate import RequestGate
 from .models import (Accepted, Analysis, Applied, ApplyRequest, CodeOut, Health, LoopStatus, Session,
                      SessionSummary, Whoami)
 from .opcua import start_opcua
@@ -98,11 +99,13 @@ async def loop_status(loop_id: LoopId, manager: Manager, _: Viewer) -> dict[str,
 
 
 @router.post("/loops/{loop_id}/tune", response_model=Accepted, status_code=202, tags=["loops"],
-             responses={409: {"model": errors.ErrorBody, "description": "the loop or its exclusion group is busy"}})
+             responses={409: {"model": errors.ErrorBody, "description": "busy, group_busy: the loop or its exclusion "
+                              "group is tuning; on a fresh read of the loop, before it is touched: pv_out_of_limits, "
+                              "pv_invalid (not finite or stale), link_unhealthy, device_busy (the device shows TBSY)"}})
 async def tune(loop_id: LoopId, manager: Manager, who: Operator,
                body: Annotated[TuneRequest, Body()] = TuneRequest()) -> dict[str, str]:
     """TUNE: start an experiment; fields left out take the loop's configured defaults."""
-    return {"loop": loop_id, "session": manager.tune(loop_id, body, who.name)}
+    return {"loop": loop_id, "session": await manager.request_tune(loop_id, body, who.name)}
 
 
 @router.post("/loops/{loop_id}/break", response_model=Accepted, status_code=202, tags=["loops"],
@@ -116,7 +119,9 @@ async def abort(loop_id: LoopId, manager: Manager, _: Operator) -> dict[str, str
     409: {"model": errors.ErrorBody,
           "description": "busy: the loop tunes (or is being written); nothing_to_apply: the session failed, has no "
                          "gains, or the loop has no finished session"},
-    502: {"model": errors.ErrorBody, "description": "link: the gains could not be written to the controller"}})
+    502: {"model": errors.ErrorBody, "description": "link: the gains could not be written to the controller"},
+    503: {"model": errors.ErrorBody, "description": "history_unavailable: the intent to write the gains could not be "
+                                                    "recorded first, so they were not written"}})
 async def apply(loop_id: LoopId, manager: Manager, who: Operator,
                 body: Annotated[ApplyRequest, Body()] = ApplyRequest()) -> dict[str, Any]:
     """Write a session's designed gains to the controller (default: the loop's newest session) and read them back.
@@ -148,13 +153,13 @@ async def history(loop_id: LoopId, manager: Manager, _: Viewer,
                   ) -> list[dict[str, Any]]:
     """Past sessions of the loop, newest first (without traces)."""
     manager.get(loop_id)
-    return manager.history.of_loop(loop_id, limit)
+    return await asyncio.to_thread(manager.history.of_loop, loop_id, limit)  # never on the event loop
 
 
 @router.get("/sessions/{sid}", response_model=Session, tags=["history"])
 async def session(sid: str, manager: Manager, _: Viewer) -> dict[str, Any]:
     """One session in full, with its downsampled trace."""
-    record = manager.history.get(sid)
+    record = await asyncio.to_thread(manager.history.get, sid)
     if record is None:
         raise errors.ApiError(404, "not_found", f"no session {sid!r}")
     return record
@@ -168,7 +173,7 @@ async def analysis(sid: str, request: Request, manager: Manager, _: Viewer) -> d
     cache: dict[str, dict[str, Any]] = request.app.state.analyses
     if sid in cache:
         return cache[sid]
-    record = manager.history.get(sid)
+    record = await asyncio.to_thread(manager.history.get, sid)
     if record is None:
         raise errors.ApiError(404, "not_found", f"no session {sid!r}")
     result = record["result"]
@@ -263,6 +268,8 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
     app.state.tokens = Tokens(config.tokens, env)
     errors.install(app)
 
+    # Inside SecurityHeaders (its answers get the headers too), in front of everything that reads a body.
+    app.add_middleware(RequestGate, prefix=PREFIX)
     app.add_middleware(SecurityHeaders)
     app.include_router(router)
     app.router.routes.append(_Page("/", StaticFiles(directory=STATIC, html=True), name="page"))

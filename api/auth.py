@@ -60,6 +60,24 @@ class Tokens:
         return self._by_hash.get(token_hash(token))
 
 
+def authorize(tokens: Tokens, token: str | None, role: Role) -> Principal:
+    """The principal of ``token`` (None: none given), who must hold at least ``role``; ApiError 401 or 403."""
+    principal = None if token is None else tokens.find(token)
+    if principal is None:
+        raise ApiError(401, "unauthorized", "a valid bearer token is required (Authorization: Bearer TOKEN)",
+                       headers={"WWW-Authenticate": "Bearer"})
+    if RANKS[principal.role] < RANKS[role]:
+        raise ApiError(403, "forbidden", f"this needs the {role} role; token {principal.name!r} is a "
+                       f"{principal.role}")
+    return principal
+
+
+def bearer_token(authorization: str | None) -> str | None:
+    """The token of an ``Authorization: Bearer TOKEN`` header value, None for anything else."""
+    scheme, _, token = (authorization or "").partition(" ")
+    return token.strip() or None if scheme.lower() == "bearer" else None
+
+
 _bearer = HTTPBearer(auto_error=False, description="API token (docs/daemon.md): viewer, operator or admin")
 
 
@@ -68,14 +86,6 @@ def require(role: Role) -> Callable[..., Principal]:
 
     def check(request: Request,
               credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> Principal:
-        tokens: Tokens = request.app.state.tokens
-        principal = None if credentials is None else tokens.find(credentials.credentials)
-        if principal is None:
-            raise ApiError(401, "unauthorized", "a valid bearer token is required (Authorization: Bearer TOKEN)",
-                           headers={"WWW-Authenticate": "Bearer"})
-        if RANKS[principal.role] < RANKS[role]:
-            raise ApiError(403, "forbidden", f"this needs the {role} role; token {principal.name!r} is a "
-                           f"{principal.role}")
-        return principal
+        return authorize(request.app.state.tokens, None if credentials is None else credentials.credentials, role)
 
     return check

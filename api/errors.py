@@ -16,7 +16,7 @@ from autotuner.service.daemon import Refused
 log = logging.getLogger("autotuner.api")
 
 _CODES = {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
-          409: "conflict", 422: "invalid", 500: "internal"}
+          409: "conflict", 413: "too_large", 422: "invalid", 500: "internal"}
 
 
 class ErrorBody(BaseModel):
@@ -35,7 +35,8 @@ class ApiError(Exception):
         self.status, self.code, self.message, self.headers = status, code, message, headers
 
 
-def _response(status: int, code: str, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
+def error_response(status: int, code: str, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
+    """The JSON error response ``{"code": code, "message": message}`` with HTTP status ``status``."""
     return JSONResponse({"code": code, "message": message}, status_code=status, headers=headers)
 
 
@@ -57,21 +58,22 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(ApiError)
     async def api_error(_: Request, exc: ApiError) -> JSONResponse:
-        return _response(exc.status, exc.code, exc.message, exc.headers)
+        return error_response(exc.status, exc.code, exc.message, exc.headers)
 
     @app.exception_handler(Refused)
     async def refused(_: Request, exc: Refused) -> JSONResponse:
-        return _response(404 if exc.code == "not_found" else 409, exc.code, exc.message)
+        status = {"not_found": 404, "invalid": 422, "history_unavailable": 503}.get(exc.code, 409)
+        return error_response(status, exc.code, exc.message)
 
     @app.exception_handler(RequestValidationError)
     async def invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
-        return _response(422, "invalid", validation_message(list(exc.errors())))
+        return error_response(422, "invalid", validation_message(list(exc.errors())))
 
     @app.exception_handler(HTTPException)
     async def http_error(_: Request, exc: HTTPException) -> JSONResponse:
-        return _response(exc.status_code, _CODES.get(exc.status_code, "error"), str(exc.detail), exc.headers)
+        return error_response(exc.status_code, _CODES.get(exc.status_code, "error"), str(exc.detail), exc.headers)
 
     @app.exception_handler(Exception)
     async def internal(_: Request, exc: Exception) -> JSONResponse:
         log.exception("internal error")
-        return _response(500, "internal", f"internal error ({type(exc).__name__}); see the daemon's log")
+        return error_response(500, "internal", f"internal error ({type(exc).__name__}); see the daemon's log")

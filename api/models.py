@@ -134,7 +134,9 @@ class SessionSummary(BaseModel):
     settings in force; saved: the loop's state before the experiment;
     applied_at, applied_by: when and by whom its gains were last written to
     the controller (at its end with ``apply``, or ``POST /loops/{id}/apply``),
-    null if never; gains_after then the gains read back.
+    null if never; gains_after then the gains read back. gains_intent: a
+    gains write recorded as intended whose outcome is not recorded yet
+    (``{"gains", "by", "at"}``; a restart reconciles it with the device), else null.
     """
 
     id: str
@@ -153,6 +155,7 @@ class SessionSummary(BaseModel):
     result: dict[str, Any] | None
     applied_at: str | None
     applied_by: str | None
+    gains_intent: dict[str, Any] | None = None
 
 
 class TraceOut(BaseModel):

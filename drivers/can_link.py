@@ -36,7 +36,7 @@ import cantools
 
 from autotuner.engine.control.gains import Gains
 
-from .link import LinkError, LoopState, Mode, TuneFlags, Watchdog, checked, float32_step
+from .link import BadValue, LinkError, LoopState, Mode, TuneFlags, Watchdog, checked, float32_step
 
 #: Frames the node sends (cyclic status, gains on request) and the link reads.
 PROCESS, STATUS, SETPOINT = "AT_Process", "AT_Status", "AT_Setpoint"
@@ -440,7 +440,7 @@ class CanLink:
             try:
                 await self._fresh((PROCESS,), after)
             except LinkError as exc:
-                raise LinkError(f"stale PV: {exc}") from None
+                raise BadValue(f"stale PV: {exc}") from None
             last = self._latest[PROCESS]
         return checked("PV", float(last[0]["PV"]))
 

@@ -20,6 +20,10 @@ class LinkError(Exception):
     """The loop cannot be read or written right now; the message says why."""
 
 
+class BadValue(LinkError):
+    """The device answered, but the value is not data: NaN, infinity, or (a time-stamped transport) stale."""
+
+
 class Mode(IntEnum):
     """Controller mode of the loop: MAN holds the manual MV, AUTO runs the PID."""
 
@@ -72,9 +76,9 @@ def float32_step(value: float) -> float:
 
 
 def checked(name: str, value: float) -> float:
-    """``value`` if finite, else a LinkError naming the signal (a NaN is never data)."""
+    """``value`` if finite, else a :class:`BadValue` naming the signal (a NaN is never data)."""
     if not math.isfinite(value):
-        raise LinkError(f"{name} is not a number ({value})")
+        raise BadValue(f"{name} is not a number ({value})")
     return value
 
 

@@ -32,7 +32,7 @@ from pymodbus.exceptions import ModbusException
 
 from autotuner.engine.control.gains import Gains
 
-from .link import LinkError, LoopState, Mode, TuneFlags, Watchdog
+from .link import BadValue, LinkError, LoopState, Mode, TuneFlags, Watchdog
 from .modbus_map import (
     BIT_TABLES,
     COIL,
@@ -333,7 +333,7 @@ class ModbusLink:
                     except ValueError as exc:
                         raise LinkError(f"{self.name}: {name}: cannot decode: {exc}") from None
                     if not math.isfinite(value):
-                        raise LinkError(f"{self.name}: {name} is not a number ({value}) "
+                        raise BadValue(f"{self.name}: {name} is not a number ({value}) "
                                         f"in {reg.describe()}")
                     out[name] = value
         return out

@@ -41,3 +41,75 @@ def chromium_path() -> str:
         pytest.fail("the browser tests need Chromium: apt-get install chromium (Debian), or set AUTOTUNER_CHROMIUM "
                     "to its executable", pytrace=False)
     return path
+
+
+class Daemon:
+    """``autotuner serve --config CONFIG`` as a real process on a free port, with ``token`` as $AUTOTUNER_TOKEN.
+
+    Its stdout and stderr go to files (a full pipe must never stall the daemon); :meth:`log` reads them.
+    Use as a context manager: it waits until ``/health`` answers (``timeout`` s) and, on exit, stops the
+    daemon with SIGTERM (SIGKILL if it does not exit within 60 s).
+    """
+
+    def __init__(self, config: Path, token: str = "test-operator-token", args: tuple[str, ...] = (),
+                 timeout: float = 120.0) -> None:
+        import subprocess
+        import sys
+
+        self.port = free_port()
+        self.base = f"http://127.0.0.1:{self.port}/api/v1"
+        self.headers = {"Authorization": f"Bearer {token}"}
+        self._out = config.parent / f"daemon-{self.port}.log"
+        env = {**os.environ, "AUTOTUNER_TOKEN": token}
+        with open(self._out, "w") as out:
+            self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(config),
+                                          "--port", str(self.port), *args], env=env, stdout=out, stderr=out)
+        self._timeout = timeout
+
+    def log(self) -> str:
+        """Everything the daemon printed so far."""
+        return self._out.read_text(errors="replace")
+
+    def wait_until(self, predicate: Callable[[], bool], timeout: float, what: str) -> None:
+        """Poll ``predicate`` every 50 ms; AssertionError naming ``what`` (and the log) after ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}; daemon log:\n{self.log()}")
+            if self.proc.poll() is not None:
+                raise AssertionError(f"the daemon exited ({self.proc.returncode}) while waiting for {what}:\n"
+                                     f"{self.log()}")
+            time.sleep(0.05)
+
+    def __enter__(self) -> Daemon:
+        import httpx
+
+        def up() -> bool:
+            try:
+                return httpx.get(f"{self.base}/health", timeout=5).status_code == 200
+            except httpx.TransportError:
+                return False
+
+        try:
+            self.wait_until(up, self._timeout, "the daemon's /health")
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def stop(self) -> int:
+        """SIGTERM, then SIGKILL after 60 s; the exit status."""
+        import signal
+        import subprocess
+
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -194,7 +194,9 @@ def test_events_stream_samples_and_state_changes():
                         break
         assert http.post("/loops/TIC-101/break").status_code == 202
     assert events[0][0] == "state" and events[0][1]["tbsy"] is False
-    assert events[1][0] == "state" and events[1][1]["tbsy"] is True
+    # TUNE reads the loop afresh before it starts: the monitor's samples may come first, then the busy state.
+    states = [d for k, d in events if k == "state"]
+    assert states[1]["tbsy"] is True and all(d.get("mode") for k, d in events[1:events.index(("state", states[1]))])
     samples = [d for k, d in events if k == "sample"]
     assert {"t", "pv", "mv", "relay", "filter_phase_deg", "ite", "stage", "progress"} <= samples[-1].keys()
     assert samples[-1]["t"] > samples[0]["t"]

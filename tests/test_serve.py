@@ -11,8 +11,10 @@ from pathlib import Path
 
 import httpx
 import pytest
+import yaml
 
 from autotuner.service.config import ConfigError, load_config
+from drivers.modbus_map import DEFAULT_MAP
 from helpers import free_port
 
 
@@ -49,6 +51,9 @@ def test_demo_serves_three_loops_with_a_generated_token_and_stops_on_sigterm():
 
 
 def write(tmp_path: Path, text: str) -> Path:
+    """``text`` as tmp_path/daemon.yaml, next to the register map GOOD names (maps/tic.yaml, the default map)."""
+    (tmp_path / "maps").mkdir(exist_ok=True)
+    (tmp_path / "maps" / "tic.yaml").write_text(yaml.safe_dump(DEFAULT_MAP.as_dict()))
     path = tmp_path / "daemon.yaml"
     path.write_text(text)
     return path
@@ -92,6 +97,17 @@ def test_a_good_config_resolves_paths_next_to_the_file(tmp_path):
     (("exp(-s)/(2*s+1)", "exp(-s)/(2*s+"), "loops[1].sim.plant", ""),
     (("    link: modbus", "    sim: {plant: 1/(s+1)}\n    link: modbus"), "loops[0]", "exactly one of"),
     (("link: modbus://", "link: http://"), "loops[0]", "must be modbus://"),
+    # Links and maps are opened (not connected) at load: what can never work stops the daemon at start.
+    (("127.0.0.1:5020/1", "127.0.0.1:99999/1"), "loops[0].link", "port is not a number in 0..65535"),
+    (("127.0.0.1:5020/1", "127.0.0.1:abc/1"), "loops[0].link", "port is not a number in 0..65535"),
+    (("127.0.0.1:5020/1", "127.0.0.1:5020/999"), "loops[0].link", "unit id 999 is outside 0..255"),
+    (("link: modbus://127.0.0.1:5020/1\n    map: maps/tic.yaml", "link: 'can://'"), "loops[0].link",
+     "can://INTERFACE/CHANNEL"),
+    (("maps/tic.yaml", "maps/missing.yaml"), "loops[0].map", "missing.yaml: cannot read the map"),
+    (("maps/tic.yaml", "daemon.yaml"), "loops[0].map", "unknown top-level key"),
+    (("    map: maps/tic.yaml", "    dbc: my.dbc"), "loops[0].dbc", "a DBC is for a CAN link"),
+    (("link: modbus://127.0.0.1:5020/1\n    map: maps/tic.yaml", "link: can://virtual/x\n    dbc: no.dbc"),
+     "loops[0].dbc", "cannot load DBC"),
     (("    ts: 0.1\n", ""), "loops[1].ts", "Field required"),
 ])
 def test_every_error_names_the_file_the_path_and_what_is_wrong(tmp_path, change, where, what):

@@ -248,7 +248,7 @@ class OpcUaServer:
         try:
             if action == "tune":
                 request = tune_request(args)
-                sid = await self._on_daemon(lambda: self.manager.tune(loop_id, request, who))
+                sid = await self._on_daemon_async(lambda: self.manager.request_tune(loop_id, request, who))
                 message = "tuning"
             elif action == "abort":
                 sid = await self._on_daemon(lambda: self.manager.abort(loop_id))

@@ -3,12 +3,27 @@
 from __future__ import annotations
 
 import os
+from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from autotuner.cli.app import app, bad_input, stderr
+
+
+class LogLevel(str, Enum):
+    DEBUG = "debug"
+    INFO = "info"
+    WARNING = "warning"
+    ERROR = "error"
+    CRITICAL = "critical"
+
+
+class LogFormat(str, Enum):
+    TEXT = "text"
+    JSON = "json"
+
 
 @app.command("serve")
 def serve_command(
@@ -23,6 +38,14 @@ def serve_command(
                                         "opcua: section, else its defaults). Needs the opcua extra.")] = False,
     opcua_port: Annotated[int | None, typer.Option(min=1, max=65535, help="OPC UA port (implies --opcua). "
                                                    "Default: the config's, else 4840.")] = None,
+    log_level: Annotated[LogLevel, typer.Option(case_sensitive=False, help="Least severe log records printed "
+                                                "(stderr).")] = LogLevel.INFO,
+    log_format: Annotated[LogFormat, typer.Option(case_sensitive=False, help="Log lines as text (UTC timestamp, "
+                                                  "level, logger, message) or one JSON object each.")]
+    = LogFormat.TEXT,
+    init_history: Annotated[bool, typer.Option("--init-history", help="Initialise a history file that exists but is "
+                                               "empty (0 bytes, as a bind mount pre-creates it); without it such a "
+                                               "file is refused.")] = False,
 ) -> None:
     """Run the daemon: the REST API of design.md under /api/v1 over the configured loops (and OPC UA with --opcua).
 
@@ -37,9 +60,10 @@ def serve_command(
     from api.auth import new_token
     from api.opcua import ENV_USER, endpoint_url, require, with_opcua
 
+    from autotuner.cli import logs
     from autotuner.service.config import ConfigError, load_config
     from autotuner.service.demo import demo_config
-    from autotuner.service.history import History
+    from autotuner.service.history import History, database_password
 
     if (ssl_certfile is None) != (ssl_keyfile is None):
         bad_input("--ssl-certfile and --ssl-keyfile go together")
@@ -47,8 +71,9 @@ def serve_command(
         daemon_config = demo_config() if config is None else load_config(config)
     except ConfigError as exc:
         bad_input(str(exc))
-    try:  # a database that cannot be opened is a clear error now, not a failed start inside uvicorn
-        History(daemon_config.history).close()
+    logs.setup(log_level.value, log_format.value, secrets=[database_password(daemon_config.history) or ""])
+    try:  # a database that cannot be opened or is damaged is a clear error now, not a failed start inside uvicorn
+        History(daemon_config.history, init_empty=init_history).close()
     except ValueError as exc:
         bad_input(str(exc))
     token = os.environ.get("AUTOTUNER_TOKEN") or None
@@ -78,8 +103,10 @@ def serve_command(
     print(f"autotuner API at {scheme}://{host}:{port}{PREFIX}  (OpenAPI: {PREFIX}/docs; operator page: "
           f"{scheme}://{host}:{port}/); {len(daemon_config.loops)} loops: "
           f"{', '.join(loop.id for loop in daemon_config.loops)}", flush=True)
+    # log_config=None: uvicorn's loggers go to the handler of logs.setup (same format, timestamps, masking).
     status = serve(create_app(daemon_config, env_token=token or "", host=host), host=host, port=port,
-                   log_level="info", ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
+                   log_level=log_level.value, log_config=None,
+                   ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
                    ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))
     if status == NOT_RESTORED_EXIT:
         stderr.print(f"LOOP NOT RESTORED at shutdown: see the log; the next start resumes the restore "

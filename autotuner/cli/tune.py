@@ -33,11 +33,13 @@ if TYPE_CHECKING:
     from autotuner.service.config import LoopConfig, TuneRequest
 
 
-def _config(amp: float, hysteresis: float | None, phase: float, time_limit: float) -> RelayConfig:
+def _config(amp: float, hysteresis: float | None, phase: float, time_limit: float,
+            mv_limits: tuple[float, float] = (-math.inf, math.inf)) -> RelayConfig:
     from autotuner.engine.experiment.relay import RelayConfig
 
     try:
-        return RelayConfig(amp=amp, phase_deg=phase, hysteresis=hysteresis, time_limit=time_limit)
+        return RelayConfig(amp=amp, phase_deg=phase, hysteresis=hysteresis, time_limit=time_limit,
+                           mv_limits=mv_limits)
     except ValueError as exc:
         bad_input(str(exc))
 
@@ -68,10 +70,24 @@ def _check_plant(process: Process, text: str) -> None:
                   "e.g. 2*exp(-s)/(3*s+1)")
 
 
+def _mv_limits(text: str | None) -> tuple[float, float]:
+    """``--mv-limits LO:HI`` as (LO, HI), MV units; none given: unbounded."""
+    if text is None:
+        return -math.inf, math.inf
+    low, sep, high = text.partition(":")
+    try:
+        limits = float(low), float(high)
+    except ValueError:
+        limits = (math.nan, math.nan)
+    if not sep or not all(math.isfinite(x) for x in limits) or not limits[0] < limits[1]:
+        bad_input(f"--mv-limits must be LO:HI with finite numbers LO < HI (MV units), got {text!r}")
+    return limits
+
+
 def _prepare(
     plant: str, ts: float | None, amp: float, hysteresis: float | None, phase: float, noise: float, seed: int,
     time_limit: float | None = None, loads: list[tuple[float, float]] | None = None, drift: float = 0.0,
-    quantum: float = 0.0,
+    quantum: float = 0.0, mv_limits: tuple[float, float] = (-math.inf, math.inf),
 ) -> tuple[PlantSim, RelayConfig]:
     """The simulated plant (with its load steps, drift and PV resolution) and the experiment settings.
 
@@ -91,7 +107,7 @@ def _prepare(
         sim = PlantSim(process, sample_time, noise_std=noise, seed=seed, quantum=quantum, loads=steps)
     except ValueError as exc:
         bad_input(str(exc))
-    return sim, _config(amp, hysteresis, phase, time_limit or default_time_limit(process, phase, sim.ts))
+    return sim, _config(amp, hysteresis, phase, time_limit or default_time_limit(process, phase, sim.ts), mv_limits)
 
 
 def _describe(status: Status) -> str:
@@ -219,6 +235,9 @@ def tune_command(
                                                      "and defaults; options given here override the defaults.")]
     = None,
     loop_id: Annotated[str | None, typer.Option("--loop", help="Loop id in --config.")] = None,
+    mv_limits: Annotated[str | None, typer.Option(help="MV limits of the experiment, LO:HI (MV units); with "
+                                                  "--link, --amp may not exceed HI-LO (without them: 100).")]
+    = None,
 ) -> None:
     """Run a relay experiment and print the gains: on a simulated plant (default, faster than real time),
     through a field link to a real loop (--link, or a loop of a daemon config with --config/--loop), or on a
@@ -248,7 +267,13 @@ def tune_command(
 
         if ts is None:
             bad_input("--link needs --ts, the loop's sample time in seconds")
-        config = _config(amp, hysteresis, phase, time_limit or LINK_TIME_LIMIT)
+        from autotuner.service.config import amp_bound
+
+        limits = _mv_limits(mv_limits)
+        if amp > amp_bound(limits):
+            bad_input(f"--amp {amp:g} is above the largest relay amplitude {amp_bound(limits):g} MV units "
+                      "(HI-LO of --mv-limits, else the default bound): it would be written to a live controller")
+        config = _config(amp, hysteresis, phase, time_limit or LINK_TIME_LIMIT, limits)
         sample_time = ts
 
         def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
@@ -257,7 +282,8 @@ def tune_command(
     elif via is not None:
         from autotuner.service.remote_tuning import default_via_speed, tune_via
 
-        sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit)
+        sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit,
+                               mv_limits=_mv_limits(mv_limits))
         sample_time = sim.ts
         via_speed = speed or default_via_speed(sim.ts)
 
@@ -267,7 +293,8 @@ def tune_command(
     else:
         from autotuner.engine.simulated_tuning import tune
 
-        sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit, steps, drift, quantum)
+        sim, config = _prepare(plant, ts, amp, hysteresis, phase, noise, seed, time_limit, steps, drift, quantum,
+                               _mv_limits(mv_limits))
         sample_time = sim.ts
 
         async def start(on_status: Callable[[Status], None] | None) -> TuneResult:
@@ -285,7 +312,8 @@ def tune_command(
 
 
 # Options that choose another target than the config's loop.
-_TARGET_OPTIONS = ("plant", "link", "via", "ts", "map_file", "dbc", "speed", "noise", "seed", "time_limit")
+_TARGET_OPTIONS = ("plant", "link", "via", "ts", "map_file", "dbc", "speed", "noise", "seed", "time_limit",
+                   "mv_limits")
 
 
 def _given(ctx: typer.Context, name: str) -> bool:

@@ -38,6 +38,11 @@ class Code(IntEnum):
     LOOP_NOT_RESTORED = 20
     OPERATOR_INTERVENTION = 21
     WATCHDOG_FALLBACK = 22
+    # TUNE refused on a fresh read before the loop is touched (te true, the loop untouched): 23-26.
+    REFUSED_PV_LIMITS = 23
+    REFUSED_BAD_PV = 24
+    REFUSED_LINK = 25
+    REFUSED_DEVICE_BUSY = 26
 
 
 MESSAGES: dict[Code, str] = {
@@ -51,6 +56,10 @@ MESSAGES: dict[Code, str] = {
     Code.LINK_FAULT: "link to the loop failed",
     Code.NO_DESIGN: "no robust PI/PID design from the identified data",
     Code.GROUP_BUSY: "refused: another loop of the exclusion group is tuning (the loop is untouched)",
+    Code.REFUSED_PV_LIMITS: "refused: the PV is outside its safety limits (the loop is untouched)",
+    Code.REFUSED_BAD_PV: "refused: the PV is not a finite, fresh value (the loop is untouched)",
+    Code.REFUSED_LINK: "refused: the link to the loop is not healthy (the loop is untouched)",
+    Code.REFUSED_DEVICE_BUSY: "refused: the device already shows TBSY, another tuner owns the loop (untouched)",
     Code.DISTURBANCE: (
         "a load disturbance or drift too large for the experiment: following it needs more than ±amp "
         "of MV shift, or it never settled within the time limit"

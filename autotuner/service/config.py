@@ -35,12 +35,19 @@ Controller = Literal["PI", "PID"]
 PositiveFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 
 
+# Largest relay amplitude of a loop without finite MV limits (and of ``tune --link`` without --mv-limits), MV units:
+# the whole range of an MV in percent. A relay amplitude is written to a live controller; it is never unbounded.
+DEFAULT_MAX_AMP = 100.0
+
+
 class Tuning(Strict):
     """Defaults of a loop's experiment and design.
 
     amp: relay amplitude, MV units; hysteresis: PV units (None: 3σ of the
     measured noise); phase: lag of the identified point, degrees; ms: maximum
     sensitivity of the design; time_limit: longest experiment, plant seconds.
+    max_amp: largest relay amplitude a request may ask for, MV units, when the
+    loop has no finite MV limits (with them, the bound is their span).
     """
 
     controller: Controller = "PI"
@@ -49,10 +56,26 @@ class Tuning(Strict):
     phase: Annotated[float, Field(ge=90.0, le=170.0)] = 135.0
     ms: Annotated[float, Field(ge=1.05, le=4.0)] = 1.4
     time_limit: PositiveFloat = 7200.0
+    max_amp: PositiveFloat = DEFAULT_MAX_AMP
 
 
-class TuneRequest(Strict):
-    """Body of ``POST /loops/{id}/tune``: any field left out takes the loop's configured default."""
+def amp_bound(mv_limits: tuple[float, float], max_amp: float = DEFAULT_MAX_AMP) -> float:
+    """The largest relay amplitude, MV units: the span of ``mv_limits`` when both are finite, else ``max_amp``."""
+    low, high = mv_limits
+    return high - low if math.isfinite(low) and math.isfinite(high) else max_amp
+
+
+class TuneRequest(BaseModel):
+    """Body of ``POST /loops/{id}/tune``: any field left out takes the loop's configured default.
+
+    Strict: a value of the wrong JSON type (``"apply": "yes"``, ``"apply": 0``,
+    ``"amp": "5"``) is refused, never coerced — these fields drive a live
+    controller. (The YAML config keeps pydantic's lax conversions: lists to
+    tuples, strings to paths.) ``amp`` is also bounded per loop
+    (:func:`amp_bound`), which only the daemon knows.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
     controller: Controller | None = None
     amp: PositiveFloat | None = None
@@ -123,6 +146,18 @@ class LoopConfig(Strict):
     handshake: bool = False
     handshake_poll: Annotated[float, Field(ge=0.02, le=60.0)] = 0.5
     monitor_period: Annotated[float, Field(ge=0.05, le=60.0)] = 1.0
+
+    @property
+    def max_amp(self) -> float:
+        """The largest relay amplitude of this loop, MV units (:func:`amp_bound`)."""
+        return amp_bound(self.limits.mv, self.tuning.max_amp)
+
+    @model_validator(mode="after")
+    def _amp_bounded(self) -> LoopConfig:
+        if self.tuning.amp > self.max_amp:
+            raise ValueError(f"tuning.amp {self.tuning.amp:g} is above the loop's largest relay amplitude "
+                             f"{self.max_amp:g} (the span of limits.mv, else tuning.max_amp)")
+        return self
 
     @model_validator(mode="after")
     def _one_source(self) -> LoopConfig:
@@ -238,8 +273,8 @@ class DaemonConfig(Strict):
             try:
                 sqlalchemy.engine.make_url(history)
             except (sqlalchemy.exc.ArgumentError, ValueError):
-                raise ValueError(f"not a database URL (dialect+driver://user:password@host/database): "
-                                 f"{history!r}") from None
+                # Not the URL itself: it may hold a password.
+                raise ValueError("not a database URL (dialect+driver://user:password@host/database)") from None
         elif not history:
             raise ValueError("empty: give an SQLite file, ':memory:' or a database URL")
         return history
@@ -271,6 +306,43 @@ def _message(error: dict[str, Any]) -> str:
     return re.sub(r"^(Value|Assertion) error, ", "", message)
 
 
+def link_problem(loop: LoopConfig) -> tuple[str, str] | None:
+    """Why ``loop``'s link cannot be opened as configured: (the field, the reason), or None when it can.
+
+    The URL is parsed and the register map or DBC is loaded (paths already
+    resolved), but nothing is connected: a device that is merely offline must
+    not stop the daemon, while a URL or map that can never work must stop it
+    at start, not fail every TUNE later.
+    """
+    if loop.link is None:
+        return None
+    from drivers.can_link import load_dbc
+    from drivers.modbus_map import load_map
+
+    from autotuner.service.remote_tuning import open_link
+
+    can = loop.link.startswith("can://")
+    if can and loop.map is not None:
+        return "map", "a register map is for a Modbus link; a CAN link takes 'dbc'"
+    if not can and loop.dbc is not None:
+        return "dbc", "a DBC is for a CAN link; a Modbus link takes 'map'"
+    try:
+        if loop.map is not None:
+            load_map(loop.map)
+    except ValueError as exc:
+        return "map", str(exc)
+    try:
+        if loop.dbc is not None:
+            load_dbc(loop.dbc)
+    except ValueError as exc:
+        return "dbc", str(exc)
+    try:
+        open_link(loop.link, None if loop.map is None else str(loop.map), None if loop.dbc is None else str(loop.dbc))
+    except ValueError as exc:
+        return "link", str(exc)
+    return None
+
+
 def parse_config(data: Any, source: str) -> DaemonConfig:
     """Validate already-parsed YAML ``data``; errors name ``source`` and the path inside it."""
     try:
@@ -280,14 +352,42 @@ def parse_config(data: Any, source: str) -> DaemonConfig:
         raise ConfigError("\n".join(lines)) from None
 
 
+class _UniqueKeys(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (YAML would silently keep the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            if key in seen:
+                raise ConfigError(f"{self.name}:{line}: key {key!r} given twice in one mapping (first on line "
+                                  f"{seen[key]})")
+            seen[key] = line
+        return super().construct_mapping(node, deep)
+
+
 def load_config(path: Path) -> DaemonConfig:
-    """Read and validate the YAML file ``path``; relative paths in it become relative to its folder."""
+    """Read and validate the YAML file ``path``; relative paths in it become relative to its folder.
+
+    Refused with a ConfigError: a file that cannot be read or is not UTF-8,
+    YAML errors (with line and column), a key given twice, and everything
+    :func:`parse_config` and :func:`link_problem` refuse.
+    """
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); "
+                          "save the config as UTF-8") from None
     try:
-        data = yaml.safe_load(text)
+        loader = _UniqueKeys(text)
+        loader.name = str(path)
+        try:
+            data = loader.get_single_data()
+        finally:
+            loader.dispose()
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
@@ -302,6 +402,10 @@ def load_config(path: Path) -> DaemonConfig:
 
     loops = [loop.model_copy(update={"map": resolve(loop.map) or loop.map, "dbc": resolve(loop.dbc) or loop.dbc})
              for loop in config.loops]
+    for i, loop in enumerate(loops):
+        problem = link_problem(loop)
+        if problem is not None:
+            raise ConfigError(f"{path}: loops[{i}].{problem[0]}: {problem[1]}")
     plain_file = config.history != ":memory:" and "://" not in config.history
     history = str(base / config.history) if plain_file else config.history
     opcua = config.opcua

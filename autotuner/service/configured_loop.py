@@ -35,6 +35,9 @@ async def tune_configured(
 ) -> TuneResult:
     """Tune ``loop`` once with ``request`` over the loop's defaults (a simulated loop's plant runs meanwhile)."""
     settings = settings_of(loop, request)
+    if settings.amp > loop.max_amp:
+        raise ValueError(f"amp {settings.amp:g} is above loop {loop.id!r}'s largest relay amplitude "
+                         f"{loop.max_amp:g} MV units (the span of its MV limits, else its tuning.max_amp)")
     plc = simulated_plc(loop)
     halt = asyncio.Event()
     plant = None if plc is None else asyncio.create_task(run(plc, loop.speed, halt))

@@ -62,16 +62,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 
-from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags, Watchdog
+from drivers.link import BadValue, Link, LinkError, LoopState, Mode, TuneFlags, Watchdog
 from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc, run
 
@@ -97,6 +99,11 @@ SHUTDOWN_GRACE = 2.0
 PLC_USER = "plc"
 # Longest pause between two tries of a watch task whose link fails, wall seconds.
 LINK_RETRY_MAX = 5.0
+# How long a session waits for the history to record what must be durable before it goes on (the saved state
+# before the loop is touched, a gains intent before the write), and for its end to be recorded before the loop is
+# idle again, wall seconds. Beyond it: the loop is not touched / the gains are not written / the end is recorded
+# later (writes are retried in the history's thread meanwhile; they never block the event loop).
+RECORD_WAIT = 10.0
 
 log = logging.getLogger("autotuner.service.daemon")
 
@@ -105,14 +112,20 @@ class Refused(Exception):
     """A request the loop's state does not allow.
 
     ``code``: not_found, busy, group_busy, idle, nothing_to_apply, not_restored
-    (the loop is not handed back yet), stopping (the daemon shuts down), or link
-    (the device could not be written).
+    (the loop is not handed back yet), stopping (the daemon shuts down), link
+    (the device could not be written), history_unavailable (a gains intent
+    could not be recorded first), invalid (a setting outside the loop's
+    bounds, e.g. ``amp`` above its largest relay amplitude), or — TUNE on a
+    fresh read of the loop (:meth:`LoopManager.request_tune`) —
+    pv_out_of_limits, pv_invalid (not finite, or stale), link_unhealthy,
+    device_busy (the device already shows TBSY: another tuner owns the loop).
     """
 
-    def __init__(self, code: str, message: str) -> None:
+    def __init__(self, code: str, message: str, ite: Code | None = None) -> None:
         super().__init__(message)
         self.code = code
         self.message = message
+        self.ite = ite  # what a refused TUNE from the device shows it (TE set); None: nothing written
 
 
 @dataclass
@@ -156,7 +169,14 @@ def connector(loop: LoopConfig, plc: SimulatedPlc | None) -> Callable[[], Link]:
     """How to reach ``loop``: a new link to ``plc`` if it is simulated, else to its configured URL."""
     if plc is not None:
         return lambda: SimLink(plc)
-    return lambda: open_link(str(loop.link), _str(loop.map), _str(loop.dbc))
+
+    def connect() -> Link:
+        try:
+            return open_link(str(loop.link), _str(loop.map), _str(loop.dbc))
+        except ValueError as exc:  # load_config checked it; a map file removed since is a link fault, not a crash
+            raise LinkError(f"cannot open the link {loop.link}: {exc}") from None
+
+    return connect
 
 
 def relay_config(loop: LoopConfig, settings: Settings) -> RelayConfig:
@@ -168,12 +188,19 @@ def relay_config(loop: LoopConfig, settings: Settings) -> RelayConfig:
 
 
 class _Tap:
-    """A link that remembers the last PV read and MV written (for the live samples) and forwards everything."""
+    """A link that remembers the last PV read and MV written (for the live samples) and forwards everything.
 
-    def __init__(self, link: Link) -> None:
+    A gains write first awaits ``before_gains`` (the history's intent; a
+    LinkError there means the gains are not written) and remembers the gains
+    in ``intended``.
+    """
+
+    def __init__(self, link: Link, before_gains: Callable[[Gains], Awaitable[None]] | None = None) -> None:
         self._link = link
         self.pv = math.nan
         self.mv = math.nan
+        self.before_gains = before_gains
+        self.intended: Gains | None = None
 
     @property
     def pv_age(self) -> float | None:
@@ -186,6 +213,12 @@ class _Tap:
     async def write_mv(self, mv: float) -> None:
         await self._link.write_mv(mv)
         self.mv = mv
+
+    async def write_gains(self, gains: Gains) -> None:
+        if self.before_gains is not None:
+            await self.before_gains(gains)
+        self.intended = gains
+        await self._link.write_gains(gains)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._link, name)
@@ -346,6 +379,10 @@ class LoopManager:
         self._halt = asyncio.Event()
         self._polling = False
         self._plants: list[asyncio.Task[None]] = []
+        # The history's own thread: writes run there in order, off the event loop (a busy database is retried).
+        self._recorder = ThreadPoolExecutor(1, thread_name_prefix="history")
+        self._writes: set[asyncio.Future[Any]] = set()
+        self._reconcilers: list[asyncio.Task[None]] = []
         self._stopping = False
         self._shutdown: asyncio.Task[list[str]] | None = None
         self._streams_closed = False
@@ -376,9 +413,12 @@ class LoopManager:
         for loop, ok in zip(recovered, done):
             if not ok:
                 loop.restorer = asyncio.create_task(self._restore_until_held(loop))
+        for record in await self._record(self.history.open_intents):
+            self._reconcilers.append(asyncio.create_task(self._reconcile(record)))
         self._polling = True
         for loop_id, loop in self.loops.items():
-            loop.latest = self.history.latest(loop_id)
+            loop.latest = await self._record(self.history.latest, loop_id)
+        for loop in self.loops.values():  # no await between these and the return: a subscriber sees the first reading
             loop.watcher = asyncio.create_task(self._watch(loop))
 
     async def shutdown(self) -> list[str]:
@@ -451,9 +491,52 @@ class LoopManager:
     async def stop(self) -> None:
         """:meth:`shutdown` (if not done yet), then stop the plants and the design's workers."""
         await self.shutdown()
+        for reconciler in self._reconcilers:
+            reconciler.cancel()
+        if self._writes:  # what the sessions' ends still have to record (a busy database: retried meanwhile)
+            await asyncio.wait(set(self._writes), timeout=STOP_WAIT)
+        self._recorder.shutdown(wait=False)
         self._halt.set()
         await asyncio.gather(*self._plants)
         await asyncio.to_thread(close_design_pool)
+
+    def _record(self, method: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+        """Run the history's ``method(*args)`` in the history's thread, after the writes before it; its future.
+
+        A write that fails after the history's own retries is logged here; the
+        caller may await the future (bounded: :meth:`_durable`) or not.
+        """
+        future = asyncio.get_running_loop().run_in_executor(self._recorder, functools.partial(method, *args))
+        self._writes.add(future)
+        future.add_done_callback(self._recorded)
+        return future
+
+    def _recorded(self, future: asyncio.Future[Any]) -> None:
+        self._writes.discard(future)
+        if not future.cancelled() and future.exception() is not None:
+            log.error("history: a write failed for good (%s: %s)", type(future.exception()).__name__,
+                      future.exception())
+
+    async def _durable(self, method: Callable[..., Any], *args: Any) -> str:
+        """Record ``method(*args)`` and wait up to :data:`RECORD_WAIT` s; '' once recorded, else why not."""
+        try:
+            await asyncio.wait_for(asyncio.shield(self._record(method, *args)), RECORD_WAIT)
+        except asyncio.TimeoutError:
+            return f"the history did not record it within {RECORD_WAIT:g} s (still retried)"
+        except Exception as exc:  # the history's error after its retries (logged by _recorded)
+            return f"the history could not record it ({type(exc).__name__}: {exc})"
+        return ""
+
+    def _refresh_latest(self, loop: Loop) -> None:
+        """Read the loop's newest session in the history's thread (after the writes before), then publish."""
+        future = self._record(self.history.latest, loop.config.id)
+
+        def done(f: asyncio.Future[Any]) -> None:
+            if not f.cancelled() and f.exception() is None:
+                loop.latest = f.result()
+                self._publish(loop, "state", loop.as_json())
+
+        future.add_done_callback(done)
 
     def get(self, loop_id: str) -> Loop:
         """The loop ``loop_id``; Refused('not_found') if there is none."""
@@ -462,9 +545,53 @@ class LoopManager:
             raise Refused("not_found", f"no loop {loop_id!r}")
         return loop
 
-    def tune(self, loop_id: str, request: TuneRequest, user: str) -> str:
-        """TUNE: start a session on an idle loop; its id. Refused if the loop or its group is busy."""
+    async def request_tune(self, loop_id: str, request: TuneRequest, user: str) -> str:
+        """TUNE as the API and the device's handshake ask it: :meth:`tune` after a fresh read of the loop.
+
+        Before anything is written to the loop, a link of its own reads the PV
+        and the handshake bits: refused (the loop untouched) if the PV is
+        outside the loop's PV limits, not finite or stale, if the link fails or
+        reports itself disconnected (``Link.health``), or if the device already
+        shows TBSY. The state checks of :meth:`tune` come first (no I/O for a
+        busy loop) and again after the read (another TUNE may have won meanwhile).
+        """
         loop = self.get(loop_id)
+        self._admit(loop, request)
+        await self._fresh_check(loop)
+        return self.tune(loop_id, request, user)
+
+    async def _fresh_check(self, loop: Loop) -> None:
+        """Read the loop's PV and bits on a new link; Refused (with the device's code) if it must not be tuned."""
+        loop_id = loop.config.id
+        if self._stopping:
+            raise Refused("stopping", "the daemon is stopping")
+        link: Link | None = None
+        try:
+            link = loop.connect()
+            await link.open()
+            pv = await link.read_pv()
+            flags = await link.read_flags()
+            health = link.health()
+        except BadValue as exc:
+            raise Refused("pv_invalid", f"loop {loop_id!r} not tuned: {exc}", Code.REFUSED_BAD_PV) from None
+        except LinkError as exc:
+            raise Refused("link_unhealthy", f"loop {loop_id!r} not tuned: {exc}", Code.REFUSED_LINK) from None
+        finally:
+            if link is not None:
+                await link.close()
+        if not health.get("connected", True):
+            raise Refused("link_unhealthy", f"loop {loop_id!r} not tuned: its link reports {health}", Code.REFUSED_LINK)
+        low, high = loop.config.limits.pv
+        if not low <= pv <= high:
+            raise Refused("pv_out_of_limits", f"loop {loop_id!r} not tuned: PV {pv:g} is outside its limits "
+                          f"[{low:g}, {high:g}]", Code.REFUSED_PV_LIMITS)
+        if flags.tbsy:
+            raise Refused("device_busy", f"loop {loop_id!r} not tuned: the device already shows TBSY (another "
+                          "tuner owns the loop)", Code.REFUSED_DEVICE_BUSY)
+
+    def _admit(self, loop: Loop, request: TuneRequest) -> Settings:
+        """The settings of a TUNE of ``loop``; Refused if the loop or its group is busy or a setting is out of bounds."""
+        loop_id = loop.config.id
         if self._stopping:
             raise Refused("stopping", "the daemon is stopping")
         if loop.busy:
@@ -478,11 +605,24 @@ class LoopManager:
         if group is not None:
             for other in self.loops.values():
                 if other.busy and other.config.group == group:
-                    raise Refused("group_busy", f"loop {other.config.id!r} of exclusion group {group!r} is tuning")
+                    raise Refused("group_busy", f"loop {other.config.id!r} of exclusion group {group!r} is tuning",
+                                  Code.GROUP_BUSY)
         settings = settings_of(loop.config, request)
+        if settings.amp > loop.config.max_amp:
+            raise Refused("invalid", f"amp: {settings.amp:g} is above loop {loop_id!r}'s largest relay amplitude "
+                          f"{loop.config.max_amp:g} MV units (the span of its MV limits, else its tuning.max_amp)")
+        return settings
+
+    def tune(self, loop_id: str, request: TuneRequest, user: str) -> str:
+        """TUNE: start a session on an idle loop now; its id. Refused if the loop or its group is busy.
+
+        Without the fresh read of :meth:`request_tune` (tests, and code that has just read the loop).
+        """
+        loop = self.get(loop_id)
+        settings = self._admit(loop, request)
         config = relay_config(loop.config, settings)
         sid = uuid.uuid4().hex
-        self.history.begin(sid, loop_id, user, settings.as_json())
+        self._record(self.history.begin, sid, loop_id, user, settings.as_json())  # in order before the session's
         loop.session, loop.status, loop.result = sid, None, None
         loop.stop = asyncio.Event()
         loop.task = asyncio.create_task(self._session(loop, sid, user, settings, config))
@@ -511,7 +651,8 @@ class LoopManager:
         loop = self.get(loop_id)
         if loop.busy or loop.applying:
             raise Refused("busy", f"loop {loop_id!r} is tuning or being written")
-        record = self.history.latest(loop_id) if sid is None else self.history.get(sid)
+        record = await asyncio.to_thread(self.history.latest, loop_id) if sid is None else \
+            await asyncio.to_thread(self.history.get, sid)
         if record is None and sid is None:
             raise Refused("nothing_to_apply", f"loop {loop_id!r} has no finished session")
         if record is None or record["loop"] != loop_id:
@@ -524,23 +665,31 @@ class LoopManager:
             raise Refused("nothing_to_apply", f"session {sid} has no usable gains")
         loop.applying = True
         try:
+            why = await self._durable(self.history.intend, sid, user, gains)
+            if why:
+                raise Refused("history_unavailable", f"gains not written to loop {loop_id!r}: the intent to "
+                              f"write them must be recorded first; {why}")
             after = await _write_gains(loop.connect(), gains)
-        except LinkError as exc:
+        except LinkError as exc:  # the intent stays open: reconciled with the device at the next start
             raise Refused("link", f"gains not written to loop {loop_id!r}: {exc}") from None
         finally:
             loop.applying = False
-        self.history.applied(sid, user, after)
+        why = await self._durable(self.history.applied, sid, user, after)
+        if why:
+            log.error("loop %s: gains of session %s written, their record delayed: %s", loop_id, sid, why)
         loop.gains = after
-        loop.latest = self.history.latest(loop_id)
+        self._refresh_latest(loop)
         log.info("loop %s: gains of session %s applied by %s", loop_id, sid, user)
         self._publish(loop, "state", loop.as_json())
         return {"loop": loop_id, "session": sid, "gains": after.as_json()}
 
     async def wait(self, loop_id: str) -> None:
-        """Until the running session of ``loop_id`` (if any) has ended and been recorded."""
+        """Until the running session of ``loop_id`` (if any) has ended and the history's pending writes are done."""
         task = self.get(loop_id).task
         if task is not None:
             await asyncio.shield(task)
+        if self._writes:
+            await asyncio.wait(set(self._writes))
 
     def subscribe(self, loop_id: str) -> asyncio.Queue[dict[str, Any]]:
         """A queue receiving the loop's events ``{"event": "sample"|"state", "data": {...}}``."""
@@ -561,16 +710,16 @@ class LoopManager:
             queue.put_nowait({"event": event, "data": data})
 
     async def _session(self, loop: Loop, sid: str, user: str, settings: Settings, config: RelayConfig) -> None:
-        link = loop.connect()
-        tap = _Tap(link)
-        loop.tap, loop.saved = tap, None
+        link: Link | None = None
+        loop.tap, loop.saved = None, None
         start = time.monotonic()
         speed = loop.config.speed
 
         def on_status(status: Status) -> None:
             stage_changed = loop.status is None or loop.status.stage is not status.stage
             loop.status = status
-            if status.stage is not Stage.DONE:
+            tap = loop.tap
+            if status.stage is not Stage.DONE and tap is not None:
                 self._publish(loop, "sample", {
                     "t": (time.monotonic() - start) * speed, "time": time.time(), "pv": tap.pv,
                     "sp": None if loop.saved is None else loop.saved.sp, "mv": tap.mv, "relay": status.relay,
@@ -586,7 +735,7 @@ class LoopManager:
         def on_saved(saved: LoopState, relay_levels: tuple[float, float]) -> None:
             nonlocal levels
             loop.saved, levels = saved, relay_levels
-            self.history.saved(sid, saved, relay_levels)
+            self._record(self.history.saved, sid, saved, relay_levels)  # in the history's thread, after the begin
 
         def on_handed_back(error: str) -> None:
             nonlocal restore_error
@@ -596,36 +745,62 @@ class LoopManager:
         gains_after: Gains | None = None
         state = "finished"
         loop.handback = self._handback()
+
+        async def intend(gains: Gains) -> None:  # before the gains write: its intent, durably (else no write)
+            why = await self._durable(self.history.intend, sid, user, gains)
+            if why:
+                raise LinkError(f"the intent to write them must be recorded first; {why}")
+
+        intended: Gains | None = None
         try:
+            link = loop.connect()
+            tap = loop.tap = _Tap(link, intend)
             await link.open()
             result = await tune_link(tap, config, loop.config.ts, settings.controller, settings.ms, settings.apply,
                                      speed, loop.stop, on_status, loop.handback, on_saved, on_handed_back)
-            if loop.saved is not None:
+            intended = tap.intended
+            if intended is not None:  # a gains write was attempted: what the device holds decides if it was applied
+                gains_after = await _read_gains(link)
+            elif loop.saved is not None:
                 gains_after = await _gains(link, loop.saved, result, settings.apply)
         except LinkError as exc:
             result = TuneResult.failed(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", settings.controller)
         except asyncio.CancelledError:
             state = "interrupted"
             raise
+        except Exception as exc:  # a bug: tune_link's own finally has restored the loop; the loop must not stay busy
+            log.exception("loop %s: session %s failed", loop.config.id, sid)
+            result = TuneResult.failed(Code.ABORTED, f"aborted: internal error ({type(exc).__name__}: {exc}); "
+                                       "see the daemon's log", settings.controller)
         finally:
-            await link.close()
-            if result is None:  # cancelled: tune_link has handed the loop back (or said why not)
-                result = TuneResult.failed(Code.ABORTED, "aborted: the daemon stopped", settings.controller)
-            loop.result = result.as_json()
-            applied_by = user if result.ok and settings.apply else None
-            if restore_error and loop.saved is not None:
-                loop.pending = Pending(sid, loop.saved, levels, result.code, state, restore_error)
-                log.error("loop %s: LOOP NOT RESTORED at the end of session %s (%s); retrying",
-                          loop.config.id, sid, restore_error)
-            self.history.finish(sid, loop.result, gains_after, downsample(result.trace),
-                                "not_restored" if loop.pending is not None else state, applied_by)
-            loop.latest = self.history.latest(loop.config.id)
-            if loop.saved is not None and loop.pending is None:  # what the session left: its mode, the gains read
-                loop.mode, loop.gains = Mode(loop.saved.mode), gains_after
-            loop.task, loop.tap, loop.saved, loop.handback = None, None, None, None
-            if loop.pending is not None and not self._stopping:
-                loop.restorer = asyncio.create_task(self._restore_until_held(loop))
-            self._publish(loop, "state", loop.as_json())
+            try:
+                if link is not None:
+                    await link.close()
+                if result is None:  # cancelled: tune_link has handed the loop back (or said why not)
+                    result = TuneResult.failed(Code.ABORTED, "aborted: the daemon stopped", settings.controller)
+                loop.result = result.as_json()
+                applied = intended is not None and gains_after is not None and same_gains(gains_after, intended)
+                if restore_error and loop.saved is not None:
+                    loop.pending = Pending(sid, loop.saved, levels, result.code, state, restore_error)
+                    log.error("loop %s: LOOP NOT RESTORED at the end of session %s (%s); retrying",
+                              loop.config.id, sid, restore_error)
+                end = (self.history.finish, sid, loop.result, gains_after, downsample(result.trace),
+                       "not_restored" if loop.pending is not None else state, user if applied else None)
+                if self._stopping:  # the shutdown's bound is for the hand-back: the record goes on in its thread
+                    self._record(*end)
+                elif why := await self._durable(*end):
+                    log.error("loop %s: the end of session %s is not recorded yet: %s", loop.config.id, sid, why)
+                if intended is not None and gains_after is None:  # unknown whether the write happened: ask later
+                    self._reconcilers.append(asyncio.create_task(self._reconcile(
+                        {"id": sid, "loop": loop.config.id, "gains_intent": {"gains": intended.as_json()}})))
+                self._refresh_latest(loop)
+                if loop.saved is not None and loop.pending is None:  # what the session left: its mode, the gains
+                    loop.mode, loop.gains = Mode(loop.saved.mode), gains_after
+            finally:  # whatever failed above, the loop is idle again (TUNE accepted, TBRK refused)
+                loop.task, loop.tap, loop.saved, loop.handback = None, None, None, None
+                if loop.pending is not None and not self._stopping:
+                    loop.restorer = asyncio.create_task(self._restore_until_held(loop))
+                self._publish(loop, "state", loop.as_json())
 
     async def _watch(self, loop: Loop) -> None:
         """The loop's watch task, until cancelled: monitor it while idle, poll its handshake bits (if configured).
@@ -730,13 +905,42 @@ class LoopManager:
             log.info("loop %s: TUNE from the device ignored while TBRK is set", loop_id)
             return
         try:
-            sid = self.tune(loop_id, TuneRequest(), user=PLC_USER)
+            sid = await self.request_tune(loop_id, TuneRequest(), user=PLC_USER)
         except Refused as refused:
             log.info("loop %s: TUNE from the device refused: %s", loop_id, refused.message)
-            if refused.code == "group_busy":
-                await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(Code.GROUP_BUSY)))
+            if refused.ite is not None and refused.code != "device_busy":  # TBSY/ite then belong to the other tuner
+                await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(refused.ite)))
             return
         log.info("loop %s: TUNE from the device started session %s", loop_id, sid)
+
+    async def _reconcile(self, record: dict[str, Any]) -> None:
+        """Close an open gains intent (a crash between the write and its record) with the gains the device holds.
+
+        Retried (growing pauses) until the device answers: the history then
+        records the gains read back, as applied by whoever intended the write
+        if they are the intended gains, else as not applied.
+        """
+        loop = self.loops.get(record["loop"])
+        sid, intended = record["id"], Gains.from_json(record["gains_intent"]["gains"])
+        if loop is None:
+            log.warning("session %s: its gains write is unconfirmed and loop %r is no longer configured", sid,
+                        record["loop"])
+            return
+        pause = 0.5
+        while True:
+            read_back = await _read_gains_opened(loop.connect())
+            if read_back is not None:
+                break
+            log.info("loop %s: gains write of session %s unconfirmed, the device is unreachable; retrying",
+                     loop.config.id, sid)
+            await asyncio.sleep(pause)
+            pause = min(2.0 * pause, LINK_RETRY_MAX)
+        applied = same_gains(read_back, intended)
+        why = await self._durable(self.history.resolve_intent, sid, read_back, applied)
+        log.warning("loop %s: the gains write of session %s was interrupted; the device %s the intended gains%s",
+                    loop.config.id, sid, "holds" if applied else "does not hold",
+                    f" (not recorded yet: {why})" if why else "")
+        self._refresh_latest(loop)
 
     def _recover(self, record: dict[str, Any]) -> Loop | None:
         """A session the last run left running or not restored: its loop, now pending a restore (None: nothing to
@@ -842,6 +1046,33 @@ async def _write_gains(link: Link, gains: Gains) -> Gains:
         except LinkError as exc:
             log.warning("gains written but not read back (%s)", exc)
             return gains
+    finally:
+        await link.close()
+
+
+def same_gains(a: Gains, b: Gains) -> bool:
+    """``a`` and ``b`` equal within the resolution of the links (float32 on the wire)."""
+    ja, jb = a.as_json(), b.as_json()
+    return all((ja[k] is None) == (jb[k] is None) and (ja[k] is None or math.isclose(ja[k], jb[k], rel_tol=1e-6,
+                                                                                        abs_tol=1e-12))
+               for k in ja)
+
+
+async def _read_gains(link: Link) -> Gains | None:
+    """The controller's gains read back, None if the read fails."""
+    try:
+        return (await link.read_state()).gains
+    except LinkError:
+        return None
+
+
+async def _read_gains_opened(link: Link) -> Gains | None:
+    """Open ``link``, read the controller's gains, close; None if the device cannot be reached."""
+    try:
+        await link.open()
+        return await _read_gains(link)
+    except LinkError:
+        return None
     finally:
         await link.close()
 
