@@ -170,3 +170,41 @@ def test_a_session_left_running_by_a_crash_is_closed_and_its_loop_restored(tmp_p
     assert m.history.get("s0")["state"] == "interrupted"
     assert status["session"] == "s1" and status["te"] is True
     assert m.history.running() == []
+
+
+def test_a_device_that_does_not_take_the_saved_mv_is_not_restored_and_retried_until_it_does(tmp_path, caplog):
+    """Crash recovery of a loop whose PLC does not take the manual MV (its output is limited to 45): never AUTO
+    unconfirmed; status, device and history say not restored (code 20), ERROR per try; once the PLC takes the MV
+    the next try hands the loop back."""
+    path = str(tmp_path / "history.db")
+    crashed = History(path)
+    saved = LoopState(mode=Mode.AUTO, mv=50.0, sp=50.0, gains=Gains(k=0.7, ti=3.0))
+    crashed.begin("s1", "A", "alice", {"controller": "PI", "amp": 5.0})
+    crashed.saved("s1", saved, (45.0, 55.0))
+    crashed.close()
+    config = DaemonConfig.model_validate({"history": path, "loops": [loop("A")], "handback": {
+        "track_timeout": 0.3, "retry_first": 0.2, "retry_max": 0.4}})
+    m = LoopManager(config, History(path))
+    plc = m.loops["A"].plc
+    plc.mode, plc.hv = Mode.MAN, 55.0
+    plc.pid.hilim = 45.0  # the relay's low level: the loop reads as the session left it, but cannot reach 50
+    plc.tick()
+
+    async def body(m: LoopManager):
+        status = m.loops["A"].as_json()
+        await until(lambda: m.loops["A"].pending.attempts >= 3, 20.0, "three tries")
+        stuck = m.loops["A"].as_json(), m.history.get("s1")["state"], plc.mode, plc.flags
+        plc.pid.hilim = 100.0  # the PLC takes the MV again
+        await until(lambda: m.loops["A"].pending is None, 20.0, "the restore to succeed")
+        return status, stuck
+
+    caplog.set_level("ERROR", logger="autotuner.service.daemon")
+    status, (later, state, mode, flags) = asyncio.run(running(m, body))
+    assert status["ite"] == float(Code.LOOP_NOT_RESTORED) and status["restore"]["session"] == "s1"
+    assert later["restore"]["attempts"] >= 3 and "does not take the manual MV" in later["restore"]["last_error"]
+    assert state == "not_restored" and mode is Mode.MAN  # never switched to AUTO unconfirmed
+    assert flags.te is True and flags.ite == float(Code.LOOP_NOT_RESTORED)
+    assert sum("loop A: LOOP NOT RESTORED" in r.getMessage() for r in caplog.records) >= 3
+    assert plc.mode is Mode.AUTO and plc.hv == pytest.approx(50.0, abs=1.0)
+    record = m.history.get("s1")
+    assert record["state"] == "interrupted" and "loop restored to AUTO with MV 50" in record["message"]

@@ -229,7 +229,8 @@ class Pending:
     """A loop not handed back yet: session ``sid`` saved ``saved`` and held the MV at ``levels``.
 
     ``code`` and ``final``: the result code and history state the session gets
-    once the loop is back. ``since``: UTC, ISO 8601.
+    once the loop is back. ``since``: UTC, ISO 8601. ``attempts``: tries that
+    failed so far (the session's own hand-back counts as one).
     """
 
     sid: str
@@ -967,7 +968,7 @@ class LoopManager:
             return None
         loop.session, loop.result = record["id"], result
         loop.pending = Pending(record["id"], state_of(saved), tuple(saved.get("relay_levels", ())), code, final,
-                               "not tried since the daemon started")
+                               "not tried since the daemon started", attempts=0)
         return loop
 
     async def _restore_until_held(self, loop: Loop) -> None:
