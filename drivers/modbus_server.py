@@ -19,7 +19,9 @@ in place. The action here
   :class:`~autotuner.engine.control.gains.Gains` rejects are refused with exception 3
   (illegal data value), like a PLC refusing a bad parameter.
 
-Addresses outside the map answer exception 2 (illegal data address).
+Addresses outside the map answer exception 2 (illegal data address),
+unmapped coils next to mapped ones included; only the server's own unit id
+(default 1) is answered.
 There is no separate sync step after ``plc.tick()``: nothing is cached, so
 nothing can be stale.
 
@@ -101,7 +103,7 @@ def _raw(reg: Register, value: float) -> list[int]:
 class ModbusPlcServer:
     """A running Modbus TCP server in front of ``plc``; use :func:`serve_modbus` to start one."""
 
-    def __init__(self, plc: SimulatedPlc, host: str, port: int, map: ModbusMap, unit: int = 0,
+    def __init__(self, plc: SimulatedPlc, host: str, port: int, map: ModbusMap, unit: int = 1,
                  rtu_framing: bool = False) -> None:
         self.plc = plc
         self.rtu_framing = rtu_framing
@@ -118,6 +120,7 @@ class ModbusPlcServer:
         self._by_table: dict[str, list[tuple[str, Register]]] = {t: [] for t in _BLOCK_ORDER}
         for name, reg in map.registers.items():
             self._by_table[reg.table].append((name, reg))
+        self._bits = {t: {r.address for _, r in self._by_table[t]} for t in BIT_TABLES}
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -188,6 +191,12 @@ class ModbusPlcServer:
         table = _FC_TABLE.get(func_code)
         if table is None:
             return ExcCodes.ILLEGAL_FUNCTION
+        if table in BIT_TABLES:
+            # pymodbus keeps bits in 16-bit words, so the neighbours of a mapped bit would answer: the map's don't.
+            # (For a read pymodbus passes the count in words: the first bit is what can be checked.)
+            bits = len(values) if values is not None else 1
+            if not all(a in self._bits[table] for a in range(address, address + bits)):
+                return ExcCodes.ILLEGAL_ADDRESS
         writing = values is not None
         if self._fail is not None and (not writing or self._fail_writes):
             return self._fail
@@ -277,12 +286,13 @@ def _set_bit(registers: list[int], start: int, bit_address: int, value: bool) ->
 
 
 async def serve_modbus(plc: SimulatedPlc, host: str = "127.0.0.1", port: int = 0,
-                       map: ModbusMap = DEFAULT_MAP, unit: int = 0,
+                       map: ModbusMap = DEFAULT_MAP, unit: int = 1,
                        rtu_framing: bool = False) -> ModbusPlcServer:
     """Serve ``plc`` over Modbus TCP at ``host:port`` (port 0: an ephemeral port, see ``.port``).
 
-    ``unit`` 0 (the default) answers every unit id; another value answers only
-    that unit (requests to other ids get an exception response).
+    ``unit`` (default 1, the unit of the URLs the CLI prints) is the only id
+    answered with data, like a real device (requests to other ids get an
+    exception response); 0 answers every unit id (a gateway-like test setup).
     ``rtu_framing`` serves RTU frames over the TCP socket ("RTU over TCP"),
     which an RTU client reaches with the pyserial URL ``socket://HOST:PORT``
     (how the RTU link is tested without a serial port).

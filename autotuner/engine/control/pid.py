@@ -24,6 +24,14 @@ is handled exactly as it comes):
 
 The integral state is kept in MV units. That is what makes gain changes and
 mode switches bumpless: the accumulated MV does not depend on K or Ti.
+
+With finite output limits the integral state is kept within
+:data:`INTEGRAL_SPANS` spans of them (``[lolim − n·span, hilim + n·span]``):
+extreme but valid gains (k 1e38, ti 1e-30) would otherwise wind it up (or,
+through a bumpless change back, push it) so far that the output stays pinned
+at a limit for minutes after sane gains are written back. The band is wide
+enough that a sane loop never reaches it (a PI without tracking winds up
+within it as before); from its edge tracking drains in a few ``tt``.
 """
 
 from __future__ import annotations
@@ -43,6 +51,8 @@ KINDS = ("P", "I", "PI", "PD", "PID")
 # adjusted to keep the output continuous.
 _LAW_FIELDS = frozenset({"gains", "kind", "reverse"})
 _CONFIG_FIELDS = _LAW_FIELDS | {"lolim", "hilim", "tt"}
+# How many output spans beyond the limits the integral state may go (finite limits only).
+INTEGRAL_SPANS = 10.0
 
 
 def _check_config(gains: Any, kind: Any, reverse: Any, lolim: Any, hilim: Any, tt: Any) -> None:
@@ -132,6 +142,7 @@ class PidUnit:
             before = self._static_terms(sp, pv)
             object.__setattr__(self, name, value)
             self._integral += before - self._static_terms(sp, pv)
+            self._bound_integral()
             # A new c changes c·sp − pv without the signal moving; re-basing the
             # derivative's previous input avoids a spurious derivative kick.
             self._x_prev = self.gains.c * sp - pv
@@ -189,6 +200,17 @@ class PidUnit:
             out += g.k * g.td * self._dfilt
         return self._sign() * out
 
+    def _bound_integral(self) -> None:
+        """Keep the integral state within INTEGRAL_SPANS spans of finite output limits (module docstring)."""
+        lo, hi = self.lolim, self.hilim
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            return
+        span = INTEGRAL_SPANS * (hi - lo)
+        x = self._integral
+        if math.isnan(x):  # inf − inf of an overflowing extreme gain: start again from the middle
+            x = 0.5 * (lo + hi)
+        self._integral = min(max(x, lo - span), hi + span)
+
     def _clip(self, x: float) -> float:
         return min(max(x, self.lolim), self.hilim)
 
@@ -242,6 +264,7 @@ class PidUnit:
                 tt = self.tt_effective
                 self._integral += (1.0 - math.exp(-h / tt)) * self._track_err
                 self._integral += self._sign() * g.ki * h * 0.5 * (e + self._e_prev)
+                self._bound_integral()
 
         rest = self._static_terms(sp, pv) + dv
         v = rest + self._integral
