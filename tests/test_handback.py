@@ -65,12 +65,16 @@ class Plc:
         self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "sim", "--modbus",
                                       f"127.0.0.1:{self.port}", "--speed", str(SPEED), "--ts", str(PLC_TS)],
                                      stdout=self.log, stderr=subprocess.STDOUT, text=True)
-        wait_for(lambda: "serving" in self.log_path.read_text() or self.proc.poll() is not None, START,
-                 "the simulated PLC to serve")
-        assert self.proc.poll() is None, self.log_path.read_text()
-        self.client = ModbusTcpClient("127.0.0.1", port=self.port, timeout=1.0, retries=0)
-        assert self.client.connect()
         self.stopped = False
+        self.client = ModbusTcpClient("127.0.0.1", port=self.port, timeout=1.0, retries=0)
+        try:
+            wait_for(lambda: "serving" in self.log_path.read_text() or self.proc.poll() is not None, START,
+                     "the simulated PLC to serve")
+            assert self.proc.poll() is None, self.log_path.read_text()
+            assert self.client.connect()
+        except BaseException:  # no simulated PLC left running after a failed start
+            self.close()
+            raise
 
     @property
     def url(self) -> str:
