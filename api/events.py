@@ -4,9 +4,13 @@ A ``sample`` is an experiment sample while the loop tunes (t, time, PV, SP,
 MV, relay, ...) and a monitor reading while it is idle (time, PV, SP, MV,
 mode); docs/daemon.md lists the fields. Non-finite numbers are sent as null.
 
-The stream starts with the current state; a comment line every
-``KEEPALIVE`` seconds keeps proxies from closing an idle stream. It ends
-when the daemon stops (after every loop is handed back, with a last
+The stream starts with the current state and a ``replay`` event: the trend
+the daemon keeps (the running or last session's samples from its start, then
+the monitor's; :class:`~autotuner.service.trend.Trend`), so a page opened
+mid-tune draws it from the start. Both are taken when the client subscribes,
+so the events that follow continue them without a gap or a repeat. A comment
+line every ``KEEPALIVE`` seconds keeps proxies from closing an idle stream.
+It ends when the daemon stops (after every loop is handed back, with a last
 ``state``), so the server's wait for open connections never holds up a
 shutdown.
 """
@@ -44,8 +48,10 @@ def frame(event: str, data: dict[str, Any]) -> str:
 async def stream(manager: LoopManager, loop_id: str) -> AsyncIterator[str]:
     """The loop's events until the client goes away or the daemon stops."""
     queue = manager.subscribe(loop_id)
+    state, replay = manager.get(loop_id).as_json(), manager.replay(loop_id)  # no await between: no gap, no repeat
     try:
-        yield frame("state", manager.get(loop_id).as_json())
+        yield frame("state", state)
+        yield frame("replay", replay)
         while not manager.streams_closed or not queue.empty():
             try:
                 event = await asyncio.wait_for(queue.get(), KEEPALIVE)

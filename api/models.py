@@ -95,6 +95,7 @@ class LoopStatus(BaseModel):
     description: str
     group: str | None
     link: str
+    speed: float
     tbsy: bool
     te: bool
     ite: float

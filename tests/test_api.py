@@ -188,15 +188,18 @@ def test_events_stream_samples_and_state_changes():
                     kind = line[7:]
                 elif line.startswith("data: "):
                     events.append((kind, json.loads(line[6:])))
-                    if len(events) == 1:
+                    if len(events) == 2:
                         assert http.post("/loops/TIC-101/tune").status_code == 202
                     if sum(k == "sample" for k, _ in events) >= 40:
                         break
         assert http.post("/loops/TIC-101/break").status_code == 202
+    # The stream opens with the state and the replay of the trend kept (here the monitor's readings so far); then
+    # state, sample (monitor or experiment) events only.
     assert events[0][0] == "state" and events[0][1]["tbsy"] is False
-    # TUNE reads the loop afresh before it starts: the monitor's samples may come first, then the busy state.
-    states = [d for k, d in events if k == "state"]
-    assert states[1]["tbsy"] is True and all(d.get("mode") for k, d in events[1:events.index(("state", states[1]))])
+    assert events[1][0] == "replay" and events[1][1]["session"] is None
+    assert set(events[1][1]) == {"session", "time", "t", "pv", "sp", "mv", "relay"}
+    assert {k for k, _ in events[2:]} == {"state", "sample"}
+    assert next(d for k, d in events[2:] if k == "state")["tbsy"] is True
     samples = [d for k, d in events if k == "sample"]
     assert {"t", "pv", "mv", "relay", "filter_phase_deg", "ite", "stage", "progress"} <= samples[-1].keys()
     assert samples[-1]["t"] > samples[0]["t"]

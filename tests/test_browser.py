@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from datetime import datetime
 
 import httpx
 import pytest
@@ -466,3 +467,32 @@ def test_every_screen_size_tune_result_apply(browser, daemon, width, height):
     finally:
         context.close()
     assert not errors, errors
+
+
+def test_a_page_opened_mid_experiment_shows_the_whole_trend_from_the_start(page, daemon):
+    daemon.wait_idle("FIC-301")
+    daemon.wait_idle("LIC-201")
+    login(page, daemon, VIEWER, "viewer")
+    posted = time.monotonic()
+    sid = daemon.post("/loops/FIC-301/tune").json()["session"]
+    try:
+        deadline = posted + 90
+        # Well into the relay experiment (at least 2 wall seconds of it) before the page is opened.
+        while (status := daemon.get("/loops/FIC-301"))["tbsy"] and (
+                status["stage"] != "relay" or status["progress"] < 0.2 or time.monotonic() < posted + 2):
+            assert time.monotonic() < deadline, "FIC-301 made no progress"
+            time.sleep(0.1)
+        assert status["tbsy"], status["message"]
+        opened = time.time()
+        page.goto(daemon.url + "#/loop/FIC-301")
+        page.wait_for_selector("#trend[data-experiment-start]:not([data-experiment-start=''])")
+        page.wait_for_selector("#trend path[data-series='relay ±1']")
+        started = datetime.fromisoformat(daemon.get(f"/sessions/{sid}")["started_at"]).timestamp()
+        first = float(page.get_attribute("#trend", "data-experiment-start"))
+        # The experiment's first sample comes right after the loop's state is saved: within a few seconds of the
+        # session's start, long before the page was opened.
+        assert started <= first < started + 5 and first < opened - 0.5, (started, first, opened)
+        assert int(page.get_attribute("#trend", "data-samples")) > 20
+    finally:
+        daemon.post("/loops/FIC-301/break")
+    daemon.wait_idle("FIC-301")

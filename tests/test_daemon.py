@@ -10,7 +10,7 @@ from autotuner.service.config import DaemonConfig, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
-from autotuner.service.history import History
+from autotuner.service.history import TRACE_POINTS, History
 from autotuner.engine.outcome import Code
 from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import LoopState, Mode
@@ -44,24 +44,29 @@ def test_tune_busy_ite_counts_down_then_success_with_gains_applied():
     async def body(m: LoopManager):
         plc = m.loops["TIC1"].plc
         before = plc.gains
+        await until(lambda: m.loops["TIC1"].pv is not None, 10.0, "a monitor reading")
+        monitored = m.loops["TIC1"].as_json()
         events = m.subscribe("TIC1")
         sid = m.tune("TIC1", TuneRequest(apply=True), user="alice")
         status = m.loops["TIC1"].as_json()
         assert status["tbsy"] and status["te"] is False and status["session"] == sid
         ites = []
+        replay = None
         while m.loops["TIC1"].busy:
             await asyncio.sleep(0.2)
             s = m.loops["TIC1"].as_json()
             if s["tbsy"] and s["stage"] == "relay":
                 ites.append(s["ite"])
+                if replay is None and len(ites) >= 3:
+                    replay = m.replay("TIC1")  # what a page opened now is sent first
         done = m.loops["TIC1"].as_json()
         samples = []
         while not events.empty():
             samples.append(events.get_nowait())
-        return sid, done, ites, plc, before, samples
+        return sid, done, ites, plc, before, samples, monitored, replay
 
     m = manager(loop("TIC1"))
-    sid, done, ites, plc, before, samples = asyncio.run(running(m, body))
+    sid, done, ites, plc, before, samples, monitored, replay = asyncio.run(running(m, body))
     assert done["tbsy"] is False and done["te"] is False and done["ite"] == 0, done["message"]
     # The estimate of the seconds left is rough until the first periods are measured, then goes down.
     peak = ites.index(max(ites))
@@ -75,7 +80,9 @@ def test_tune_busy_ite_counts_down_then_success_with_gains_applied():
     assert record["request"]["apply"] is True and record["request"]["amp"] == 5.0
     assert record["gains_before"] == before.as_json()
     assert record["gains_after"]["pk"] == pytest.approx(gains.k)
-    assert 10 < len(record["trace"]["t"]) <= 500
+    # The whole experiment is stored at full resolution (fewer samples than TRACE_POINTS).
+    assert len(record["trace"]["t"]) == record["result"]["experiment"]["samples"]
+    assert 10 < len(record["trace"]["t"]) <= TRACE_POINTS
     kinds = {e["event"] for e in samples}
     assert kinds == {"sample", "state"}
     sample = next(e["data"] for e in samples if e["event"] == "sample" and e["data"].get("stage") == "relay")
@@ -84,6 +91,16 @@ def test_tune_busy_ite_counts_down_then_success_with_gains_applied():
     # The last state is the end of the session (the monitor's samples follow it once the loop is idle and
     # update the live values pv, sp, mv).
     last = [e["data"] for e in samples if e["event"] == "state"][-1]
+    # The replay mid-experiment starts at the experiment's first sample and holds every sample published until
+    # then (the subscriber here may have lost its oldest events: it reads only at the end).
+    published = [e["data"] for e in samples if e["event"] == "sample" and "stage" in e["data"]]
+    assert replay["session"] == sid and len(replay["time"]) > 10
+    assert replay["t"][0] < 2.0 and replay["t"] == sorted(replay["t"])
+    until_then = [p["time"] for p in published if p["time"] <= replay["time"][-1]]
+    assert until_then and replay["time"][-len(until_then):] == until_then
+    # The final state carries the session's last values, not the monitor's from before the experiment.
+    assert last["pv"] == published[-1]["pv"] or last["pv"] != monitored["pv"]
+    assert last["pv"] != monitored["pv"] and last["mv"] is not None
     live = ("pv", "sp", "mv")
     assert {k: v for k, v in last.items() if k not in live} == {k: v for k, v in done.items() if k not in live}
     assert done["mode"] == "AUTO" and done["current_gains"] == done["gains"] and done["pending_gains"] is False

@@ -75,8 +75,7 @@ function clock(unix) {
 // The loop's state in words and a CSS class: tuning, failed, warn, ok, idle.
 function statusOf(loop) {
   if (loop.tbsy) {
-    const left = Math.max(0, Math.round(loop.ite));
-    return { cls: "tuning", badge: "TUNING", text: `${STAGES[loop.stage] || "starting"} · ${left} s left` };
+    return { cls: "tuning", badge: "TUNING", text: `${STAGES[loop.stage] || "starting"} · ${timeLeft(loop)}` };
   }
   const code = Math.round(loop.ite);
   const meaning = CODES.get(code)?.message;
@@ -86,6 +85,21 @@ function statusOf(loop) {
   }
   if (loop.session) return { cls: "ok", badge: "OK", text: `${codeName(code)}: ${meaning || loop.message}` };
   return { cls: "idle", badge: "IDLE", text: "not tuned since the daemon started" };
+}
+
+// The time left in wall-clock seconds (what the operator waits), and the plant seconds of ite where they differ
+// (a simulated plant run faster than real time); ite itself keeps its meaning (plant seconds, as on the PLC).
+function timeLeft(loop) {
+  const plant = Math.max(0, loop.ite);
+  const speed = loop.speed || 1;
+  const wall = `about ${duration(plant / speed)} left`;
+  return speed === 1 ? wall : `${wall} (ite ${Math.round(plant)} plant s at ${fmt(speed, 3)}× real time)`;
+}
+
+function duration(seconds) {
+  if (seconds < 90) return `${Math.round(seconds)} s`;
+  if (seconds < 5400) return `${Math.round(seconds / 60)} min`;
+  return `${fmt(seconds / 3600, 2)} h`;
 }
 
 function flags(loop) {
@@ -275,7 +289,7 @@ function loopTabs(id, active) {
     h("a", { href: `#/loop/${esc(id)}/history`, class: active === "history" ? "active" : "", id: "tab-history" }, "History"));
 }
 
-const TREND_WINDOW = 600; // wall seconds kept in the trend
+const TREND_WINDOW = 600; // wall seconds kept in the trend (more to keep the whole of the last experiment)
 const TREND_MAX = 30000; // samples kept
 // The trend of each loop seen since the page was opened (kept when the operator looks at another view).
 const trends = new Map();
@@ -288,6 +302,8 @@ function loopView(id) {
   let closed = false;
   if (!trends.has(id)) trends.set(id, { time: [], pv: [], sp: [], mv: [], relay: [] });
   const trend = trends.get(id);
+  // Wall times of the experiment's first and last samples in the trend (null: none), so the window keeps it.
+  let experiment = null;
   // A break in the lines where samples were missed (another view, a lost stream).
   const gap = () => {
     const n = trend.time.length;
@@ -408,16 +424,42 @@ function loopView(id) {
     }
   }
 
-  function sample(s) {
-    const t = typeof s.time === "number" ? s.time : Date.now() / 1000;
-    trend.time.push(t);
-    trend.pv.push(s.pv ?? null);
-    trend.sp.push(s.sp ?? null);
-    trend.mv.push(s.mv ?? null);
-    trend.relay.push(s.relay ?? null);
-    const cut = trend.time.findIndex((x) => x >= t - TREND_WINDOW);
+  // One sample into the trend: a break in the lines where the experiment's samples give way to the monitor's.
+  function push(time, pv, sp, mv, relay) {
+    const n = trend.time.length;
+    if (n && trend.pv[n - 1] !== null && (trend.relay[n - 1] === null) !== (relay === null)) gap();
+    trend.time.push(time);
+    trend.pv.push(pv);
+    trend.sp.push(sp);
+    trend.mv.push(mv);
+    trend.relay.push(relay);
+    if (relay !== null) experiment = experiment ? [experiment[0], time] : [time, time];
+  }
+
+  // Samples older than the window go, unless they are of the last experiment (kept whole while it is recent).
+  function trim(now) {
+    const span = experiment ? experiment[1] - experiment[0] : 0;
+    const keep = Math.max(TREND_WINDOW, 2 * span);
+    const cut = trend.time.findIndex((x) => x >= now - keep);
     const drop = Math.max(cut, trend.time.length - TREND_MAX);
     if (drop > 0) for (const k of Object.keys(trend)) trend[k].splice(0, drop);
+    if (experiment && trend.time[0] > experiment[1]) experiment = null;
+  }
+
+  // The daemon's trend when the stream opens (the running or last session from its start, then the monitor):
+  // it replaces what the page held.
+  function replay(r) {
+    for (const k of Object.keys(trend)) trend[k].length = 0;
+    experiment = null;
+    for (let i = 0; i < r.time.length; i++) push(r.time[i], r.pv[i], r.sp[i], r.mv[i], r.relay[i]);
+    if (r.time.length) trim(r.time[r.time.length - 1]);
+    schedule();
+  }
+
+  function sample(s) {
+    const t = typeof s.time === "number" ? s.time : Date.now() / 1000;
+    push(t, s.pv ?? null, s.sp ?? null, s.mv ?? null, s.relay ?? null);
+    trim(t);
     if (loop) {
       if (s.pv !== undefined) loop.pv = s.pv;
       if (s.sp !== undefined) loop.sp = s.sp;
@@ -469,8 +511,11 @@ function loopView(id) {
     const n = trend.time.length;
     $("#trend-info").textContent = n ? `${n} samples · last ${clock(trend.time[n - 1])}` : "waiting for samples…";
     if (!n) return;
-    const x1 = trend.time[n - 1];
-    const x0 = Math.min(trend.time[0], x1 - 10);
+    // The window fits what there is; while tuning it reaches to the estimated end (at most twice the time so far).
+    const x0 = trend.time[0];
+    let x1 = trend.time[n - 1];
+    if (loop?.tbsy && loop.ite > 0) x1 = Math.min(x1 + loop.ite / (loop.speed || 1), x1 + Math.max(5, 2 * (x1 - x0)));
+    x1 = Math.max(x1, x0 + 1);
     const hasRelay = trend.relay.some((r) => r !== null);
     const panels = [
       { height: 190, label: "PV, SP", series: [
@@ -486,6 +531,8 @@ function loopView(id) {
     timeChart(trendSvg, { width: trendWidth(), xRange: [x0, x1], panels, xTick: clock, xTicks: clockTicks,
                           xLabel: "time (clock)" });
     trendSvg.dataset.samples = n;
+    trendSvg.dataset.first = trend.time[0];
+    trendSvg.dataset.experimentStart = experiment ? experiment[0] : "";
     trendSvg.dataset.width = trendWidth();
   }
 
@@ -500,8 +547,8 @@ function loopView(id) {
     update();
     stream = eventStream(`/loops/${esc(id)}/events`, {
       state(data) {
-        const startedNew = data.tbsy && (!loop || !loop.tbsy || loop.session !== data.session);
-        if (startedNew) for (const k of Object.keys(trend)) trend[k].length = 0;
+        const startedNew = data.tbsy && loop?.tbsy === false && loop.session !== data.session;
+        if (startedNew) { for (const k of Object.keys(trend)) trend[k].length = 0; experiment = null; }
         // The experiment's samples end here and the monitor's resume later: no line drawn across the pause.
         if (loop?.tbsy && !data.tbsy) gap();
         // Applied meanwhile (here or elsewhere): the result card says so.
@@ -512,6 +559,7 @@ function loopView(id) {
         schedule();
       },
       sample,
+      replay,
       status(connected, detail) {
         if (connected) gap();
         banner("stream", connected ? null : `Live stream lost — reconnecting… (${detail || "connection closed"})`);

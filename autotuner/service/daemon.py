@@ -87,6 +87,7 @@ from autotuner.engine.experiment.relay import RelayConfig, Stage, Status
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, field_config, open_link
 from autotuner.service.link_session import (HandBack, NotTracking, close_design_pool, hand_back_once, not_restored,
                                             tune_link)
+from autotuner.service.trend import Trend
 from autotuner.engine.simulated_tuning import TuneResult
 
 # Events kept per subscriber before the oldest are dropped.
@@ -296,6 +297,7 @@ class Loop:
     pending: Pending | None = None
     restorer: asyncio.Task[None] | None = None
     handback: HandBack | None = None
+    trend: Trend = field(default_factory=Trend)
 
     @property
     def busy(self) -> bool:
@@ -337,6 +339,7 @@ class Loop:
             "description": c.description,
             "group": c.group,
             "link": c.link if c.link is not None else f"sim:{c.sim.plant}",
+            "speed": c.speed,
             "tbsy": running,
             "te": bool(r["te"]) if r is not None and not running else False,
             "ite": ite,
@@ -626,6 +629,7 @@ class LoopManager:
         self._record(self.history.begin, sid, loop_id, user, settings.as_json())  # in order before the session's
         loop.session, loop.status, loop.result = sid, None, None
         loop.stop = asyncio.Event()
+        loop.trend.start(sid)
         loop.task = asyncio.create_task(self._session(loop, sid, user, settings, config))
         self._publish(loop, "state", loop.as_json())
         return sid
@@ -698,12 +702,19 @@ class LoopManager:
         self.get(loop_id).subscribers.add(queue)
         return queue
 
+    def replay(self, loop_id: str) -> dict[str, Any]:
+        """The loop's trend kept in memory (:class:`~autotuner.service.trend.Trend`): the running or last
+        session's samples from its start, then the monitor's; as columns."""
+        return self.get(loop_id).trend.replay()
+
     def unsubscribe(self, loop_id: str, queue: asyncio.Queue[dict[str, Any]]) -> None:
         """Stop sending events to ``queue``."""
         self.get(loop_id).subscribers.discard(queue)
 
     @staticmethod
     def _publish(loop: Loop, event: str, data: dict[str, Any]) -> None:
+        if event == "sample":
+            loop.trend.add(data)
         for queue in loop.subscribers:
             if queue.full():
                 with contextlib.suppress(asyncio.QueueEmpty):
@@ -797,6 +808,10 @@ class LoopManager:
                 self._refresh_latest(loop)
                 if loop.saved is not None and loop.pending is None:  # what the session left: its mode, the gains
                     loop.mode, loop.gains = Mode(loop.saved.mode), gains_after
+                    loop.sp = loop.saved.sp
+                if math.isfinite(tap.pv):  # the last values of the session, not the monitor's from before it
+                    loop.pv = tap.pv
+                    loop.mv = tap.mv if math.isfinite(tap.mv) else loop.mv
             finally:  # whatever failed above, the loop is idle again (TUNE accepted, TBRK refused)
                 loop.task, loop.tap, loop.saved, loop.handback = None, None, None, None
                 if loop.pending is not None and not self._stopping:

@@ -18,6 +18,9 @@ DEMO_LOOPS = (
     ("LIC-201", "level: integrating with dead time", "0.2*exp(-1*s)/(s*(2*s+1))"),
     ("FIC-301", "lag-dominant flow/pressure loop", "2*exp(-0.5*s)/((20*s+1)*(2*s+1))"),
 )
+# Wall seconds between two monitor readings: at 20× a few plant seconds, so the trend after an experiment is
+# not a staircase (the default 1 s would be 20 plant seconds).
+MONITOR_PERIOD = 0.25
 # The demo's experiments sample this many times per oscillation period (at the 135° point): half the
 # default, so the demo's real-time loops cost less.
 DEMO_SAMPLES_PER_PERIOD = 50
@@ -29,6 +32,7 @@ def demo_config(speed: float = 20.0) -> DaemonConfig:
         {"id": loop_id, "description": description, "sim": {"plant": plant},
          "ts": default_sample_time(parse_process(plant)) * EXPERIMENT_SAMPLES_PER_PERIOD / DEMO_SAMPLES_PER_PERIOD,
          "speed": speed,
+         "monitor_period": MONITOR_PERIOD,
          "tuning": {"amp": 5.0, "time_limit": 1000.0}, "limits": {"pv": [0.0, 100.0], "mv": [0.0, 100.0]}}
         for loop_id, description, plant in DEMO_LOOPS
     ]

@@ -51,8 +51,9 @@ from drivers.link import LoopState, Mode
 
 from autotuner.engine.simulated_tuning import Trace
 
-# Largest number of points of a stored trace.
-TRACE_POINTS = 500
+# Largest number of points of a stored trace: a whole experiment at full resolution (the demo's take 300–1500
+# samples; a 2-hour experiment at 1 s is 7200), thinned evenly past that.
+TRACE_POINTS = 8000
 
 _META = sa.MetaData()
 _SESSIONS = sa.Table(
