@@ -35,7 +35,8 @@ const $ = (sel, root = document) => root.querySelector(sel);
 const main = () => $("#main");
 const esc = (s) => encodeURIComponent(s);
 
-// Meaning of ite when the experiment has ended: GET /api/v1/codes (value → {name, message, warning}), loaded once.
+// Meaning of ite when the experiment has ended: GET /api/v1/codes (value → {name, message, warning}), loaded once
+// after login.
 const CODES = new Map();
 async function loadCodes() {
   if (CODES.size) return;
