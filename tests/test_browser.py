@@ -395,8 +395,13 @@ def test_api_errors_in_words_and_a_lost_stream_reconnects(page, daemon):
 
 
 def no_horizontal_scroll(page) -> None:
-    width, client = page.evaluate("[document.documentElement.scrollWidth, document.documentElement.clientWidth]")
-    assert width <= client, f"the page is {width} px wide in a {client} px viewport"
+    width, client, wide = page.evaluate(
+        "() => { const W = document.documentElement.clientWidth; const wide = [];"
+        " for (const e of document.querySelectorAll('body *')) { const r = e.getBoundingClientRect();"
+        "  if (r.right > W + 0.5 && r.width > 0) wide.push(`${e.tagName}#${e.id}.${e.className.baseVal ?? e.className}"
+        " ${Math.round(r.right)}: ${(e.textContent || '').slice(0, 60)}`); }"
+        " return [document.documentElement.scrollWidth, W, wide.slice(0, 5)]; }")
+    assert width <= client, f"the page is {width} px wide in a {client} px viewport: {wide}"
 
 
 def usable(page, selector: str, min_width: float) -> None:
