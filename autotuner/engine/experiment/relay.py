@@ -34,6 +34,7 @@ import numpy as np
 
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
+from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
 from autotuner.engine.experiment.phase_filter import PhaseFilter
 
 
@@ -180,6 +181,14 @@ INTEGRATING_RATIO = 200.0
 # Minimum number of whole periods before convergence is judged: one for the
 # start-up transient, two for the first filter corrections, two per estimate.
 _MIN_PERIODS = 5
+# While not converged, the record is searched for a disturbance every this many periods.
+_CHECK_EVERY = 2
+# A fitted load (MV units, per amp) or free response (per |F|·amp) below this is no disturbance.
+_LOAD_FRACTION = 0.05
+# The relay's centre moves only for a change of the fitted load above this fraction of amp.
+_SHIFT_STEP = 0.03
+# A jump of |F|/K0 between consecutive estimates above this starts the search for a disturbance.
+_JUMP = 0.05
 _MAX_LOG_STEP = math.log(2.0)
 _RELAXATION = 0.75
 
@@ -195,6 +204,18 @@ class RelayExperiment:
         lo, hi = config.mv_limits
         self._mv_high = min(mv0 + config.amp, hi)
         self._mv_low = max(mv0 - config.amp * (1.0 - 2.0 * config.bias), lo)
+        # The relay's centre follows a fitted load (within ±amp of mv0), and
+        # its bias changes sign once after a load step, so that the static
+        # gain has a known excitation after the step as well.
+        self._center = mv0
+        self._bias_sign = 1.0
+        self._fit: LoadFit | None = None
+        self._fitted_at = 0
+        self._discard_before = -math.inf
+        self._flipped = False
+        self._changed_at = -math.inf
+        self._follow_rate = 0.0
+        self._follow_from = 0.0
         self._t: list[float] = []
         self._y: list[float] = []
         self._u: list[float] = []
@@ -218,6 +239,8 @@ class RelayExperiment:
         # free of the sampling jitter of the switch instants.
         self._crossings: list[float] = []
         self._estimates: list[tuple[Point, float]] = []
+        self._windows: list[float] = []
+        self._disturbance_seen = False
         self._last: tuple[float, float] | None = None
         self._slope = 1.0
         self._relay_start = 0
@@ -360,7 +383,20 @@ class RelayExperiment:
             self._crossings.append(self._crossing)
 
     def _relay_mv(self) -> float:
-        return self._mv_high if self._relay > 0 else self._mv_low
+        level = self._mv_high if self._relay > 0 else self._mv_low
+        if self._follow_rate:
+            # A drifting load is followed continuously: no step, no transient.
+            lo, hi = self.config.mv_limits
+            level = min(max(level - self._follow_rate * (self._t[-1] - self._follow_from), lo), hi)
+        return level
+
+    def _set_levels(self) -> None:
+        """Relay levels from the centre and the sign of the bias, within the MV limits."""
+        lo, hi = self.config.mv_limits
+        amp, short = self.config.amp, self.config.amp * (1.0 - 2.0 * self.config.bias)
+        up, down = (amp, short) if self._bias_sign > 0 else (short, amp)
+        self._mv_high = min(self._center + up, hi)
+        self._mv_low = max(self._center - down, lo)
 
     def _on_period(self) -> None:
         t = self._t
@@ -377,13 +413,127 @@ class RelayExperiment:
         tt = np.asarray(t)
         uu = np.asarray(self._u)
         yy = np.asarray(self._y)
-        detrended = yy - self._drift(tt, yy, self._crossings[-3:]) if len(self._crossings) >= 3 else yy
+        if self._fit is not None:
+            # Disturbed: refit with this period, then estimate through the fitted load.
+            self._refit(tt, uu, yy)
+            if self.done:
+                return
+            corrected = yy[: len(uu)] - self._sign * self._fit.disturbance
+            corrected = np.append(corrected, yy[len(uu):] - self._sign * self._fit.disturbance[-1])
+            # What the fit leaves (and, for an integrator, the PV's answer to
+            # the MV mean that balances the load) is slow: detrend as usual.
+            detrended = corrected - self._drift(tt, corrected, self._crossings[-3:]) if len(self._crossings) >= 3 else corrected
+            if self._follow_rate and len(self._crossings) >= 3:
+                # The MV follows a drift: its ramp is slow too, not part of the oscillation.
+                uu = uu - self._drift(tt[: len(uu)], uu, self._crossings[-3:])
+        elif len(self._crossings) >= 3:
+            detrended = yy - self._drift(tt, yy, self._crossings[-3:])
+        else:
+            detrended = yy
         ta, tb = self._crossings[-2], self._crossings[-1]
         omega = 2.0 * math.pi / (tb - ta)
-        lag = self._lag(self._estimate(tt, uu, yy, ta, tb, omega, hann=False))
+        lag = self._lag(self._estimate(tt, uu, detrended if self._fit is not None else yy, ta, tb, omega, hann=False))
         self._adapt(omega, lag)
         if len(self._rising) >= 3:
             self._judge(tt, uu, detrended)
+        if self.done or self._fit is not None:
+            return
+        # Quiet so far: look for a disturbance every few periods while the
+        # estimates have not settled (a load step keeps them moving).
+        periods = len(self._rising) - 1
+        jump = len(self._estimates) >= 2 and abs(self._estimates[-1][1] - self._estimates[-2][1]) > _JUMP
+        if periods >= 3 and (jump or periods >= _MIN_PERIODS + 1 and (periods - _MIN_PERIODS) % _CHECK_EVERY == 0):
+            self._look_for_disturbance(tt, uu, yy)
+
+    # -- disturbances -------------------------------------------------------
+
+    def _fitter(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> LoadFitter | None:
+        if not self._estimates:
+            return None
+        point = self._estimates[-1][0]
+        n = len(uu)
+        scale = point.gain * self.config.amp
+        return LoadFitter(tt[:n], self._sign * (yy[:n] - self._sp), uu[:n], self.mv0, self._relay_start,
+                          point.omega, point.gain, self._lag(point.value), scale)
+
+    def _look_for_disturbance(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
+        """Fit the slow part of the record; True (and the disturbed mode on) if it needed a disturbance."""
+        fitter = self._fitter(tt, uu, yy)
+        if fitter is None:
+            return False
+        fit = fitter.fit()
+        if not self._significant(fit):
+            return False
+        self._enter_disturbed(fit, tt)
+        return True
+
+    def _significant(self, fit: LoadFit) -> bool:
+        """A fitted disturbance worth estimating through: larger than a fraction of amp (or of the PV scale)."""
+        amp = self.config.amp
+        step = fit.step_time is not None and abs(fit.step) >= _LOAD_FRACTION * amp
+        duration = self._t[-1] - self._t[0]
+        ramp = abs(fit.ramp) * duration >= _LOAD_FRACTION * amp
+        point = self._estimates[-1][0]
+        free = abs(fit.free) >= _LOAD_FRACTION * point.gain * amp
+        return step or ramp or free
+
+    def _enter_disturbed(self, fit: LoadFit, tt: np.ndarray) -> None:
+        self._fit = fit
+        self._fitted_at = len(self._rising)
+        self._disturbance_seen = True
+        if fit.step_time is not None:
+            self._discard_before = max(self._discard_before, fit.step_time)
+            if not self._flipped:
+                self._bias_sign = -self._bias_sign
+                self._flipped = True
+        self._follow_load()
+
+    def _refit(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> None:
+        fitter = self._fitter(tt, uu, yy)
+        if fitter is None:
+            return
+        fit = fitter.fit()
+        if fit.step_time is not None and (self._fit is None or self._fit.step_time != fit.step_time):
+            self._discard_before = max(self._discard_before, fit.step_time)
+        self._fit = fit
+        self._follow_load()
+
+    def _follow_load(self) -> None:
+        """Shift the relay's centre to cancel the fitted load at the process input (within ±amp)."""
+        fit = self._fit
+        assert fit is not None
+        t = self._t[-1]
+        period = self._t[self._rising[-1]] - self._t[self._rising[-2]] if len(self._rising) >= 2 else 0.0
+        load = fit.load_at(t + 0.5 * period, self._t[0])
+        amp = self.config.amp
+        # The ramp part is followed continuously from now on; the centre takes the rest.
+        then = t + 0.5 * period
+        applied = self._center - self._follow_rate * (then - self._follow_from)
+        if abs(load) > amp:
+            self._finish(
+                Code.DISTURBANCE,
+                f"{MESSAGES[Code.DISTURBANCE]}: the load at the process input has moved by {load:+.3g} MV units "
+                f"({abs(load) / amp:.2f} × amp); the relay follows a load within ±amp of the starting MV only",
+            )
+            return
+        center = self.mv0 - self._sign * load
+        rate = self._sign * fit.ramp
+        if abs(center - applied) > _SHIFT_STEP * amp or self._changed_at == -math.inf:
+            # Each step of the levels starts a transient: estimates are taken after it.
+            self._center, self._follow_rate, self._follow_from = center, rate, then
+            self._set_levels()
+            self._changed_at = t
+        elif abs(rate - self._follow_rate) * period > 0.2 * _SHIFT_STEP * amp:
+            # A better drift rate: keep the level continuous where it is now.
+            self._center, self._follow_rate, self._follow_from = applied, rate, then
+            self._set_levels()
+
+    def _unstable_hint(self) -> bool:
+        """True when the simple mean ratio says the static gain is negative (an open-loop unstable process)."""
+        if not self._estimates:
+            return False
+        inverse = sum(i for _, i in self._estimates[-2:]) / len(self._estimates[-2:])
+        return inverse < -self.config.static_tol
 
     @staticmethod
     def _drift(tt: np.ndarray, yy: np.ndarray, bounds: list[float]) -> np.ndarray:
@@ -402,7 +552,7 @@ class RelayExperiment:
     def _judge(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> None:
         """Estimate the point over the last two periods and stop if it has converged.
 
-        ``yy`` has its drift removed already.
+        ``yy`` has its drift (or the fitted disturbance) removed already.
         """
         ta, tb = self._crossings[-3], self._crossings[-1]
         omega = 4.0 * math.pi / (tb - ta)
@@ -411,38 +561,63 @@ class RelayExperiment:
         dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0).real
         # Compare estimates through |F|/K0, which stays bounded as K0 grows.
         inverse_gain = self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
+        if self._fit is not None:
+            inverse_gain = self._fit.x
         point = Point(omega, value)
+        # Windows that reach back before a load step are left out.
         self._estimates.append((point, inverse_gain))
+        self._windows.append(ta)
         periods = len(self._rising) - 1
         if periods < _MIN_PERIODS or len(self._estimates) < 2:
+            return
+        since = max(self._discard_before, self._changed_at)
+        usable = [e for e, start in zip(self._estimates, self._windows) if start >= since]
+        if len(usable) < 2:
             return
         # Estimates scatter with noise and sampling jitter. The longer the
         # experiment runs, the more of the latest are averaged; it stops when
         # the standard error of their mean is within half the tolerances (with
         # k = 2: consecutive estimates agree within about the tolerance).
-        k = min(len(self._estimates), 2 + (periods - _MIN_PERIODS) // 2)
-        recent = self._estimates[-k:]
-        mean = Point(sum(p.omega for p, _ in recent) / k, sum(p.value for p, _ in recent) / k)
-        inverse = sum(i for _, i in recent) / k
-        gain_error = math.sqrt(sum(abs(p.value - mean.value) ** 2 for p, _ in recent) / k) / mean.gain
-        inverse_error = math.sqrt(sum((i - inverse) ** 2 for _, i in recent) / k)
-        config = self.config
-        if (
-            min(abs(-p.phase_deg - config.phase_deg) for p in (mean, recent[-1][0])) <= config.phase_tol_deg
-            and gain_error / math.sqrt(k) <= 0.5 * config.gain_tol
-            and inverse_error / math.sqrt(k) <= 0.5 * config.static_tol
-        ):
-            self._succeed(mean, inverse)
+        # The latest estimates may follow a transient (a filter correction, a
+        # shift of the relay): the shortest run of them that passes is taken.
+        for k in range(2, min(len(usable), 2 + (periods - _MIN_PERIODS) // 2) + 1):
+            recent = usable[-k:]
+            mean = Point(sum(p.omega for p, _ in recent) / k, sum(p.value for p, _ in recent) / k)
+            inverse = sum(i for _, i in recent) / k
+            gain_error = math.sqrt(sum(abs(p.value - mean.value) ** 2 for p, _ in recent) / k) / mean.gain
+            inverse_error = math.sqrt(sum((i - inverse) ** 2 for _, i in recent) / k)
+            config = self.config
+            if self._fit is not None:
+                inverse = self._fit.x
+                # Through a disturbance the fit's own standard error is the
+                # uncertainty; one static_tol of it is accepted (a quiet run
+                # gets half of that from the scatter of its means).
+                inverse_error = 0.5 * self._fit.x_std * math.sqrt(k)
+            if (
+                min(abs(-p.phase_deg - config.phase_deg) for p in (mean, recent[-1][0])) <= config.phase_tol_deg
+                and gain_error / math.sqrt(k) <= 0.5 * config.gain_tol
+                and inverse_error / math.sqrt(k) <= 0.5 * config.static_tol
+            ):
+                # Before accepting a quiet result, make sure the record holds no
+                # disturbance that the simple means would have mixed in.
+                if self._fit is None and self._look_for_disturbance(tt, uu, np.asarray(self._y)):
+                    return
+                self._succeed(mean, inverse)
+                return
 
     def _succeed(self, point: Point, inverse_gain: float) -> None:
         # Within the resolution of the mean MV shift, a vanishing |F|/K0 is an
         # integrator, and so is a slightly negative one (within its estimate's
         # tolerance: an integrator seen through noise); a clearly negative one
-        # (unstable process, or a load change during the experiment) is reported
-        # as it is and refused by the design.
+        # (an open-loop unstable process) is reported as it is.
         integrating = inverse_gain * INTEGRATING_RATIO <= 1.0 and inverse_gain > -self.config.static_tol
         static = math.inf if integrating else point.gain / inverse_gain
+        fit = self._fit
+        static_std = math.inf
+        if fit is not None and not integrating and fit.x != 0.0:
+            static_std = point.gain * fit.x_std / (fit.x * fit.x)
         duration = self._t[-1] - self._t[0]
+        discarded = sum(1 for start in self._windows if start < self._discard_before) if fit is not None else 0
         self.result = Identification(
             point=point,
             static_gain=static,
@@ -452,6 +627,10 @@ class RelayExperiment:
             hysteresis=self._eps,
             noise_std=self._noise,
             phase_target_deg=self.config.phase_deg,
+            static_gain_std=static_std,
+            disturbance=fit is not None,
+            periods_discarded=discarded,
+            load_estimate=0.0 if fit is None else fit.load_at(self._t[-1], self._t[0]),
         )
         self._finish(Code.OK, MESSAGES[Code.OK])
 

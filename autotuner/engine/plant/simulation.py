@@ -70,7 +70,7 @@ class PlantSim:
     def __init__(self, process: Process, ts: float, *, pv0: float = 0.0, mv0: float = 0.0,
                  noise_std: float = 0.0, seed: int | None = None, quantum: float = 0.0,
                  mv_limits: tuple[float, float] = (-math.inf, math.inf),
-                 loads: Sequence[tuple[float, float]] = ()) -> None:
+                 loads: Sequence[tuple[float, float]] = (), drift: float = 0.0) -> None:
         if not (math.isfinite(ts) and ts > 0):
             raise ValueError(f"sample time must be a positive number of seconds, got {ts}")
         if not (math.isfinite(noise_std) and noise_std >= 0):
@@ -80,6 +80,8 @@ class PlantSim:
         lo, hi = mv_limits
         if not lo <= hi:
             raise ValueError(f"mv_limits must satisfy low <= high, got {mv_limits}")
+        if not math.isfinite(drift):
+            raise ValueError(f"drift must be a finite number of MV units per second, got {drift}")
         if not (math.isfinite(pv0) and math.isfinite(mv0)):
             raise ValueError("pv0 and mv0 must be finite")
         self.process = process
@@ -110,6 +112,7 @@ class PlantSim:
             steps[k] = steps.get(k, 0.0) + size
         self._load_steps = sorted(steps.items(), reverse=True)  # next step last
         self._load = 0.0
+        self.drift = float(drift)
         self._k = 0
 
     @property
@@ -141,7 +144,7 @@ class PlantSim:
         while self._load_steps and self._load_steps[-1][0] <= self._k:
             self._load += self._load_steps.pop()[1]
         u = self._u
-        u.append(applied - self.mv0 + self._load)
+        u.append(applied - self.mv0 + self._load + self.drift * self.t)
         self._x = self._phi @ self._x + self._g1 * u[0] + self._g0 * u[1]
         u.popleft()
         self._k += 1

@@ -1,0 +1,288 @@
+"""The slow part of the experiment's data: static gain and load disturbances, fitted through one model.
+
+The relay's limit cycle gives the point ``F(jω)``; what is left in the PV
+below the oscillation frequency is the process's response to the *mean*
+of the MV, plus whatever the plant did on its own: a load step, a drift, the
+tail of a transient that was still settling when the experiment started.
+Taking the ratio of the mean deviations (PV over MV) mixes all of that into
+the static gain, which is how a load step of 0.2·amp used to end in a
+negative static gain.
+
+Here the slow part is explained by the first-order-plus-dead-time model that
+the point and a candidate static gain fix exactly (methods.md §6: with
+``x = |F(jω)|/K0``, ``T = sqrt(1/x² − 1)/ω`` and ``L = (φ − ∠K0 − atan ωT)/ω``;
+``x < 0`` is the unstable model ``K0 < 0``, ``x = 0`` the integrator). For
+each candidate ``x`` the model is driven with the MV as applied, and the
+residual PV is fitted by least squares with regressors that are themselves
+responses of the same model:
+
+* an offset (the PV at the starting MV);
+* a load step at the process input at time ``t_s`` (the model's step response
+  from ``t_s``; ``t_s`` is searched on a grid), coefficient in MV units;
+* a load ramp from the start (the model's ramp response), MV units per second;
+* the free response of the model's lag from the start (a PV still settling).
+
+Loads enter where the plant's do, at the process input, so the fitted
+coefficients are the loads themselves in MV units: the relay can shift its
+centre by them. Both sides are averaged over one oscillation period before
+the fit, so the harmonics the model does not reproduce do not enter it.
+``x`` is found by a golden-section search on the residual; terms are kept
+only when the Bayesian information criterion says they explain more than
+they cost (a quiet plant is fitted with the offset alone). The standard
+error of ``x`` comes from the curvature of the residual.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.signal
+
+# |x| above this is a process with no lag to speak of (dead time only): the
+# model is then taken with x just below it (T small), which changes little.
+_X_MAX = 0.995
+# Step times are searched on this many points per oscillation period.
+_STEP_GRID = 12
+# Effective number of independent averages per period after the one-period
+# moving average (the information criterion counts these, not the samples).
+_POINTS_PER_PERIOD = 2.0
+# Averaged residuals within this fraction of the PV oscillation amplitude are
+# the model's own mismatch (harmonics, a process that is not first order).
+_RESOLUTION = 0.01
+
+
+@dataclass(frozen=True)
+class LoadFit:
+    """The slow part of the data as one model explains it.
+
+    x: ``|F(jω)|/K0`` (0 integrating, < 0 unstable); x_std its standard error.
+    static_gain: ``|F(jω)|/x`` (``inf`` for ``x = 0``: integrating).
+    offset: PV at the starting MV without load (PV units).
+    step_time, step: a load step at the process input (s, MV units), or None/0.
+    ramp: load ramp from the start (MV units per second); free: PV units of
+    the free response at the start.
+    disturbance: pv samples of the fitted disturbance (load and free response),
+    to be removed from the PV before the Fourier estimate.
+    residual_std: standard deviation of the averaged residual (PV units).
+    """
+
+    x: float
+    x_std: float
+    static_gain: float
+    offset: float
+    step_time: float | None
+    step: float
+    ramp: float
+    free: float
+    residual_std: float
+    disturbance: np.ndarray = field(repr=False)
+
+    def load_at(self, t: float, t0: float) -> float:
+        """The fitted load at the process input at time ``t`` (MV units; ``t0`` is the record start)."""
+        load = self.ramp * (t - t0)
+        if self.step_time is not None and t >= self.step_time:
+            load += self.step
+        return load
+
+    @property
+    def detected(self) -> bool:
+        """True when any disturbance term was needed to explain the data."""
+        return self.step_time is not None or self.ramp != 0.0 or self.free != 0.0
+
+
+def _model(x: float, gain: float, omega: float, lag: float) -> tuple[float, float, float]:
+    """(K0, T, L) of the first-order-plus-dead-time model through the point with ``|F|/K0 = x``."""
+    x = min(max(x, -_X_MAX), _X_MAX)
+    if x == 0.0:
+        return math.inf, math.inf, max((lag - math.pi / 2) / omega, 0.0)
+    k0 = gain / x
+    t = math.copysign(math.sqrt(1.0 / (x * x) - 1.0) / omega, x)
+    base = 0.0 if k0 > 0 else math.pi
+    return k0, t, max((lag - base - math.atan(omega * t)) / omega, 0.0)
+
+
+def _respond(u: np.ndarray, dt: float, x: float, gain: float, omega: float, lag: float) -> np.ndarray:
+    """Model response (PV units) to the input ``u`` held over samples ``dt`` apart, from rest.
+
+    Exact under zero-order hold with a dead time that need not be whole samples
+    (as the simulated plant does it): with ``L = m·dt + θ`` the delayed input
+    switches within each interval at ``θ``.
+    """
+    k0, t, delay = _model(x, gain, omega, lag)
+    m = int(delay // dt)
+    theta = delay - m * dt
+    if math.isinf(k0):
+        kv = gain * omega
+        b, a = [kv * (dt - theta), kv * theta], [1.0, -1.0]
+    else:
+        pole = math.exp(-dt / t)
+        late = math.exp(-(dt - theta) / t)
+        b = [k0 * (1.0 - late), k0 * late * (1.0 - math.exp(-theta / t))]
+        a = [1.0, -pole]
+    shifted = np.concatenate((np.zeros(m + 1), u))[: len(u)]
+    # y[k] is the output at sample k, before u[k] acts: one sample of delay.
+    return scipy.signal.lfilter(b, a, shifted)
+
+
+def _average(columns: np.ndarray, n: int) -> np.ndarray:
+    """One-period moving averages of each column (``n`` samples), every ``n/8`` samples.
+
+    Averages closer than that are nearly the same number; leaving them out
+    makes the fit several times cheaper without losing information.
+    """
+    total = np.cumsum(np.vstack((np.zeros((1, columns.shape[1])), columns)), axis=0)
+    ends = np.arange(n, len(columns) + 1, max(n // 8, 1))
+    return (total[ends] - total[ends - n]) / n
+
+
+class LoadFitter:
+    """Fits :class:`LoadFit` to a record: times (s, evenly sampled), PV and MV, from the first sample."""
+
+    def __init__(self, t: np.ndarray, y: np.ndarray, u: np.ndarray, u0: float, start: int,
+                 omega: float, gain: float, lag: float, scale: float, max_steps: int = 1) -> None:
+        self.t, self.y, self.u = t, y, u
+        self.dt = float(t[-1] - t[0]) / (len(t) - 1)
+        self.u0, self.start = u0, start
+        self.omega, self.gain, self.lag = omega, gain, lag
+        self.n = max(int(round(2.0 * math.pi / omega / self.dt)), 1)
+        self.max_steps = max_steps
+        self.scale = scale
+
+    # -- one candidate model ----------------------------------------------
+
+    def _columns(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(target, regressors) before averaging for model ``x`` with the chosen terms."""
+        n = len(self.t)
+        resp = lambda v: _respond(v, self.dt, x, self.gain, self.omega, self.lag)  # noqa: E731
+        target = self.y - resp(self.u - self.u0)
+        cols = [np.ones(n)]
+        for k in steps:
+            unit = np.zeros(n)
+            unit[k:] = 1.0
+            cols.append(resp(unit))
+        if ramp:
+            cols.append(resp((self.t - self.t[0])))
+        if free:
+            k0, tc, _ = _model(x, self.gain, self.omega, self.lag)
+            # An integrator's free response is a constant: the offset already.
+            decay = np.exp(-(self.t - self.t[0]) / tc) if math.isfinite(tc) else np.zeros(n)
+            cols.append(decay)
+        return target, np.stack(cols, axis=1)
+
+    def _solve(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[float, np.ndarray, np.ndarray]:
+        target, cols = self._columns(x, steps, ramp, free)
+        if len(target) <= self.n + cols.shape[1]:
+            return math.inf, np.zeros(cols.shape[1]), cols
+        a = _average(cols, self.n)
+        b = _average(target[:, None], self.n)[:, 0]
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            return math.inf, np.zeros(cols.shape[1]), cols
+        # Unstable models grow without bound; scale the columns so the
+        # least-squares problem stays well conditioned.
+        scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
+        coef, *_ = np.linalg.lstsq(a / scale, b, rcond=None)
+        coef = coef / scale
+        r = b - a @ coef
+        return float(r @ r), coef, cols
+
+    def _best_x(self, steps: tuple[int, ...], ramp: bool, free: bool, lo: float, hi: float) -> tuple[float, float]:
+        """Golden-section search of the residual over x in [lo, hi] (after a coarse scan)."""
+        grid = np.linspace(lo, hi, 11)
+        values = [self._solve(float(x), steps, ramp, free)[0] for x in grid]
+        i = int(np.argmin(values))
+        a, b = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
+        g = (math.sqrt(5.0) - 1.0) / 2.0
+        c, d = b - g * (b - a), a + g * (b - a)
+        fc, fd = self._solve(c, steps, ramp, free)[0], self._solve(d, steps, ramp, free)[0]
+        for _ in range(14):
+            if fc < fd:
+                b, d, fd = d, c, fc
+                c = b - g * (b - a)
+                fc = self._solve(c, steps, ramp, free)[0]
+            else:
+                a, c, fc = c, d, fd
+                d = a + g * (b - a)
+                fd = self._solve(d, steps, ramp, free)[0]
+        x = 0.5 * (a + b)
+        return x, self._solve(x, steps, ramp, free)[0]
+
+    # -- model selection ----------------------------------------------------
+
+    def fit(self, unstable: bool = False) -> LoadFit:
+        """The best-explaining model: its x, the disturbance terms it needs, and their sizes.
+
+        ``unstable`` searches x in (−1, 0] (an open-loop unstable process), otherwise in [0, 1).
+        """
+        lo, hi = (-_X_MAX, 0.0) if unstable else (0.0, _X_MAX)
+        points = max((len(self.t) - self.n) / self.n * _POINTS_PER_PERIOD, 1.0)
+
+        # Residuals below this are the model's own imperfection, not a disturbance to explain.
+        floor = points * (_RESOLUTION * self.scale) ** 2
+
+        def criterion(s: float, p: int) -> float:
+            return points * math.log((s + floor) / points) + p * math.log(points) * 2.0
+
+        best = None
+        # The free response of the lag (a PV still settling at the start) is
+        # left out of the search: over a few periods it is nearly a ramp or an
+        # offset, and with a long lag it is ill-conditioned against both.
+        for ramp, free in ((False, False), (True, False)):
+            x, s = self._best_x((), ramp, free, lo, hi)
+            score = criterion(s, 1 + ramp + free)
+            if best is None or score < best[0]:
+                best = (score, x, (), ramp, free)
+        score, x, steps, ramp, free = best
+        # Load steps: scan their time with the current x, then refine x.
+        for _ in range(self.max_steps):
+            first = self.start + self.n // 4
+            last = len(self.t) - self.n // 2
+            if last <= first:
+                break
+            # Index 0: a load acting from the start (the PV was not at rest).
+            grid = [0, *range(first, last, max(self.n // _STEP_GRID, 1))]
+            # Step time and x together on a coarse grid: the best step time
+            # for a wrong x can be far from the right one.
+            xs_grid = np.linspace(lo, hi, 11)
+            trial, xg = min(((k, float(xg)) for k in grid for xg in xs_grid),
+                            key=lambda kx: self._solve(kx[1], steps + (kx[0],), ramp, free)[0])
+            # Then to the sample, so the step time does not hop between grid points from fit to fit.
+            spacing = max(self.n // _STEP_GRID, 1)
+            near = range(max(trial - spacing, 0), min(trial + spacing + 1, last))
+            xg = self._best_x(steps + (trial,), ramp, free, lo, hi)[0]
+            trial = min(near, key=lambda k: self._solve(xg, steps + (k,), ramp, free)[0])
+            xs, s = self._best_x(steps + (trial,), ramp, free, lo, hi)
+            new = criterion(s, 1 + len(steps) + 1 + ramp + free)
+            if new >= score:
+                break
+            score, x, steps = new, xs, steps + (trial,)
+        s, coef, cols = self._solve(x, steps, ramp, free)
+        # Curvature of the residual at the optimum: σ² of x ≈ 2·σ̂²/S''.
+        h = 0.01 * max(abs(x), 0.02)
+        s_lo, s_hi = self._solve(x - h, steps, ramp, free)[0], self._solve(x + h, steps, ramp, free)[0]
+        curvature = (s_lo + s_hi - 2.0 * s) / (h * h)
+        dof = max(points - len(coef) - 1.0, 1.0)
+        sigma2 = s / dof
+        x_std = math.sqrt(2.0 * sigma2 / curvature) if curvature > 0.0 else math.inf
+        residual_std = math.sqrt(s / max(len(self.t) - self.n, 1))
+        j = 1
+        step_time, step = None, 0.0
+        disturbance = np.zeros(len(self.t))
+        for k in steps:
+            step_time, step = float(self.t[k]), float(coef[j])
+            disturbance += coef[j] * cols[:, j]
+            j += 1
+        ramp_rate = 0.0
+        if ramp:
+            ramp_rate = float(coef[j])
+            disturbance += coef[j] * cols[:, j]
+            j += 1
+        free_size = 0.0
+        if free:
+            free_size = float(coef[j])
+            disturbance += coef[j] * cols[:, j]
+        x_used = 0.0 if abs(x) < 1e-4 else x
+        static = math.inf if x_used == 0.0 else self.gain / x_used
+        return LoadFit(x_used, x_std, static, float(coef[0]), step_time, step, ramp_rate, free_size, residual_std,
+                       disturbance)
