@@ -138,13 +138,18 @@ def _average(columns: np.ndarray, n: int) -> np.ndarray:
 
 
 class LoadFitter:
-    """Fits :class:`LoadFit` to a record: times (s, evenly sampled), PV and MV, from the first sample."""
+    """Fits :class:`LoadFit` to a record: times (s, increasing), PV and the MV held from each sample."""
 
     def __init__(self, t: np.ndarray, y: np.ndarray, u: np.ndarray, u0: float, start: int,
                  omega: float, gain: float, lag: float, scale: float, max_steps: int = 1) -> None:
-        self.t, self.y, self.u = t, y, u
-        self.dt = float(t[-1] - t[0]) / (len(t) - 1)
-        self.u0, self.start = u0, start
+        # Field samples come unevenly (a PLC's clock, a busy link): the model is
+        # run on an even grid, the PV interpolated and the MV held onto it.
+        self.dt = float(np.median(np.diff(t)))
+        grid = t[0] + self.dt * np.arange(int((t[-1] - t[0]) / self.dt + 1e-9) + 1)
+        held = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, len(u) - 1)
+        self.t, self.y, self.u = grid, np.interp(grid, t, y), u[held]
+        self.source_t = t
+        self.u0, self.start = u0, int(np.searchsorted(grid, t[min(start, len(t) - 1)]))
         self.omega, self.gain, self.lag = omega, gain, lag
         self.n = max(int(round(2.0 * math.pi / omega / self.dt)), 1)
         self.max_steps = max_steps
@@ -284,5 +289,6 @@ class LoadFitter:
             disturbance += coef[j] * cols[:, j]
         x_used = 0.0 if abs(x) < 1e-4 else x
         static = math.inf if x_used == 0.0 else self.gain / x_used
+        disturbance = np.interp(self.source_t, self.t, disturbance)
         return LoadFit(x_used, x_std, static, float(coef[0]), step_time, step, ramp_rate, free_size, residual_std,
                        disturbance)

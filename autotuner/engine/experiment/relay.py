@@ -35,6 +35,8 @@ import numpy as np
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
 from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
+from autotuner.engine.experiment.point import Point
+from autotuner.engine.experiment.stopping import Tolerances, amp_factor, judge
 from autotuner.engine.experiment.phase_filter import PhaseFilter
 
 
@@ -67,6 +69,15 @@ class RelayConfig:
     static_tol: accepted change of ``|F(jω)|/K0`` between consecutive estimates
         (measured this way, the tolerance on the static gain stays meaningful as
         ``K0`` grows towards an integrator).
+    noise_tol: with measurement noise, the accepted standard error of the mean
+        |F(jω)| (relative) over several periods (stopping.py); the experiment
+        refuses with NOISE_TOO_HIGH when it is out of reach by ``max_periods``.
+    expected_period: the oscillation period expected, seconds (only for the
+        time-left estimate ``ite`` before the period is measured; None: a
+        share of the time limit).
+    follow_loads: look for load steps and drift in the record (load_fit.py),
+        estimate the static gain through them and let the relay's centre
+        follow them within ±amp; off, the experiment is the plain one.
     """
 
     amp: float
@@ -83,6 +94,9 @@ class RelayConfig:
     phase_tol_deg: float = 0.5
     gain_tol: float = 0.003
     static_tol: float = 0.02
+    noise_tol: float = 0.0025
+    expected_period: float | None = None
+    follow_loads: bool = True
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.amp) and self.amp > 0.0):
@@ -97,30 +111,13 @@ class RelayConfig:
             raise ValueError(f"mv_rate must be positive MV units per second, got {self.mv_rate}")
         if not self.time_limit > 0.0:
             raise ValueError(f"time limit must be positive seconds, got {self.time_limit}")
+        if self.expected_period is not None and not (math.isfinite(self.expected_period) and self.expected_period > 0):
+            raise ValueError(f"expected_period must be a positive number of seconds, got {self.expected_period}")
         if self.noise_samples < 5:
             raise ValueError(f"noise_samples must be at least 5, got {self.noise_samples}")
         for name, (lo, hi) in (("pv_limits", self.pv_limits), ("mv_limits", self.mv_limits)):
             if not lo < hi:
                 raise ValueError(f"{name} must be (low, high) with low < high, got ({lo}, {hi})")
-
-
-@dataclass(frozen=True)
-class Point:
-    """One point of the process frequency response: ``F(j·omega)``, omega in rad/s."""
-
-    omega: float
-    value: complex
-
-    @property
-    def gain(self) -> float:
-        """``|F(jω)|`` (PV units per MV unit)."""
-        return abs(self.value)
-
-    @property
-    def phase_deg(self) -> float:
-        """``arg F(jω)`` in degrees, negative for lag, in (−360, 0]."""
-        lag = math.degrees(-math.atan2(self.value.imag, self.value.real)) % 360.0
-        return -lag
 
 
 @dataclass(frozen=True)
@@ -189,6 +186,15 @@ _LOAD_FRACTION = 0.05
 _SHIFT_STEP = 0.03
 # A jump of |F|/K0 between consecutive estimates above this starts the search for a disturbance.
 _JUMP = 0.05
+# A fit whose |F|/K0 is this uncertain describes no disturbance reliably enough to act on.
+_X_STD_MAX = 0.1
+# A sample interval this many times the usual one is a gap in the record.
+_GAP = 3.0
+# Without an expected period, the time-left estimate starts from this share of the time limit.
+_LIMIT_SHARE = 200.0
+_SAMPLES_PER_PERIOD = 100.0
+# Noise (σ) above this fraction of |F|·amp makes single estimates scatter beyond gain_tol.
+_NOISY = 0.002
 _MAX_LOG_STEP = math.log(2.0)
 _RELAXATION = 0.75
 
@@ -214,6 +220,8 @@ class RelayExperiment:
         self._discard_before = -math.inf
         self._flipped = False
         self._changed_at = -math.inf
+        self._candidate: LoadFit | None = None
+        self._progress = 0.0
         self._follow_rate = 0.0
         self._follow_from = 0.0
         self._t: list[float] = []
@@ -316,7 +324,10 @@ class RelayExperiment:
             left = self._seconds_left()
             elapsed = self._t[-1] - self._t[0] if self._t else 0.0
             ite = left
-            progress = elapsed / (elapsed + left) if elapsed + left > 0.0 else 0.0
+            # Progress never goes backwards, even when a measured period
+            # turns out longer than the estimate before it.
+            self._progress = max(self._progress, elapsed / (elapsed + left))
+            progress = self._progress
         return Status(
             stage=self.stage,
             progress=progress,
@@ -414,15 +425,15 @@ class RelayExperiment:
         uu = np.asarray(self._u)
         yy = np.asarray(self._y)
         if self._fit is not None:
-            # Disturbed: refit with this period, then estimate through the fitted load.
+            # Disturbed: refit with this period (static gain, the relay's centre).
             self._refit(tt, uu, yy)
             if self.done:
                 return
-            corrected = yy[: len(uu)] - self._sign * self._fit.disturbance
-            corrected = np.append(corrected, yy[len(uu):] - self._sign * self._fit.disturbance[-1])
-            # What the fit leaves (and, for an integrator, the PV's answer to
-            # the MV mean that balances the load) is slow: detrend as usual.
-            detrended = corrected - self._drift(tt, corrected, self._crossings[-3:]) if len(self._crossings) >= 3 else corrected
+            # The point is estimated from the PV as measured (detrended as
+            # usual) over windows after the load step only: subtracting the
+            # fitted load response would make the point hostage to the fit,
+            # which a hiccup of the link can mislead.
+            detrended = yy - self._drift(tt, yy, self._crossings[-3:]) if len(self._crossings) >= 3 else yy
             if self._follow_rate and len(self._crossings) >= 3:
                 # The MV follows a drift: its ramp is slow too, not part of the oscillation.
                 uu = uu - self._drift(tt[: len(uu)], uu, self._crossings[-3:])
@@ -432,8 +443,11 @@ class RelayExperiment:
             detrended = yy
         ta, tb = self._crossings[-2], self._crossings[-1]
         omega = 2.0 * math.pi / (tb - ta)
-        lag = self._lag(self._estimate(tt, uu, detrended if self._fit is not None else yy, ta, tb, omega, hann=False))
-        self._adapt(omega, lag)
+        lag = self._lag(self._estimate(tt, uu, yy, ta, tb, omega, hann=False))
+        if ta >= self._changed_at:
+            # A period that saw the relay's levels change is a transient: the
+            # filter is not corrected from it.
+            self._adapt(omega, lag)
         if len(self._rising) >= 3:
             self._judge(tt, uu, detrended)
         if self.done or self._fit is not None:
@@ -441,14 +455,25 @@ class RelayExperiment:
         # Quiet so far: look for a disturbance every few periods while the
         # estimates have not settled (a load step keeps them moving).
         periods = len(self._rising) - 1
-        jump = len(self._estimates) >= 2 and abs(self._estimates[-1][1] - self._estimates[-2][1]) > _JUMP
-        if periods >= 3 and (jump or periods >= _MIN_PERIODS + 1 and (periods - _MIN_PERIODS) % _CHECK_EVERY == 0):
+        jump = abs(self._estimates[-1][1] - self._estimates[-2][1]) if len(self._estimates) >= 2 else 0.0
+        # During the filter's first corrections the estimates move anyway:
+        # only a large jump counts as a sign of a disturbance then.
+        early = periods >= 3 and jump > 3.0 * _JUMP
+        again = self._candidate is not None
+        if again or early or periods >= _MIN_PERIODS and (jump > _JUMP or (periods - _MIN_PERIODS) % _CHECK_EVERY == 0):
             self._look_for_disturbance(tt, uu, yy)
 
     # -- disturbances -------------------------------------------------------
 
     def _fitter(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> LoadFitter | None:
-        if not self._estimates:
+        if not self._estimates or len(self._crossings) < 4:
+            return None
+        # A sampling gap (a link that stalled: the MV reached the plant late)
+        # makes the record disagree with what the plant got; the fit would
+        # call that a load. No fit while the last three periods hold one.
+        recent = np.diff(tt[tt >= self._crossings[-4]])
+        if len(recent) and recent.max() > _GAP * float(np.median(np.diff(tt))):
+            self._candidate = None
             return None
         point = self._estimates[-1][0]
         n = len(uu)
@@ -458,21 +483,43 @@ class RelayExperiment:
 
     def _look_for_disturbance(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
         """Fit the slow part of the record; True (and the disturbed mode on) if it needed a disturbance."""
+        if not self.config.follow_loads:
+            return False
         fitter = self._fitter(tt, uu, yy)
         if fitter is None:
             return False
         fit = fitter.fit()
         if not self._significant(fit):
+            self._candidate = None
             return False
+        # A disturbance is acted on when two fits a period apart agree on it:
+        # a single odd period (a stalled link holding the MV for seconds) fits
+        # as a load step too, but not the same one twice.
+        previous, self._candidate = self._candidate, fit
+        if previous is None or not self._agree(previous, fit):
+            return True  # look again next period before accepting anything
         self._enter_disturbed(fit, tt)
         return True
+
+    def _agree(self, a: LoadFit, b: LoadFit) -> bool:
+        """Two fits describe the same disturbance (step time within a quarter period, sizes within a third)."""
+        if a.x_std > _X_STD_MAX or b.x_std > _X_STD_MAX:
+            return False
+        period = self._t[self._rising[-1]] - self._t[self._rising[-2]]
+        if (a.step_time is None) != (b.step_time is None):
+            return False
+        if a.step_time is not None:
+            if abs(a.step_time - b.step_time) > 0.25 * period or abs(a.step - b.step) > abs(b.step) / 3.0:
+                return False
+        scale = max(abs(a.ramp), abs(b.ramp))
+        return scale == 0.0 or abs(a.ramp - b.ramp) <= scale / 3.0
 
     def _significant(self, fit: LoadFit) -> bool:
         """A fitted disturbance worth estimating through: larger than a fraction of amp (or of the PV scale)."""
         amp = self.config.amp
         step = fit.step_time is not None and abs(fit.step) >= _LOAD_FRACTION * amp
         duration = self._t[-1] - self._t[0]
-        ramp = abs(fit.ramp) * duration >= _LOAD_FRACTION * amp
+        ramp = abs(fit.ramp) * duration >= 2.0 * _LOAD_FRACTION * amp
         point = self._estimates[-1][0]
         free = abs(fit.free) >= _LOAD_FRACTION * point.gain * amp
         return step or ramp or free
@@ -483,7 +530,7 @@ class RelayExperiment:
         self._disturbance_seen = True
         if fit.step_time is not None:
             self._discard_before = max(self._discard_before, fit.step_time)
-            if not self._flipped:
+            if not self._flipped and abs(fit.step) >= 2.0 * _LOAD_FRACTION * self.config.amp:
                 self._bias_sign = -self._bias_sign
                 self._flipped = True
         self._follow_load()
@@ -493,6 +540,12 @@ class RelayExperiment:
         if fitter is None:
             return
         fit = fitter.fit()
+        if not self._agree(self._fit, fit):
+            # Keep following what was accepted until two new fits agree on something else.
+            previous, self._candidate = self._candidate, fit
+            if previous is None or not self._agree(previous, fit):
+                return
+        self._candidate = fit
         if fit.step_time is not None and (self._fit is None or self._fit.step_time != fit.step_time):
             self._discard_before = max(self._discard_before, fit.step_time)
         self._fit = fit
@@ -570,40 +623,38 @@ class RelayExperiment:
         periods = len(self._rising) - 1
         if periods < _MIN_PERIODS or len(self._estimates) < 2:
             return
-        since = max(self._discard_before, self._changed_at)
-        usable = [e for e, start in zip(self._estimates, self._windows) if start >= since]
+        usable = self._usable()
         if len(usable) < 2:
             return
-        # Estimates scatter with noise and sampling jitter. The longer the
-        # experiment runs, the more of the latest are averaged; it stops when
-        # the standard error of their mean is within half the tolerances (with
-        # k = 2: consecutive estimates agree within about the tolerance).
-        # The latest estimates may follow a transient (a filter correction, a
-        # shift of the relay): the shortest run of them that passes is taken.
-        for k in range(2, min(len(usable), 2 + (periods - _MIN_PERIODS) // 2) + 1):
-            recent = usable[-k:]
-            mean = Point(sum(p.omega for p, _ in recent) / k, sum(p.value for p, _ in recent) / k)
-            inverse = sum(i for _, i in recent) / k
-            gain_error = math.sqrt(sum(abs(p.value - mean.value) ** 2 for p, _ in recent) / k) / mean.gain
-            inverse_error = math.sqrt(sum((i - inverse) ** 2 for _, i in recent) / k)
-            config = self.config
-            if self._fit is not None:
-                inverse = self._fit.x
-                # Through a disturbance the fit's own standard error is the
-                # uncertainty; one static_tol of it is accepted (a quiet run
-                # gets half of that from the scatter of its means).
-                inverse_error = 0.5 * self._fit.x_std * math.sqrt(k)
-            if (
-                min(abs(-p.phase_deg - config.phase_deg) for p in (mean, recent[-1][0])) <= config.phase_tol_deg
-                and gain_error / math.sqrt(k) <= 0.5 * config.gain_tol
-                and inverse_error / math.sqrt(k) <= 0.5 * config.static_tol
-            ):
-                # Before accepting a quiet result, make sure the record holds no
-                # disturbance that the simple means would have mixed in.
-                if self._fit is None and self._look_for_disturbance(tt, uu, np.asarray(self._y)):
-                    return
-                self._succeed(mean, inverse)
-                return
+        # Estimates scatter with noise and sampling jitter; the longer the
+        # experiment runs, the more of the latest may be averaged (stopping.py).
+        noisy = self._noisy()
+        # With noise, all estimates since the last disturbance may be averaged but the first two
+        # (the filter's first corrections).
+        longest = len(usable) - 2 if noisy else 2 + (periods - _MIN_PERIODS) // 2
+        verdict = judge(usable, self.config.phase_deg, self._tolerances(), longest, noisy,
+                        None if self._fit is None else self._fit.x_std)
+        if verdict is None:
+            return
+        # Before accepting a quiet result, make sure the record holds no
+        # disturbance that the simple means would have mixed in.
+        if self._fit is None and self._look_for_disturbance(tt, uu, np.asarray(self._y)):
+            return
+        self._succeed(verdict.point, self._fit.x if self._fit is not None else verdict.inverse_gain)
+
+    def _tolerances(self) -> Tolerances:
+        c = self.config
+        return Tolerances(c.phase_tol_deg, c.gain_tol, c.static_tol, c.noise_tol)
+
+    def _noisy(self) -> bool:
+        """True when the measured noise is large enough to scatter the estimates beyond gain_tol."""
+        if not self._estimates:
+            return False
+        return self._noise > _NOISY * self._estimates[-1][0].gain * self.config.amp
+
+    def _usable(self) -> list[tuple[Point, float]]:
+        since = max(self._discard_before, self._changed_at)
+        return [e for e, start in zip(self._estimates, self._windows) if start >= since]
 
     def _succeed(self, point: Point, inverse_gain: float) -> None:
         # Within the resolution of the mean MV shift, a vanishing |F|/K0 is an
@@ -698,6 +749,24 @@ class RelayExperiment:
             self._not_converged("within the time limit")
 
     def _not_converged(self, when: str) -> None:
+        if self._fit is not None:
+            self._finish(Code.DISTURBANCE, f"{MESSAGES[Code.DISTURBANCE]}: the estimates did not settle {when} "
+                         f"through the load the experiment detected (last fit: step {self._fit.step:+.3g}, "
+                         f"ramp {self._fit.ramp:+.3g}/s in MV units)")
+            return
+        usable = self._usable()[2:]
+        if self._noisy() and usable:
+            factor = amp_factor(usable, self._tolerances())
+            if math.isfinite(factor):
+                amp = self.config.amp
+                share = self._noise / (usable[-1][0].gain * amp)
+                self._finish(
+                    Code.NOISE_TOO_HIGH,
+                    f"the measurement noise (σ = {self._noise:.3g} PV units, {100 * share:.1f} % of |F|·amp) is too "
+                    f"high for amp {amp:g}: the estimates did not settle {when}; raise amp to at least "
+                    f"{math.ceil(factor * amp * 100) / 100:g} (× {factor:.2f}) or allow more periods",
+                )
+                return
         text = f"no convergence {when}"
         if self._estimates:
             lag = -self._estimates[-1][0].phase_deg
@@ -707,24 +776,49 @@ class RelayExperiment:
             )
         self._finish(Code.NOT_CONVERGED, text)
 
-    def _seconds_left(self) -> float:
+    def _period_guess(self, dt: float | None) -> float:
+        """The oscillation period as well as it is known now (s).
+
+        Measured once a whole period (or half of one) has passed; before, the
+        caller's ``expected_period``, else a share of the time limit, else
+        ``_SAMPLES_PER_PERIOD`` samples. Before the first switch it is at
+        least twice the time since the relay started (the first switch comes
+        after a quarter to half a period).
+        """
         t = self._t
-        if not t:
-            return 0.0
-        dt = (t[-1] - t[0]) / max(len(t) - 1, 1)
-        noise_left = max(self.config.noise_samples - len(t), 0) * dt
         if len(self._rising) >= 2:
-            period = t[self._rising[-1]] - t[self._rising[-2]]
-        elif len(self._switches) >= 2:
-            period = 2.0 * (t[self._switches[-1]] - t[self._switches[-2]])
-        elif self.stage is Stage.RELAY:
-            # Before the first switch the period is unknown; the first switch
-            # comes after roughly a quarter of it.
-            period = 4.0 * (t[-1] - t[self._relay_start])
+            return t[self._rising[-1]] - t[self._rising[-2]]
+        if len(self._switches) >= 2:
+            return 2.0 * (t[self._switches[-1]] - t[self._switches[-2]])
+        c = self.config
+        if c.expected_period is not None:
+            guess = c.expected_period
+        elif math.isfinite(c.time_limit):
+            guess = c.time_limit / _LIMIT_SHARE
         else:
-            return noise_left
-        periods_left = max(_MIN_PERIODS + 1 - (len(self._rising) - 1), 1)
-        return noise_left + periods_left * period
+            guess = _SAMPLES_PER_PERIOD * (dt if dt else 1.0)
+        if self.stage is Stage.RELAY:
+            guess = max(guess, 2.0 * (t[-1] - t[self._relay_start]))
+        return guess
+
+    def _seconds_left(self) -> float:
+        """Estimated seconds to the end: the noise stage's rest plus the periods the stopping rule still needs."""
+        t = self._t
+        dt = (t[-1] - t[0]) / (len(t) - 1) if len(t) >= 2 else None
+        noise_left = max(self.config.noise_samples - len(t), 0) * (dt or 0.0)
+        period = self._period_guess(dt)
+        done = max(len(self._rising) - 1, 0)
+        needed = _MIN_PERIODS + 1.0
+        if len(self._rising) == 0:
+            needed += 0.5  # the half period before the first rising switch
+        if self._fit is not None or self._noisy():
+            # Disturbed or noisy runs average more periods: at least two more.
+            needed = max(needed, done + 2.0)
+        needed = min(needed, float(self.config.max_periods))
+        left = noise_left + max(needed - done, 0.5) * period
+        if math.isfinite(self.config.time_limit):
+            left = min(left, max(self.config.time_limit - (t[-1] - t[0] if t else 0.0), 0.0))
+        return max(left, dt or period / _SAMPLES_PER_PERIOD)
 
     def _finish(self, code: Code, message: str) -> None:
         self.stage = Stage.DONE

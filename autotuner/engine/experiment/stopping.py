@@ -1,0 +1,102 @@
+"""The stopping rule: when the estimates of the point (and of |F|/K0) are good enough.
+
+Each whole period gives one estimate of ``F(jω)`` over the last two periods
+and one of ``|F|/K0``. Two ways to be done:
+
+* **settled** (a quiet plant): the latest ``k ≥ 2`` estimates agree — the
+  standard error of their mean is within half of ``gain_tol`` (relative) and
+  ``static_tol`` — and the phase is within ``phase_tol_deg`` of the target.
+  The shortest such run from the end is taken, so a transient a few periods
+  back (a filter correction, a shift of the relay) does not count.
+* **averaged** (measurement noise that makes single estimates scatter more
+  than ``gain_tol``): the mean of at least ``NOISY_MIN`` estimates whose
+  standard error is within ``noise_tol`` (relative |F|) and ``static_tol``
+  (|F|/K0). Consecutive estimates share one period of data, so ``k`` of them
+  count as ``k/2`` independent ones.
+
+When neither holds by ``max_periods`` (or the time limit) and the noise is
+what keeps the averaged rule from passing, :func:`amp_factor` says how much
+larger ``amp`` would have to be: every standard error scales as σ/amp.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from autotuner.engine.experiment.point import Point
+
+# The averaged rule needs at least this many estimates (its standard error
+# is itself estimated from them).
+NOISY_MIN = 4
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """phase_tol_deg: degrees; gain_tol, noise_tol: relative |F|; static_tol: |F|/K0."""
+
+    phase_tol_deg: float
+    gain_tol: float
+    static_tol: float
+    noise_tol: float
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """An accepted mean point and |F|/K0, from the latest ``count`` estimates."""
+
+    point: Point
+    inverse_gain: float
+    count: int
+
+
+def _stats(recent: list[tuple[Point, float]]) -> tuple[Point, float, float, float]:
+    """(mean point, mean |F|/K0, relative spread of F, spread of |F|/K0), spreads as standard deviations."""
+    k = len(recent)
+    mean = Point(sum(p.omega for p, _ in recent) / k, sum(p.value for p, _ in recent) / k)
+    inverse = sum(i for _, i in recent) / k
+    spread = math.sqrt(sum(abs(p.value - mean.value) ** 2 for p, _ in recent) / k) / mean.gain
+    inverse_spread = math.sqrt(sum((i - inverse) ** 2 for _, i in recent) / k)
+    return mean, inverse, spread, inverse_spread
+
+
+def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances, longest: int,
+          noisy: bool, inverse_std: float | None = None) -> Verdict | None:
+    """The accepted mean of the latest estimates, or None to go on.
+
+    ``longest`` bounds how many of the latest are averaged; ``noisy`` enables
+    the averaged rule; ``inverse_std`` (from a load fit) replaces the spread
+    of |F|/K0 by the fit's own standard error.
+    """
+    for k in range(2, min(len(estimates), longest) + 1):
+        recent = estimates[-k:]
+        mean, inverse, spread, inverse_spread = _stats(recent)
+        phase_ok = min(abs(-p.phase_deg - target_deg) for p in (mean, recent[-1][0])) <= tol.phase_tol_deg
+        if not phase_ok:
+            continue
+        if inverse_std is not None:
+            # One static_tol of the fit's standard error is accepted (a quiet
+            # run gets about half of that from the scatter of its means).
+            static_ok = inverse_std <= tol.static_tol
+        else:
+            static_ok = inverse_spread / math.sqrt(k) <= 0.5 * tol.static_tol
+        if spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
+            return Verdict(mean, inverse, k)
+        if noisy and k >= NOISY_MIN:
+            independent = k / 2.0
+            static_ok = static_ok or (inverse_std is None and inverse_spread / math.sqrt(independent) <= tol.static_tol)
+            if spread / math.sqrt(independent) <= tol.noise_tol and static_ok:
+                return Verdict(mean, inverse, k)
+    return None
+
+
+def amp_factor(estimates: list[tuple[Point, float]], tol: Tolerances) -> float:
+    """How many times larger amp would let the averaged rule pass on all of ``estimates`` (≥ 1)."""
+    k = len(estimates)
+    if k < NOISY_MIN:
+        return math.inf
+    _, _, spread, inverse_spread = _stats(estimates)
+    independent = k / 2.0
+    need = max(spread / math.sqrt(independent) / tol.noise_tol,
+               inverse_spread / math.sqrt(independent) / tol.static_tol)
+    return max(need, 1.0)
