@@ -60,10 +60,6 @@ def field_config(config: RelayConfig) -> RelayConfig:
         gain_tol=max(config.gain_tol, FIELD_GAIN_TOL),
         static_tol=max(config.static_tol, FIELD_STATIC_TOL),
         max_periods=max(config.max_periods, FIELD_MAX_PERIODS),
-        # Load following stays off over links for now: on a loaded machine a
-        # session that stalls for seconds holds the MV late, which the load
-        # fit reads as load steps (seen in the HIL tests). Simulated runs have it.
-        follow_loads=False,
     )
 
 

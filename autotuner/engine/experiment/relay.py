@@ -77,7 +77,10 @@ class RelayConfig:
         share of the time limit).
     follow_loads: look for load steps and drift in the record (load_fit.py),
         estimate the static gain through them and let the relay's centre
-        follow them within ±amp; off, the experiment is the plain one.
+        follow them within ±amp; off, the experiment is the plain one. None
+        (the default) is on in simulation (simulated_tuning) and off over a
+        link for now: a session that stalls for seconds holds the MV late,
+        which the fit reads as load steps.
     """
 
     amp: float
@@ -96,7 +99,7 @@ class RelayConfig:
     static_tol: float = 0.02
     noise_tol: float = 0.0025
     expected_period: float | None = None
-    follow_loads: bool = True
+    follow_loads: bool | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.amp) and self.amp > 0.0):
@@ -483,7 +486,7 @@ class RelayExperiment:
 
     def _look_for_disturbance(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
         """Fit the slow part of the record; True (and the disturbed mode on) if it needed a disturbance."""
-        if not self.config.follow_loads:
+        if self.config.follow_loads is not True:
             return False
         fitter = self._fitter(tt, uu, yy)
         if fitter is None:
@@ -740,7 +743,27 @@ class RelayExperiment:
             return
         halves = np.diff([self._t[i] for i in self._switches])
         if self._t[k] - self._t[self._switches[-1]] > 5.0 * max(halves):
+            if self._pushed_away(k):
+                self._finish(
+                    Code.DISTURBANCE,
+                    f"{MESSAGES[Code.DISTURBANCE]}: the relay stayed at one level while the PV moved away from "
+                    "the set point (a load or drift larger than amp)",
+                )
+                return
             self._finish(Code.NO_OSCILLATION, "the oscillation died out (increase amp or reduce hysteresis)")
+
+    def _pushed_away(self, k: int) -> bool:
+        """True when, since the last switch, the PV moved away from the set point by more than the cycle's swing.
+
+        A relay held at one level with the error growing is a relay without
+        the authority to bring the PV back: something larger than amp pushes it.
+        """
+        last = self._switches[-1]
+        before = self._y[self._switches[-3]:last]
+        swing = 0.5 * (max(before) - min(before)) if before else 0.0
+        error = self._sign * (self._sp - self._y[k])
+        pushing = error * self._relay > 0.0  # the relay pushes against an error that keeps growing
+        return pushing and abs(error) > swing + self._eps
 
     def _timeout(self) -> None:
         if len(self._switches) < 3:

@@ -1,0 +1,93 @@
+"""The experiment on a disturbed or noisy plant (issue 13): load steps, drift, noise, refusals, honest ite."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from autotuner.engine.design.process_data import exact_point
+from autotuner.engine.experiment.relay import RelayConfig
+from autotuner.engine.outcome import MESSAGES, Code
+from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.plant.simulation import PlantSim
+from autotuner.engine.simulated_tuning import run_experiment
+
+PLANT = "exp(-s)/(s+1)"
+
+
+def _run(expr: str, *, loads=(), drift_per_period: float = 0.0, noise: float = 0.0, seed: int = 1,
+         on_status=None, **cfg):
+    """Experiment on ``expr`` at 100 samples per period; loads in (periods, MV units), noise in |F|·amp."""
+    process = parse_process(expr)
+    point = exact_point(process, 135.0)
+    period = 2.0 * math.pi / point.omega
+    sim = PlantSim(process, period / 100.0, loads=[(k * period, size) for k, size in loads],
+                   drift=drift_per_period / period, noise_std=noise * point.gain, seed=seed)
+    config = RelayConfig(amp=1.0, time_limit=200.0 * period, **cfg)
+    experiment, trace = run_experiment(sim, config, on_status=on_status, status_every=1)
+    return experiment, trace, process
+
+
+def _assert_accurate(experiment, process, static_rel: float) -> None:
+    assert experiment.code is Code.OK, experiment.message
+    ident = experiment.result
+    true = complex(process.freqresp(ident.point.omega))
+    assert abs(ident.point.value - true) / abs(true) < 0.01
+    assert ident.static_gain == pytest.approx(process.static_gain(), rel=static_rel)
+
+
+@pytest.mark.parametrize("size", [0.25, -0.3])
+def test_a_load_step_part_way_is_estimated_through(size: float) -> None:
+    # Before: "the static gain must be positive" (the step was read as static gain).
+    experiment, trace, process = _run(PLANT, loads=[(3.0, size)])
+    _assert_accurate(experiment, process, 0.1)
+    ident = experiment.result
+    assert ident.disturbance and ident.load_estimate == pytest.approx(size, abs=0.05)
+    # The relay's centre followed the load: the MV ends around mv0 − load.
+    assert abs(trace.mv[-200:].mean() + size) < 0.5
+
+
+def test_a_drift_is_followed_and_estimated_through() -> None:
+    # 0.3 × amp over 10 periods at the process input.
+    experiment, _, process = _run("1/(s+1)^4", drift_per_period=0.03)
+    _assert_accurate(experiment, process, 0.1)
+    assert experiment.result.disturbance
+
+
+def test_a_drift_beyond_amp_is_refused_with_the_disturbance_code() -> None:
+    experiment, _, _ = _run(PLANT, drift_per_period=0.2)
+    assert experiment.code is Code.DISTURBANCE
+    assert experiment.message.startswith(MESSAGES[Code.DISTURBANCE])
+    assert "× amp" in experiment.message or "larger than amp" in experiment.message
+
+
+def test_a_quiet_run_reports_no_disturbance() -> None:
+    experiment, _, process = _run(PLANT)
+    _assert_accurate(experiment, process, 0.02)
+    assert not experiment.result.disturbance and experiment.result.periods_discarded == 0
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_five_percent_noise_converges(seed: int) -> None:
+    # Before: 4 of 35 runs converged at 5 % noise (σ over |F(jω)|·amp).
+    experiment, _, process = _run("exp(-5*s)/(s+1)", noise=0.05, seed=seed)
+    _assert_accurate(experiment, process, 0.1)
+
+
+def test_noise_out_of_reach_is_refused_saying_how_much_to_raise_amp() -> None:
+    experiment, _, _ = _run("exp(-5*s)/(s+1)", noise=0.05, seed=1, max_periods=8, noise_tol=0.0005)
+    assert experiment.code is Code.NOISE_TOO_HIGH
+    assert "raise amp to at least" in experiment.message and "× " in experiment.message
+
+
+def test_ite_is_positive_from_the_first_sample_and_progress_never_goes_back() -> None:
+    statuses = []
+    experiment, trace, _ = _run(PLANT, on_status=statuses.append)
+    assert experiment.code is Code.OK
+    running = [s for s in statuses if s.code is None]
+    assert running and all(s.ite > 0.0 for s in running)
+    progress = [s.progress for s in statuses]
+    assert all(b >= a for a, b in zip(progress, progress[1:]))
+    # The first estimate is within a factor of two of the real length.
+    assert 0.5 * trace.t[-1] < running[0].ite < 2.0 * trace.t[-1]
