@@ -184,7 +184,7 @@ _MIN_PERIODS = 5
 # While not converged, the record is searched for a disturbance every this many periods.
 _CHECK_EVERY = 2
 # A fitted load (MV units, per amp) or free response (per |F|·amp) below this is no disturbance.
-_LOAD_FRACTION = 0.05
+_LOAD_FRACTION = 0.08
 # The relay's centre moves only for a change of the fitted load above this fraction of amp.
 _SHIFT_STEP = 0.03
 # A jump of |F|/K0 between consecutive estimates above this starts the search for a disturbance.
@@ -470,6 +470,10 @@ class RelayExperiment:
 
     def _fitter(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> LoadFitter | None:
         if not self._estimates or len(self._crossings) < 4:
+            return None
+        if self._estimates[-1][1] > 1.0:
+            # |F(jω)| above the static gain: a resonance, which no first-order
+            # model through the point can describe; the fit would invent loads.
             return None
         # A sampling gap (a link that stalled: the MV reached the plant late)
         # makes the record disagree with what the plant got; the fit would
