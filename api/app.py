@@ -32,7 +32,7 @@ from autotuner.service.config import DaemonConfig, Tuning, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
 from autotuner.service.history import History
 
-from . import errors
+from . import docs, errors
 from .auth import Principal, Tokens, require
 from .events import stream
 from .gate import RequestGate
@@ -46,17 +46,33 @@ STATIC = pathlib.Path(__file__).parent / "static"
 # The page loads only its own files and talks only to this API; nobody may frame it (clickjacking of TUNE).
 PAGE_POLICY = ("default-src 'self'; img-src 'self' data:; connect-src 'self'; frame-ancestors 'none'; "
                "base-uri 'none'; form-action 'self'; object-src 'none'")
-_ERRORS: dict[int | str, dict[str, Any]] = {
-    status: {"model": errors.ErrorBody, "description": text}
-    for status, text in ((400, "a body that is not JSON"), (401, "no valid token"), (403, "role too low"),
-                         (404, "unknown loop or session"),
-                         (422, "invalid request; the message names the field"))
+# The error answers each endpoint can give, with their machine codes (ErrorBody.code), for the OpenAPI document.
+_ERROR_TEXT = {
+    400: "bad_request: the body is not JSON (or the client went away before sending it)",
+    401: "unauthorized: no token, or a token the daemon does not know",
+    403: "forbidden: the token's role is too low (viewer) for this operator action",
+    404: "not_found: no loop (or session) with this id",
+    413: "too_large: the request body is too large",
+    422: "invalid: a field is out of range or unknown; the message names the field",
 }
+
+
+def _errors(*statuses: int, **more: str) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` for ``statuses`` (texts of :data:`_ERROR_TEXT`) and ``more`` (``e409="..."``)."""
+    out: dict[int | str, dict[str, Any]] = {
+        status: {"model": errors.ErrorBody, "description": _ERROR_TEXT[status]} for status in statuses}
+    for key, text in more.items():
+        out[int(key[1:])] = {"model": errors.ErrorBody, "description": text}
+    return out
+
+
+# Every endpoint but health answers 401 without a valid token; writes also 403, 400, 413 and 422.
+_WRITE = (400, 403, 404, 413, 422)
 LoopId = Annotated[str, Path(description="loop id from the config")]
 # Analyses kept per app (a finished session's analysis never changes).
 ANALYSES_KEPT = 64
 
-router = APIRouter(prefix=PREFIX, responses=_ERRORS)
+router = APIRouter(prefix=PREFIX)
 Viewer = Annotated[Principal, Depends(require("viewer"))]
 Operator = Annotated[Principal, Depends(require("operator"))]
 
@@ -74,34 +90,34 @@ async def health(manager: Manager) -> dict[str, Any]:
     return {"status": "ok", "loops": len(manager.loops)}
 
 
-@router.get("/codes", response_model=list[CodeOut], tags=["health"])
+@router.get("/codes", response_model=list[CodeOut], tags=["health"], responses=_errors(401))
 async def codes(_: Viewer) -> list[dict[str, Any]]:
     """Every outcome code ``ite`` can show once a session has ended (a read like any other: viewer token)."""
     return [{"value": int(c), "name": c.name, "message": MESSAGES[c], "warning": c in WARNINGS} for c in Code]
 
 
-@router.get("/whoami", response_model=Whoami, tags=["health"])
+@router.get("/whoami", response_model=Whoami, tags=["health"], responses=_errors(401))
 async def whoami(who: Viewer) -> dict[str, str]:
     """The caller's token: its name and role (what the operator page enables)."""
     return {"name": who.name, "role": who.role}
 
 
-@router.get("/loops", response_model=list[LoopStatus], tags=["loops"])
+@router.get("/loops", response_model=list[LoopStatus], tags=["loops"], responses=_errors(401))
 async def loops(manager: Manager, _: Viewer) -> list[dict[str, Any]]:
     """All configured loops with their status."""
     return [loop.as_json() for loop in manager.loops.values()]
 
 
-@router.get("/loops/{loop_id}", response_model=LoopStatus, tags=["loops"])
+@router.get("/loops/{loop_id}", response_model=LoopStatus, tags=["loops"], responses=_errors(401, 404))
 async def loop_status(loop_id: LoopId, manager: Manager, _: Viewer) -> dict[str, Any]:
     """One loop: tbsy, te, ite, stage, progress, last point and gains."""
     return manager.get(loop_id).as_json()
 
 
 @router.post("/loops/{loop_id}/tune", response_model=Accepted, status_code=202, tags=["loops"],
-             responses={409: {"model": errors.ErrorBody, "description": "busy, group_busy: the loop or its exclusion "
-                              "group is tuning; on a fresh read of the loop, before it is touched: pv_out_of_limits, "
-                              "pv_invalid (not finite or stale), link_unhealthy, device_busy (the device shows TBSY)"}})
+             responses=_errors(401, *_WRITE, e409="busy, group_busy: the loop or its exclusion group is tuning; on a "
+                               "fresh read of the loop, before it is touched: pv_out_of_limits, pv_invalid (not finite "
+                               "or stale), link_unhealthy, device_busy (the device shows TBSY)"))
 async def tune(loop_id: LoopId, manager: Manager, who: Operator,
                body: Annotated[TuneRequest, Body()] = TuneRequest()) -> dict[str, str]:
     """TUNE: start an experiment; fields left out take the loop's configured defaults."""
@@ -109,13 +125,14 @@ async def tune(loop_id: LoopId, manager: Manager, who: Operator,
 
 
 @router.post("/loops/{loop_id}/break", response_model=Accepted, status_code=202, tags=["loops"],
-             responses={409: {"model": errors.ErrorBody, "description": "the loop is idle"}})
+             responses=_errors(401, 403, 404, e409="idle: the loop is not tuning (nothing to abort)"))
 async def abort(loop_id: LoopId, manager: Manager, _: Operator) -> dict[str, str]:
     """TBRK: abort the running experiment; the loop is restored to its previous mode and MV."""
     return {"loop": loop_id, "session": manager.abort(loop_id)}
 
 
 @router.post("/loops/{loop_id}/apply", response_model=Applied, tags=["loops"], responses={
+    **_errors(401, *_WRITE),
     409: {"model": errors.ErrorBody,
           "description": "busy: the loop tunes (or is being written); nothing_to_apply: the session failed, has no "
                          "gains, or the loop has no finished session"},
@@ -137,17 +154,45 @@ async def apply(loop_id: LoopId, manager: Manager, who: Operator,
         raise
 
 
-@router.get("/loops/{loop_id}/events", tags=["loops"],
-            responses={200: {"content": {"text/event-stream": {}}, "description": "state and sample events"}})
+class EventStream(StreamingResponse):
+    """A Server-Sent Events response (declared as ``text/event-stream`` in the OpenAPI document)."""
+
+    media_type = "text/event-stream"
+
+
+_EVENTS_DOC = """Server-Sent Events of the loop (`text/event-stream`), one JSON object per event:
+
+- `state` (first, then on every change: start, stage, end, mode, gains, link error, apply): the loop's status,
+  as `GET /loops/{id}`.
+- `replay` (second, once): the trend the daemon keeps, as columns, oldest first: `session` (id or null), `time`
+  (unix s), `t` (plant s since the session started; null for monitor readings), `pv`, `sp` (PV units), `mv`
+  (MV units), `relay` (±1; null for monitor readings) — the running or last session's samples from its start,
+  then the monitor's.
+- `sample`: while tuning one per experiment sample: `t` (plant s), `time` (unix s), `pv`, `sp`, `mv`, `relay`,
+  `filter_phase_deg` (degrees), `stage`, `progress` (0–1), `ite` (plant s left), `periods`; while idle one per
+  monitor reading (every `monitor_period` wall seconds): `time`, `pv`, `sp`, `mv`, `mode`.
+
+A comment line (`: keep-alive`) every 15 s keeps an idle stream open. Non-finite numbers are sent as null."""
+
+_EVENTS_EXAMPLE = ('event: state\ndata: {"id": "TIC-101", "tbsy": false, "te": false, "ite": 0, ...}\n\n'
+                   'event: replay\ndata: {"session": null, "time": [1796161110.8], "t": [null], "pv": [50.0], '
+                   '"sp": [50.0], "mv": [50.0], "relay": [null]}\n\n'
+                   'event: sample\ndata: {"time": 1796161111.1, "pv": 50.0, "sp": 50.0, "mv": 50.0, "mode": "AUTO"}\n\n')
+
+
+@router.get("/loops/{loop_id}/events", tags=["loops"], response_class=EventStream, description=_EVENTS_DOC,
+            responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"},
+                                                              "example": _EVENTS_EXAMPLE}},
+                             "description": "state, replay and sample events"}, **_errors(401, 404)})
 async def events(loop_id: LoopId, manager: Manager, _: Viewer) -> StreamingResponse:
-    """Server-Sent Events: ``state`` (the loop's status) and ``sample`` (while tuning: t, time, pv, sp, mv, relay,
-    filter_phase_deg, stage, progress, ite, periods; while idle, from the monitor: time, pv, sp, mv, mode)."""
+    """Server-Sent Events: ``state``, ``replay``, ``sample`` (the description lists their fields)."""
     manager.get(loop_id)  # 404 before the stream starts
-    return StreamingResponse(stream(manager, loop_id), media_type="text/event-stream",
+    return EventStream(stream(manager, loop_id), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
-@router.get("/loops/{loop_id}/history", response_model=list[SessionSummary], tags=["history"])
+@router.get("/loops/{loop_id}/history", response_model=list[SessionSummary], tags=["history"],
+            responses=_errors(401, 404, 422))
 async def history(loop_id: LoopId, manager: Manager, _: Viewer,
                   limit: Annotated[int, Query(ge=1, le=1000, description="most sessions returned")] = 100,
                   ) -> list[dict[str, Any]]:
@@ -156,7 +201,7 @@ async def history(loop_id: LoopId, manager: Manager, _: Viewer,
     return await asyncio.to_thread(manager.history.of_loop, loop_id, limit)  # never on the event loop
 
 
-@router.get("/sessions/{sid}", response_model=Session, tags=["history"])
+@router.get("/sessions/{sid}", response_model=Session, tags=["history"], responses=_errors(401, 404))
 async def session(sid: str, manager: Manager, _: Viewer) -> dict[str, Any]:
     """One session in full, with its downsampled trace."""
     record = await asyncio.to_thread(manager.history.get, sid)
@@ -166,6 +211,7 @@ async def session(sid: str, manager: Manager, _: Viewer) -> dict[str, Any]:
 
 
 @router.get("/sessions/{sid}/analysis", response_model=Analysis, tags=["history"], responses={
+    **_errors(401, 404),
     409: {"model": errors.ErrorBody, "description": "no_result: the session has no identified point or no design"}})
 async def analysis(sid: str, request: Request, manager: Manager, _: Viewer) -> dict[str, Any]:
     """What the session's gains (new) and the controller's gains before it (old) do on the identified model:
@@ -218,15 +264,18 @@ class SecurityHeaders:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        page = not scope["path"].startswith(PREFIX)  # /api/v1/docs loads Swagger UI from its CDN: no policy there
+        path = scope["path"]
+        # The operator page's policy; the API docs' own (Swagger UI needs inline style attributes); none for JSON.
+        policy = (docs.DOCS_POLICY if path == f"{PREFIX}/docs" or path.startswith(f"{PREFIX}/docs/")
+                  else None if path.startswith(PREFIX) else PAGE_POLICY)
 
         async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
                 headers = MutableHeaders(scope=message)
                 headers["X-Content-Type-Options"] = "nosniff"
                 headers["Referrer-Policy"] = "no-referrer"
-                if page:
-                    headers["Content-Security-Policy"] = PAGE_POLICY
+                if policy is not None:
+                    headers["Content-Security-Policy"] = policy
                     headers["X-Frame-Options"] = "DENY"
             await send(message)
 
@@ -263,7 +312,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
 
     app = FastAPI(title="autotuner", version=__version__, lifespan=lifespan,
                   description="Relay-feedback PID autotuner daemon: TUNE / TBRK / TBSY / TE over HTTP (docs/daemon.md).",
-                  openapi_url=f"{PREFIX}/openapi.json", docs_url=f"{PREFIX}/docs", redoc_url=None)
+                  openapi_url=f"{PREFIX}/openapi.json", docs_url=None, redoc_url=None)
     app.state.analyses = {}
     app.state.tokens = Tokens(config.tokens, env)
     errors.install(app)
@@ -272,5 +321,6 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
     app.add_middleware(RequestGate, prefix=PREFIX)
     app.add_middleware(SecurityHeaders)
     app.include_router(router)
+    docs.install(app, PREFIX)  # Swagger UI from the daemon itself (no CDN)
     app.router.routes.append(_Page("/", StaticFiles(directory=STATIC, html=True), name="page"))
     return app

@@ -8,7 +8,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException
 
 from autotuner.service.daemon import Refused
@@ -23,8 +23,9 @@ class ErrorBody(BaseModel):
     """An error: ``code`` for programs (not_found, busy, group_busy, idle, invalid, unauthorized, forbidden, ...),
     ``message`` for people."""
 
-    code: str
-    message: str
+    code: str = Field(description="machine code: not_found, busy, group_busy, idle, nothing_to_apply, link, invalid, "
+                      "unauthorized, forbidden, bad_request, too_large, internal, ...", examples=["busy"])
+    message: str = Field(description="what happened, for people", examples=["loop 'TIC-101' is tuning"])
 
 
 class ApiError(Exception):

@@ -1,263 +1,268 @@
 """Response bodies of the API (they make the OpenAPI description; the request body is autotuner.service.config.TuneRequest).
 
-Pydantic lives here, at the boundary: the result inside is the engine's ``TuneResult`` and its one
-encoder ``as_json``; tests/test_result_types.py checks these models against the keys it gives.
-
 Units: ``ite`` plant seconds left while busy, the code when done; ``point.omega``
 rad/s, ``phase_deg`` degrees (negative for lag); gains in the standard (ISA)
 form, times in seconds; ``t`` of a trace in plant seconds; times of day
 (``last_tuned_at``, ``applied_at``, ...) UTC ISO 8601; ``time`` of an event
-unix seconds (wall clock).
+unix seconds (wall clock). Every field carries its description, unit and an
+example (taken from the demo's TIC-101) into the OpenAPI document.
 """
 
 from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
+
+SID = "3f2c9a7e5b1d4c6a8e0f2b4d6a8c0e1f"
+WHEN = "2026-12-01T20:57:36.412Z"
+
+
+def _f(description: str, example: Any) -> Any:
+    """A required field with its description (unit included) and one example."""
+    return Field(description=description, examples=[example])
+
+
+def _d(description: str) -> Any:
+    """A required field holding a model (or null): its description; the example comes from the model's fields."""
+    return Field(description=description)
 
 
 class Point(BaseModel):
-    """The identified point F(jω)."""
+    """The identified point F(jω₀) of the process."""
 
-    omega: float
-    gain: float
-    phase_deg: float
+    omega: float = _f("frequency ω₀ of the point, rad/s (plant time)", 0.4187)
+    gain: float = _f("|F(jω₀)|, PV units per MV unit", 0.3941)
+    phase_deg: float = _f("∠F(jω₀), degrees (negative: lag)", -135.1)
 
 
 class GainsOut(BaseModel):
-    """PID gains, standard form: pk, pti (null: no integral), ptd, pnd, pb, pc."""
+    """PID gains in the standard (ISA) form K·(b·SP − PV + (1/(Ti·s))·e + Td·s/(1 + Td·s/N)·(c·SP − PV))."""
 
-    pk: float
-    pti: float | None
-    ptd: float
-    pnd: float
-    pb: float
-    pc: float
+    pk: float = _f("proportional gain K, MV units per PV unit", 0.6865)
+    pti: float | None = _f("integral time Ti, seconds (null: no integral action)", 5.776)
+    ptd: float = _f("derivative time Td, seconds (0: PI)", 0.0)
+    pnd: float = _f("derivative filter N (Td/N is the filter's time constant), dimensionless", 10.0)
+    pb: float = _f("set-point weight b of the proportional part, dimensionless (0–1)", 0.365)
+    pc: float = _f("set-point weight c of the derivative part, dimensionless (0–1)", 0.0)
 
 
 class TuneDefaults(BaseModel):
-    """What a TUNE without a body runs: the loop's configured controller, relay amplitude (MV units), hysteresis
-    (PV units; null: measured from the noise), phase lag (degrees), Ms, and whether the gains are applied."""
+    """What a TUNE without a body runs with: the loop's configured defaults."""
 
-    controller: Literal["PI", "PID"]
-    amp: float
-    hysteresis: float | None
-    phase: float
-    ms: float
-    apply: bool
+    controller: Literal["PI", "PID"] = _f("controller type designed", "PI")
+    amp: float = _f("relay amplitude, MV units", 5.0)
+    hysteresis: float | None = _f("relay hysteresis, PV units (null: 3σ of the noise measured first)", None)
+    phase: float = _f("phase lag of the point to identify, degrees (90–170)", 135.0)
+    ms: float = _f("maximum sensitivity Ms the design aims at (1.05–4)", 1.4)
+    apply: bool = _f("whether the gains are written to the controller on success", False)
 
 
 class CodeOut(BaseModel):
-    """One outcome code: ``value`` is what ``ite`` shows when a session has ended; ``warning``: reported with
-    ``te`` false (gains usable, a target missed)."""
+    """One outcome code: what ``ite`` shows once a session has ended."""
 
-    value: int
-    name: str
-    message: str
-    warning: bool
+    value: int = _f("the code (ite after the end; TE true unless it is 0 or a warning)", 3)
+    name: str = _f("its name in autotuner/engine/outcome.py", "NO_OSCILLATION")
+    message: str = _f("what it means, for people", "no oscillation: the relay did not make the PV cross the set "
+                      "point repeatedly")
+    warning: bool = _f("reported with TE false: the gains are usable but a target was missed", False)
 
 
 class Whoami(BaseModel):
-    """The caller: the token's name (recorded in the history as the user) and its role."""
+    """The caller's token."""
 
-    name: str
-    role: Literal["viewer", "operator", "admin"]
+    name: str = _f("the token's name (recorded in the history as the user)", "hmi")
+    role: Literal["viewer", "operator", "admin"] = _f("what it may do: viewer reads, operator also TUNE/TBRK/apply",
+                                                      "operator")
 
 
 class RestoreStatus(BaseModel):
-    """A loop the daemon could not hand back yet (``ite`` 20): the session, the mode and MV it restores, since when
-    (UTC), how many tries so far and why the last one failed; retried with back-off (docs/handback.md)."""
+    """A loop the daemon could not hand back yet (``ite`` 20), retried with back-off (docs/handback.md)."""
 
-    session: str
-    mode: Literal["MAN", "AUTO"]
-    mv: float
-    since: str
-    attempts: int
-    last_error: str
+    session: str = _f("the session whose hand-back is pending", SID)
+    mode: Literal["MAN", "AUTO"] = _f("the mode it restores", "AUTO")
+    mv: float = _f("the MV it restores, MV units", 50.0)
+    since: str = _f("since when, UTC ISO 8601", WHEN)
+    attempts: int = _f("how many tries so far", 3)
+    last_error: str = _f("why the last try failed", "timeout: no answer from 192.0.2.10:502")
 
 
 class LoopStatus(BaseModel):
-    """A loop: the PIDAT outputs (tbsy, te, ite), the stage and progress (0–1), the last point and gains, and
-    the live values.
+    """A loop: the PIDAT outputs (tbsy, te, ite), the stage and progress, the last session's point and gains, and
+    the live values."""
 
-    mode, pv, sp, mv: the loop now (engineering units; null: not read yet or
-    link down) — from the monitor while idle, from the session while tuning
-    (SP: the saved one, mode MAN). current_gains: the controller's gains as
-    last read. last_tuned_at, last_outcome: the newest finished session.
-    pending_gains: idle, and that session succeeded with gains not applied.
-    monitor_error: why the monitor cannot read the loop, null when fine.
-    defaults: the settings a TUNE without a body runs with.
-    restore: the loop is not handed back yet (te true, ite 20, TUNE refused), null when it is.
-    """
-
-    id: str
-    description: str
-    group: str | None
-    link: str
-    speed: float
-    tbsy: bool
-    te: bool
-    ite: float
-    stage: Literal["noise", "relay", "done"] | None
-    progress: float
-    message: str
-    session: str | None
-    controller: str | None
-    point: Point | None
-    static_gain: float | None
-    gains: GainsOut | None
-    mode: Literal["MAN", "AUTO"] | None
-    pv: float | None
-    sp: float | None
-    mv: float | None
-    current_gains: GainsOut | None
-    last_tuned_at: str | None
-    last_outcome: Literal["success", "failure"] | None
-    pending_gains: bool
-    monitor_error: str | None
-    defaults: TuneDefaults
-    restore: RestoreStatus | None = None
+    id: str = _f("loop id from the config", "TIC-101")
+    description: str = _f("free text from the config", "temperature: two lags with dead time")
+    group: str | None = _f("exclusion group (loops of one group never tune at the same time); null: none", "reactor")
+    link: str = _f("how the daemon reaches the loop (URL; sim:PROCESS for a simulated plant)",
+                   "modbus://192.0.2.10:502/1")
+    speed: float = _f("plant seconds per wall second: 1 for a real plant, more for a simulated one", 1.0)
+    tbsy: bool = _f("TBSY: a session is running", False)
+    te: bool = _f("TE: the last session failed (no gains)", False)
+    ite: float = _f("while tbsy: estimated plant seconds left; afterwards the outcome code (GET /codes)", 0)
+    stage: Literal["noise", "relay", "done"] | None = _f("stage of the running or last session (null: none yet)",
+                                                           "done")
+    progress: float = _f("progress of the running session, 0–1", 0.0)
+    message: str = _f("the last session's message (tuning while one runs, idle before any)", "ok")
+    session: str | None = _f("id of the running or last session (null: none since the daemon started)", SID)
+    controller: str | None = _f("controller type of the last session", "PI")
+    point: Point | None = _d("point identified by the last session (null: none)")
+    static_gain: float | None = _f("static gain of the process identified by the last session, PV units per MV "
+                                   "unit (null: integrating or not identified)", 1.478)
+    gains: GainsOut | None = _d("gains designed by the last session (null: none)")
+    mode: Literal["MAN", "AUTO"] | None = _f("the loop's mode now (MAN while a session holds it; null: not read yet "
+                                             "or the link is down)", "AUTO")
+    pv: float | None = _f("process value now, PV units (null: not read yet or the link is down)", 50.0)
+    sp: float | None = _f("set point now, PV units (while tuning: the SP saved before the experiment)", 50.0)
+    mv: float | None = _f("manipulated value now, MV units", 50.0)
+    current_gains: GainsOut | None = _d("the gains in the controller as last read from it (monitor, end of a "
+                                        "session, apply); null until read")
+    last_tuned_at: str | None = _f("finish time of the newest finished session, UTC ISO 8601 (null: none)", WHEN)
+    last_outcome: Literal["success", "failure"] | None = _f("outcome of that session (null: none)", "success")
+    pending_gains: bool = _f("idle, and the newest session succeeded with gains not applied yet", True)
+    monitor_error: str | None = _f("why the monitor cannot read the loop (null: fine)", None)
+    defaults: TuneDefaults = _d("the settings a TUNE without a body runs with")
+    restore: RestoreStatus | None = Field(None, description="the loop is not handed back yet (te true, ite 20, TUNE "
+                                          "refused); null when it is")
 
 
 class Accepted(BaseModel):
-    """A TUNE or TBRK accepted for ``loop``; ``session`` is the session's id (``GET /sessions/{sid}``)."""
+    """A TUNE or TBRK accepted."""
 
-    loop: str
-    session: str
+    loop: str = _f("loop id", "TIC-101")
+    session: str = _f("the session's id (GET /sessions/{sid})", SID)
 
 
 class SessionSummary(BaseModel):
-    """One session as listed in a loop's history.
+    """One session as listed in a loop's history."""
 
-    state: running, finished, or interrupted (the daemon stopped during it);
-    outcome: success or failure; code: the final ``ite``; request: the
-    settings in force; saved: the loop's state before the experiment;
-    applied_at, applied_by: when and by whom its gains were last written to
-    the controller (at its end with ``apply``, or ``POST /loops/{id}/apply``),
-    null if never; gains_after then the gains read back. gains_intent: a
-    gains write recorded as intended whose outcome is not recorded yet
-    (``{"gains", "by", "at"}``; a restart reconciles it with the device), else null.
-    """
-
-    id: str
-    loop: str
-    user: str
-    started_at: str
-    finished_at: str | None
-    state: Literal["running", "finished", "interrupted", "not_restored"]
-    request: dict[str, Any]
-    saved: dict[str, Any] | None
-    gains_before: GainsOut | None
-    gains_after: GainsOut | None
-    outcome: Literal["success", "failure"] | None
-    code: int | None
-    message: str | None
-    result: dict[str, Any] | None
-    applied_at: str | None
-    applied_by: str | None
-    gains_intent: dict[str, Any] | None = None
+    id: str = _f("session id", SID)
+    loop: str = _f("loop id", "TIC-101")
+    user: str = _f("name of the token that started it (plc: the device's TUNE bit)", "hmi")
+    started_at: str = _f("when it was requested, UTC ISO 8601", WHEN)
+    finished_at: str | None = _f("when it ended, UTC ISO 8601 (null: running)", WHEN)
+    state: Literal["running", "finished", "interrupted", "not_restored"] = _f(
+        "running; finished; interrupted: the daemon stopped during it (closed on restart, the loop put back); "
+        "not_restored: the loop is not handed back yet", "finished")
+    request: dict[str, Any] = _f("the settings in force (the request completed with the loop's defaults)",
+                                 {"controller": "PI", "amp": 5.0, "hysteresis": None, "phase": 135.0, "ms": 1.4,
+                                  "apply": False})
+    saved: dict[str, Any] | None = _f("the loop's state before the experiment: mode, MV (MV units), SP (PV units), "
+                                      "gains (null: not read)", {"mode": "AUTO", "mv": 50.0, "sp": 50.0})
+    gains_before: GainsOut | None = _d("the controller's gains before the session")
+    gains_after: GainsOut | None = _d("the gains read back after the session or the last apply")
+    outcome: Literal["success", "failure"] | None = _f("success (gains designed) or failure (null: running)",
+                                                       "success")
+    code: int | None = _f("the outcome code, the final ite (GET /codes); null: running", 0)
+    message: str | None = _f("what happened, for people", "ok")
+    result: dict[str, Any] | None = _f("the result object of docs/design.md (point, static_gain, gains, "
+                                       "experiment, ...)", None)
+    applied_at: str | None = _f("when its gains were last written to the controller, UTC ISO 8601 (null: never)",
+                                None)
+    applied_by: str | None = _f("who wrote them (a token's name)", None)
+    gains_intent: dict[str, Any] | None = Field(None, description="a gains write recorded as intended whose outcome "
+                                                "is not recorded yet ({gains, by, at}; a restart reconciles it with "
+                                                "the device), else null", examples=[None])
 
 
 class TraceOut(BaseModel):
-    """Downsampled samples: t (plant seconds from the session's start), PV and MV."""
+    """The experiment's samples (the whole experiment up to 8000 samples, evenly thinned past that)."""
 
-    t: list[float]
-    pv: list[float]
-    mv: list[float]
+    t: list[float] = _f("plant seconds since the session started", [0.0, 0.25, 0.5])
+    pv: list[float] = _f("process value, PV units", [50.0, 50.01, 50.03])
+    mv: list[float] = _f("manipulated value, MV units", [55.0, 55.0, 55.0])
 
 
 class Session(SessionSummary):
-    """One session in full, with its downsampled trace."""
+    """One session in full, with its trace."""
 
-    trace: TraceOut | None
+    trace: TraceOut | None = _d("the experiment's samples (null: none recorded)")
 
 
 class Health(BaseModel):
-    """The daemon is up; how many loops it owns."""
+    """The daemon is up."""
 
-    status: Literal["ok"]
-    loops: int
+    status: Literal["ok"] = _f("always ok", "ok")
+    loops: int = _f("how many loops it owns", 3)
 
 
 class ApplyRequest(BaseModel):
-    """Body of ``POST /loops/{id}/apply`` (optional): the session whose gains to write; absent: the newest."""
+    """Body of ``POST /loops/{id}/apply`` (optional)."""
 
     model_config = ConfigDict(extra="forbid")
 
-    session: str | None = None
+    session: str | None = Field(None, description="the session whose designed gains to write (absent or null: the "
+                                "loop's newest finished session)", examples=[SID])
 
 
 class Applied(BaseModel):
-    """Gains of ``session`` written to ``loop``; ``gains``: as read back from the controller."""
+    """Gains written to the controller."""
 
-    loop: str
-    session: str
-    gains: GainsOut
+    loop: str = _f("loop id", "TIC-101")
+    session: str = _f("the session whose gains were written", SID)
+    gains: GainsOut = _d("the gains as read back from the controller")
 
 
 class AnalysisPoint(Point):
-    """The identified point with its real and imaginary parts (PV units per MV unit)."""
+    """The identified point with its real and imaginary parts."""
 
-    re: float
-    im: float
+    re: float = _f("Re F(jω₀), PV units per MV unit", -0.279)
+    im: float = _f("Im F(jω₀), PV units per MV unit", -0.279)
 
 
 class Model(BaseModel):
-    """The model the design fitted: FOPDT ``k·e^{−ls}/(ts + 1)`` (k PV/MV) or IPDT ``k·e^{−ls}/s`` (k PV/MV per
-    second, t = 0); t and l in seconds; text in the expression grammar."""
+    """The model the design fitted: FOPDT k·e^(−l·s)/(t·s + 1) or IPDT k·e^(−l·s)/s."""
 
-    kind: Literal["FOPDT", "IPDT"]
-    k: float
-    t: float
-    l: float  # noqa: E741 (the dead time's usual name)
-    text: str
+    kind: Literal["FOPDT", "IPDT"] = _f("model family", "FOPDT")
+    k: float = _f("gain: PV units per MV unit (FOPDT), per MV unit and second (IPDT)", 1.5)
+    t: float = _f("time constant, seconds (0 for IPDT)", 8.76)
+    l: float = _f("dead time, seconds", 2.52)  # noqa: E741 (the dead time's usual name)
+    text: str = _f("the model in the process expression grammar", "1.5*exp(-2.517*s)/(8.76*s+1)")
 
 
 class Circle(BaseModel):
     """The Ms circle in the Nyquist plane: |1 + L| = 1/Ms around −1."""
 
-    center_re: float
-    radius: float
+    center_re: float = _f("real part of its centre (−1), dimensionless", -1.0)
+    radius: float = _f("radius 1/Ms, dimensionless", 0.714)
 
 
 class Nyquist(BaseModel):
-    """L(jω) = C(jω)·F(jω) on the model; omega rad/s, increasing."""
+    """L(jω) = C(jω)·F(jω) on the model."""
 
-    omega: list[float]
-    re: list[float]
-    im: list[float]
+    omega: list[float] = _f("frequencies, rad/s, increasing", [0.01, 0.1, 1.0])
+    re: list[float] = _f("Re L(jω), dimensionless", [-0.9, -0.5, -0.05])
+    im: list[float] = _f("Im L(jω), dimensionless", [-40.0, -3.1, -0.2])
 
 
 class StepOut(BaseModel):
-    """A simulated step response: t plant seconds, PV, MV."""
+    """A simulated unit step response of the closed loop on the model."""
 
-    t: list[float]
-    pv: list[float]
-    mv: list[float]
+    t: list[float] = _f("plant seconds after the step", [0.0, 1.0, 2.0])
+    pv: list[float] = _f("process value, PV units per unit step", [0.0, 0.02, 0.1])
+    mv: list[float] = _f("manipulated value, MV units per unit step", [0.25, 0.3, 0.4])
 
 
 class LoopResponse(BaseModel):
-    """Gains on the model: Ms (null if the closed loop is unstable), stability, Nyquist curve, and the unit
-    set-point and unit load (process input) steps; an unstable loop's steps are clipped."""
+    """What one set of gains does on the model."""
 
-    gains: GainsOut
-    ms: float | None
-    stable: bool
-    nyquist: Nyquist
-    setpoint: StepOut
-    load: StepOut
+    gains: GainsOut = _d("the gains analysed")
+    ms: float | None = _f("maximum sensitivity reached, dimensionless (null: the closed loop is unstable)", 1.4)
+    stable: bool = _f("whether the closed loop is stable on the model", True)
+    nyquist: Nyquist = _d("open loop L(jω)")
+    setpoint: StepOut = _d("unit set-point step")
+    load: StepOut = _d("unit load step at the process input (an unstable loop's steps are clipped)")
 
 
 class Analysis(BaseModel):
-    """What a session's gains (new) and the controller's before it (old, null if unknown) do on the model."""
+    """What a session's gains (new) and the controller's gains before it (old) do on the identified model."""
 
-    session: str
-    loop: str
-    controller: str | None
-    ms_target: float
-    point: AnalysisPoint
-    model: Model
-    ms_circle: Circle
-    old: LoopResponse | None
-    new: LoopResponse
+    session: str = _f("session id", SID)
+    loop: str = _f("loop id", "TIC-101")
+    controller: str | None = _f("controller type", "PI")
+    ms_target: float = _f("the Ms the design aimed at", 1.4)
+    point: AnalysisPoint = _d("the identified point")
+    model: Model = _d("the model fitted through the point")
+    ms_circle: Circle = _d("the Ms circle")
+    old: LoopResponse | None = _d("the gains before (null: not known)")
+    new: LoopResponse = _d("the designed gains")

@@ -77,12 +77,15 @@ class TuneRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
-    controller: Controller | None = None
-    amp: PositiveFloat | None = None
-    hysteresis: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] | None = None
-    phase: Annotated[float, Field(ge=90.0, le=170.0)] | None = None
-    ms: Annotated[float, Field(ge=1.05, le=4.0)] | None = None
-    apply: bool | None = None
+    controller: Controller | None = Field(None, description="controller to design, PI or PID", examples=["PI"])
+    amp: PositiveFloat | None = Field(None, description="relay amplitude, MV units (> 0)", examples=[5.0])
+    hysteresis: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] | None = Field(
+        None, description="relay hysteresis, PV units (≥ 0; absent: 3σ of the noise measured first)", examples=[0.1])
+    phase: Annotated[float, Field(ge=90.0, le=170.0)] | None = Field(
+        None, description="phase lag of the point to identify, degrees (90–170)", examples=[135.0])
+    ms: Annotated[float, Field(ge=1.05, le=4.0)] | None = Field(
+        None, description="maximum sensitivity the design aims at (1.05–4)", examples=[1.4])
+    apply: bool | None = Field(None, description="write the gains to the controller on success", examples=[False])
 
 
 Range = tuple[float, float]
