@@ -180,10 +180,19 @@ _EVENTS_EXAMPLE = ('event: state\ndata: {"id": "TIC-101", "tbsy": false, "te": f
                    'event: sample\ndata: {"time": 1796161111.1, "pv": 50.0, "sp": 50.0, "mv": 50.0, "mode": "AUTO"}\n\n')
 
 
+# One event of the stream: its type and its data (a JSON object, fields in the description above).
+_EVENT_SCHEMA = {"type": "object", "required": ["event", "data"], "properties": {
+    "event": {"type": "string", "enum": ["state", "replay", "sample"], "description": "the event's type"},
+    "data": {"type": "string", "description": "the event's JSON object"}}}
+
+
 @router.get("/loops/{loop_id}/events", tags=["loops"], response_class=EventStream, description=_EVENTS_DOC,
-            responses={200: {"content": {"text/event-stream": {"schema": {"type": "string"},
+            responses={200: {"content": {"text/event-stream": {"schema": _EVENT_SCHEMA,
                                                               "example": _EVENTS_EXAMPLE}},
-                             "description": "state, replay and sample events"}, **_errors(401, 404)})
+                             "description": "state, replay and sample events"},
+                       # JSON errors: declared by content type (a model here would take the route's event-stream type)
+                       **{status: {"description": _ERROR_TEXT[status], "content": {"application/json": {
+                           "schema": {"$ref": "#/components/schemas/ErrorBody"}}}} for status in (401, 404)}})
 async def events(loop_id: LoopId, manager: Manager, _: Viewer) -> StreamingResponse:
     """Server-Sent Events: ``state``, ``replay``, ``sample`` (the description lists their fields)."""
     manager.get(loop_id)  # 404 before the stream starts
