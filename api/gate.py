@@ -5,9 +5,10 @@ dependencies, so the token check of :mod:`api.auth` alone would let anyone
 make the daemon read and parse an unbounded body. :class:`RequestGate` is plain
 ASGI middleware in front of the application:
 
-* a request that carries a body (POST, PUT, PATCH) under the API's prefix needs
+* a request that carries a body (POST, PUT, PATCH) to a route of the API needs
   an operator token (every such route does); without one it is answered 401 or
-  403 before a byte of the body is read;
+  403 before a byte of the body is read (a method or path no route has is left to
+  the application, which answers 404 or 405 without reading the body);
 * every body is limited to ``max_body`` bytes: a larger ``Content-Length`` is
   answered 413 without reading; a body without one (chunked) is read only up to
   the limit, then 413. A body within the limit is passed on unchanged.
@@ -17,6 +18,7 @@ Errors are the API's JSON ``{"code", "message"}``.
 
 from __future__ import annotations
 
+from starlette.routing import Match, Mount
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from .auth import authorize, bearer_token
@@ -37,8 +39,8 @@ class RequestGate:
         self.max_body = max_body
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["method"] not in _WITH_BODY:
-            await self.app(scope, receive, send)
+        if scope["type"] != "http" or scope["method"] not in _WITH_BODY or not _routed(scope):
+            await self.app(scope, receive, send)  # no route reads a body here: 404/405 unread
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}
         path = scope["path"]
@@ -72,6 +74,12 @@ class RequestGate:
             chunks.append(chunk)
             if not message.get("more_body", False):
                 return b"".join(chunks)
+
+
+def _routed(scope: Scope) -> bool:
+    """True when an API route takes this method at this path (mounts — the page, the docs' assets — read no body)."""
+    return any(not isinstance(route, Mount) and route.matches(scope)[0] is Match.FULL
+               for route in scope["app"].router.routes)
 
 
 def _replay(body: bytes, receive: Receive) -> Receive:
