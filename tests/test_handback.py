@@ -243,8 +243,9 @@ def test_the_hand_back_is_bumpless_on_the_device(tmp_path, plc):
     with daemon(tmp_path, plc) as d:
         sid = d.tune()
         during = [at_relay_level(plc)]
-        # A relay period (15 plant s = 0.75 s wall) of PV while the relay runs: the band the hand-back must keep.
-        during += readings(plc, 1.0)
+        # Whole relay periods (15 plant s = 0.75 s wall each; the amplitude still adapts in the first ones) of PV
+        # while the relay runs: the band the hand-back must keep.
+        during += readings(plc, 2.0)
         d.abort()
         auto, before = first_auto(plc)
         assert abs(auto["mv"] - SAVED_MV) < FIRST_AUTO_TOL, (auto, before[-3:])
