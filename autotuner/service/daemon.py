@@ -743,6 +743,7 @@ class LoopManager:
 
         levels: tuple[float, ...] = ()
         restore_error = ""
+        pending: Pending | None = None
 
         def on_saved(saved: LoopState, relay_levels: tuple[float, float]) -> None:
             nonlocal levels
@@ -792,12 +793,12 @@ class LoopManager:
                     result = TuneResult.failed(Code.ABORTED, "aborted: the daemon stopped", settings.controller)
                 loop.result = result.as_json()
                 applied = intended is not None and gains_after is not None and same_gains(gains_after, intended)
-                if restore_error and loop.saved is not None:
-                    loop.pending = Pending(sid, loop.saved, levels, result.code, state, restore_error)
+                if restore_error and loop.saved is not None:  # shown with the idle loop, not while still busy
+                    pending = Pending(sid, loop.saved, levels, result.code, state, restore_error)
                     log.error("loop %s: LOOP NOT RESTORED at the end of session %s (%s); retrying",
                               loop.config.id, sid, restore_error)
                 end = (self.history.finish, sid, loop.result, gains_after, downsample(result.trace),
-                       "not_restored" if loop.pending is not None else state, user if applied else None)
+                       "not_restored" if pending is not None else state, user if applied else None)
                 if self._stopping:  # the shutdown's bound is for the hand-back: the record goes on in its thread
                     self._record(*end)
                 elif why := await self._durable(*end):
@@ -806,7 +807,7 @@ class LoopManager:
                     self._reconcilers.append(asyncio.create_task(self._reconcile(
                         {"id": sid, "loop": loop.config.id, "gains_intent": {"gains": intended.as_json()}})))
                 self._refresh_latest(loop)
-                if loop.saved is not None and loop.pending is None:  # what the session left: its mode, the gains
+                if loop.saved is not None and pending is None:  # what the session left: its mode, the gains
                     loop.mode, loop.gains = Mode(loop.saved.mode), gains_after
                     loop.sp = loop.saved.sp
                 if math.isfinite(tap.pv):  # the last values of the session, not the monitor's from before it
@@ -814,7 +815,8 @@ class LoopManager:
                     loop.mv = tap.mv if math.isfinite(tap.mv) else loop.mv
             finally:  # whatever failed above, the loop is idle again (TUNE accepted, TBRK refused)
                 loop.task, loop.tap, loop.saved, loop.handback = None, None, None, None
-                if loop.pending is not None and not self._stopping:
+                loop.pending = pending
+                if pending is not None and not self._stopping:
                     loop.restorer = asyncio.create_task(self._restore_until_held(loop))
                 self._publish(loop, "state", loop.as_json())
 
