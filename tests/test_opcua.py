@@ -7,11 +7,8 @@ the experiment converges on a loaded machine too); a tuning takes about 10 wall 
 
 from __future__ import annotations
 
-import asyncio
 import math
 import threading
-import time
-from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -25,7 +22,9 @@ from api.auth import token_hash
 from api.opcua.address_space import NAMESPACE, PID_PARAMETERS, VARIABLES
 from api.opcua.passwords import hash_password
 from autotuner.service.config import DaemonConfig
+from tests import opcua_client
 from tests.helpers import free_port
+from tests.opcua_client import Changes, call, now, run, until, value
 
 OPERATOR, VIEWER_TOKEN, VIEWER_PASSWORD = "op-secret", "view-token", "viewer-pw"
 API = "/api/v1"
@@ -53,56 +52,8 @@ def daemon(tmp_path_factory):
         yield rest, app.state.opcua_url, tmp
 
 
-def run(coro: Any) -> Any:
-    return asyncio.run(asyncio.wait_for(coro, 120))
-
-
 def client(url: str, user: str | None = "operator", password: str = OPERATOR) -> Client:
-    c = Client(url, timeout=10)
-    if user is not None:
-        c.set_user(user)
-        c.set_password(password)
-    return c
-
-
-async def call(c: Client, loop_id: str, method: str, *args: Any) -> ua.CallMethodResult:
-    """The raw result of a method call (status, outputs) without asyncua's raise on a Bad status."""
-    idx = await c.get_namespace_index(NAMESPACE)
-    kinds = {str: ua.VariantType.String, float: ua.VariantType.Double, bool: ua.VariantType.Boolean}
-    request = ua.CallMethodRequest(ObjectId=ua.NodeId(loop_id, idx), MethodId=ua.NodeId(f"{loop_id}.{method}", idx),
-                                   InputArguments=[ua.Variant(a, kinds[type(a)]) for a in args])
-    return (await c.uaclient.call([request]))[0]
-
-
-async def value(c: Client, loop_id: str, name: str) -> Any:
-    """The variable's value; AssertionError naming it when its status is Bad."""
-    idx = await c.get_namespace_index(NAMESPACE)
-    data = await c.get_node(ua.NodeId(f"{loop_id}.{name}", idx)).read_data_value(raise_on_bad_status=False)
-    assert data.StatusCode.is_good(), f"{loop_id}.{name}: {data.StatusCode.name}"
-    return data.Value.Value
-
-
-async def until(predicate: Callable[[], Any], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not await predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.05)
-
-
-class Changes:
-    """A subscription handler that keeps every data change (by browse name) and every event."""
-
-    def __init__(self) -> None:
-        self.values: dict[str, list[Any]] = {}
-        self.events: list[Any] = []
-        self.names: dict[ua.NodeId, str] = {}
-
-    def datachange_notification(self, node: Any, val: Any, data: Any) -> None:
-        self.values.setdefault(self.names[node.nodeid], []).append(val)
-
-    def event_notification(self, event: Any) -> None:
-        self.events.append(event)
+    return opcua_client.client(url, user, password)
 
 
 def test_browse_the_address_space_with_units_and_stable_ids(daemon):
@@ -205,9 +156,9 @@ def test_tune_over_opcua_subscribed_to_pv_and_tbsy_ends_in_the_rest_history(daem
             result = await call(c, "TIC-1", "Tune", "PI", NAN, NAN, NAN, NAN, "true")
             assert result.StatusCode.is_good(), result
             sid = result.OutputArguments[0].Value
-            await until(lambda: _async(changes.values.get("TBSY", [])[-1:] == [True]), 10, "TBSY rising")
+            await until(lambda: now(changes.values.get("TBSY", [])[-1:] == [True]), 10, "TBSY rising")
             await until(lambda: _not(value(c, "TIC-1", "TBSY")), 60, "the end of the tuning")
-            await until(lambda: _async(changes.values.get("TBSY", [])[-1:] == [False]), 10, "TBSY falling")
+            await until(lambda: now(changes.values.get("TBSY", [])[-1:] == [False]), 10, "TBSY falling")
             te, message = await value(c, "TIC-1", "TE"), await value(c, "TIC-1", "message")
             assert te is False, message
             out = {name: await value(c, "TIC-1", name) for name in
@@ -229,10 +180,6 @@ def test_tune_over_opcua_subscribed_to_pv_and_tbsy_ends_in_the_rest_history(daem
     record = rest.get(f"{API}/sessions/{out['sid']}", headers={"Authorization": f"Bearer {VIEWER_TOKEN}"}).json()
     assert record["user"] == "opcua:operator" and record["outcome"] == "success"
     assert record["result"]["gains"]["pk"] == pytest.approx(out["pk"])
-
-
-async def _async(x: Any) -> Any:
-    return x
 
 
 async def _not(awaitable: Any) -> bool:
@@ -262,7 +209,7 @@ def test_break_restores_the_loop_and_raises_a_te_event(daemon):
             assert stopped.StatusCode.is_good() and stopped.OutputArguments[0].Value
             await until(lambda: _not(value(c, "TIC-2", "TBSY")), 30, "the break")
             assert await value(c, "TIC-2", "TE") is True and await value(c, "TIC-2", "ite") == 1
-            await until(lambda: _async(len(changes.events) == 1), 10, "the TE event")
+            await until(lambda: now(len(changes.events) == 1), 10, "the TE event")
             event = changes.events[0]
             assert (event.Loop, event.Ite, event.Session) == ("TIC-2", 1.0, stopped.OutputArguments[0].Value)
             assert "aborted" in event.Message.Text

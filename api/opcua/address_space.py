@@ -39,8 +39,8 @@ FOLDER = "Loops"
 UNECE = "http://www.opcfoundation.org/UA/units/un/cefact"
 _UNITS = {"s": ("SEC", "s", "second"), "rad/s": ("2A", "rad/s", "radian per second"),
           "deg": ("DD", "°", "degree (angle)"), "1": ("C62", "1", "one (fraction)")}
-# An ``ite`` code that says the loop could not be put back (issue 12's codes 20-29); None until it exists.
-NOT_RESTORED = getattr(Code, "LOOP_NOT_RESTORED", None)
+# The ``ite`` of a session whose loop could not be put back (docs/handback.md).
+NOT_RESTORED = float(Code.LOOP_NOT_RESTORED)
 # Severity of the events (1-1000).
 TE_SEVERITY, NOT_RESTORED_SEVERITY = 600, 1000
 
@@ -224,7 +224,7 @@ class LoopNodes:
 
     async def _session_ended(self, status: dict[str, Any]) -> None:
         ite, message = status.get("ite"), status.get("message") or ""
-        if (NOT_RESTORED is not None and ite == NOT_RESTORED) or "NOT RESTORED" in message.upper():
+        if ite == NOT_RESTORED or "NOT RESTORED" in message.upper():
             await self._raise("LoopNotRestored", status, NOT_RESTORED_SEVERITY)
         if status.get("te"):
             await self._raise("TuningError", status, TE_SEVERITY)
