@@ -58,6 +58,19 @@ class TuneDefaults(BaseModel):
     apply: bool = _f("whether the gains are written to the controller on success", False)
 
 
+class UnitsOut(BaseModel):
+    """The loop's engineering units and display, from its config's ``units`` (docs/daemon.md, "Units")."""
+
+    pv: str = _f("unit of the PV and SP (and of the hysteresis); \"\": none configured", "°C")
+    mv: str = _f("unit of the MV (and of the relay amplitude); \"\": none configured", "%")
+    decimals: int | None = _f("digits after the decimal point of PV, SP and MV values (null: 4 significant digits)",
+                              1)
+    pv_range: list[float] | None = _f("display range [low, high] of the PV axis, PV units (null: fit the data)",
+                                      [20.0, 120.0])
+    mv_range: list[float] | None = _f("display range [low, high] of the MV axis, MV units (null: fit the data)",
+                                      [0.0, 100.0])
+
+
 class CodeOut(BaseModel):
     """One outcome code: what ``ite`` shows once a session has ended."""
 
@@ -122,6 +135,7 @@ class LoopStatus(BaseModel):
     pending_gains: bool = _f("idle, and the newest session succeeded with gains not applied yet", True)
     monitor_error: str | None = _f("why the monitor cannot read the loop (null: fine)", None)
     defaults: TuneDefaults = _d("the settings a TUNE without a body runs with")
+    units: UnitsOut = _d("engineering units and display of the loop's values (the config's units)")
     restore: RestoreStatus | None = Field(None, description="the loop is not handed back yet (te true, ite 20, TUNE "
                                           "refused); null when it is")
 

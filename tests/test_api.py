@@ -276,3 +276,24 @@ def test_codes_lists_every_outcome_code_for_the_page(client):
     for c in codes:
         code = Code(c["value"])
         assert c == {"value": int(code), "name": code.name, "message": MESSAGES[code], "warning": code in WARNINGS}
+
+
+def test_status_has_exactly_the_documented_keys_and_the_loops_units(client):
+    from api.models import LoopStatus, UnitsOut
+
+    statuses = client.get(f"{API}/loops", headers=auth(VIEWER)).json()
+    for status in statuses:
+        # The REST contract (docs/daemon.md): these keys and no others; units from the config.
+        assert set(status) == set(LoopStatus.model_fields)
+        assert set(status["units"]) == set(UnitsOut.model_fields) == {"pv", "mv", "decimals", "pv_range",
+                                                                      "mv_range"}
+        assert status["units"] == CONFIG.loop(status["id"]).units.as_json()
+    assert next(s for s in statuses if s["id"] == "TIC-101")["units"] == {
+        "pv": "°C", "mv": "%", "decimals": 2, "pv_range": None, "mv_range": None}
+    config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
+        {"id": "A", "sim": {"plant": "1/(s+1)"}, "ts": 0.1, "units": {"pv": "bar", "pv_range": [0, 16]}},
+        {"id": "B", "sim": {"plant": "1/(s+1)"}, "ts": 0.1}]})
+    with TestClient(create_app(config, env_token=OPERATOR)) as other:
+        a, b = (other.get(f"{API}/loops/{i}", headers=auth(OPERATOR)).json()["units"] for i in "AB")
+    assert a == {"pv": "bar", "mv": "", "decimals": None, "pv_range": [0.0, 16.0], "mv_range": None}
+    assert b == {"pv": "", "mv": "", "decimals": None, "pv_range": None, "mv_range": None}

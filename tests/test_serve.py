@@ -73,6 +73,7 @@ loops:
     apply: true
     tuning: {controller: PID, amp: 5, phase: 135, ms: 1.4}
     limits: {pv: [0, 120], mv: [0, 100]}
+    units: {pv: "°C", mv: "%%", decimals: 1, pv_range: [20, 120]}
   - id: SIM-1
     sim: {plant: "exp(-s)/(2*s+1)"}
     ts: 0.1
@@ -86,6 +87,11 @@ def test_a_good_config_resolves_paths_next_to_the_file(tmp_path):
     assert tic.map == tmp_path / "maps/tic.yaml" and tic.tuning.controller == "PID" and tic.limits.pv == (0, 120)
     assert config.history == str(tmp_path / "db/history.sqlite")
     assert config.loop("SIM-1").speed == 20 and config.loop("nope") is None
+    assert tic.units.pv == "°C" and tic.units.mv == "%" and tic.units.decimals == 1
+    assert tic.units.pv_range == (20, 120) and tic.units.mv_range is None
+    # Without a units section (every config before it): no unit, 4 significant digits, axes fit the data.
+    assert config.loop("SIM-1").units.as_json() == {"pv": "", "mv": "", "decimals": None, "pv_range": None,
+                                                    "mv_range": None}
 
 
 @pytest.mark.parametrize("change, where, what", [
@@ -109,6 +115,14 @@ def test_a_good_config_resolves_paths_next_to_the_file(tmp_path):
     (("link: modbus://127.0.0.1:5020/1\n    map: maps/tic.yaml", "link: can://virtual/x\n    dbc: no.dbc"),
      "loops[0].dbc", "cannot load DBC"),
     (("    ts: 0.1\n", ""), "loops[1].ts", "Field required"),
+    (("decimals: 1", "decimals: 7"), "loops[0].units.decimals", "less than or equal to 6"),
+    (("decimals: 1", "decimals: 1.5"), "loops[0].units.decimals", "valid integer"),
+    (("decimals: 1", "decimals: '1'"), "loops[0].units.decimals", "valid integer"),
+    (("pv_range: [20, 120]", "pv_range: [120, 20]"), "loops[0].units.pv_range", "low < high"),
+    (("pv_range: [20, 120]", "mv_range: [0, .inf]"), "loops[0].units.mv_range", "finite"),
+    (('pv: "°C"', 'pv: "degrees Celsius above zero"'), "loops[0].units.pv", "at most 16 characters"),
+    (('mv: "%"', 'mv: "%\\n"'), "loops[0].units.mv", "should match pattern"),
+    (('mv: "%"', 'mw: "%"'), "loops[0].units.mw", "Extra inputs"),
 ])
 def test_every_error_names_the_file_the_path_and_what_is_wrong(tmp_path, change, where, what):
     path = write(tmp_path, GOOD.replace(*change))

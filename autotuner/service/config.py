@@ -105,6 +105,42 @@ class Limits(Strict):
         return value
 
 
+# A unit as shown beside a value: printable text, no control characters (it goes into a page and an OPC UA node).
+UnitText = Annotated[str, Field(max_length=16, pattern=r"^[^\x00-\x1f\x7f]*$")]
+
+
+class Units(Strict):
+    """A loop's engineering units and display (docs/daemon.md, "Units"): the page and OPC UA show them.
+
+    pv: unit of the PV and SP (and of the hysteresis), e.g. ``°C``; mv: unit of
+    the MV (and of the relay amplitude), e.g. ``%``; "" (the default): no unit
+    shown. decimals: digits after the decimal point of PV, SP and MV values
+    (0–6); None (the default): 4 significant digits. pv_range, mv_range: the
+    trend's fixed axis ranges [low, high], in those units; None (the default):
+    the axis fits the data. Display only: the experiment's safety limits are
+    ``limits``.
+    """
+
+    pv: UnitText = ""
+    mv: UnitText = ""
+    decimals: Annotated[int, Field(ge=0, le=6, strict=True)] | None = None
+    pv_range: Range | None = None
+    mv_range: Range | None = None
+
+    @field_validator("pv_range", "mv_range")
+    @classmethod
+    def _ordered(cls, value: Range | None) -> Range | None:
+        if value is not None and not (math.isfinite(value[0]) and math.isfinite(value[1]) and value[0] < value[1]):
+            raise ValueError(f"must be [low, high], finite, with low < high, got [{value[0]}, {value[1]}]")
+        return value
+
+    def as_json(self) -> dict[str, Any]:
+        """The ``units`` of a loop's REST status (ranges as [low, high] lists or null)."""
+        return {"pv": self.pv, "mv": self.mv, "decimals": self.decimals,
+                "pv_range": None if self.pv_range is None else list(self.pv_range),
+                "mv_range": None if self.mv_range is None else list(self.mv_range)}
+
+
 class SimPlant(Strict):
     """A simulated PLC run inside the daemon: ``plant`` under a PID unit, with white PV noise (σ, PV units)."""
 
@@ -131,7 +167,8 @@ class LoopConfig(Strict):
     aborts tunings like the PIDAT block (docs/daemon.md, "PLC handshake").
     monitor_period: while the loop is idle, its mode, SP, MV, gains and PV
     are read this often, wall seconds (the live values of the status and the
-    ``sample`` events).
+    ``sample`` events). units: engineering units and display of its values
+    (:class:`Units`; absent: no unit, 4 significant digits, axes fit the data).
     """
 
     id: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
@@ -144,6 +181,7 @@ class LoopConfig(Strict):
     speed: Annotated[float, Field(gt=0.0, le=1000.0)] = 1.0
     tuning: Tuning = Tuning()
     limits: Limits = Limits()
+    units: Units = Units()
     apply: bool = False
     group: str | None = None
     handshake: bool = False

@@ -358,6 +358,7 @@ class Loop:
             "pending_gains": self.pending_gains,
             "monitor_error": self.monitor_error,
             "defaults": settings_of(c, TuneRequest()).as_json(),
+            "units": c.units.as_json(),
         } | self._restore_status()
 
     def _restore_status(self) -> dict[str, Any]:

@@ -12,11 +12,15 @@ from autotuner.service.config import DaemonConfig
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.simulated_tuning import EXPERIMENT_SAMPLES_PER_PERIOD, default_sample_time
 
-# (id, description, plant) — a lag with dead time, an integrating level, a lag-dominant loop.
+# (id, description, plant, units) — a lag with dead time, an integrating level, a lag-dominant loop; the MV is a
+# valve position in % everywhere.
 DEMO_LOOPS = (
-    ("TIC-101", "temperature: two lags with dead time", "1.5*exp(-0.7*s)/(4*s+1)^2"),
-    ("LIC-201", "level: integrating with dead time", "0.2*exp(-1*s)/(s*(2*s+1))"),
-    ("FIC-301", "lag-dominant flow/pressure loop", "2*exp(-0.5*s)/((20*s+1)*(2*s+1))"),
+    ("TIC-101", "temperature: two lags with dead time", "1.5*exp(-0.7*s)/(4*s+1)^2",
+     {"pv": "°C", "mv": "%", "decimals": 2}),
+    ("LIC-201", "level: integrating with dead time", "0.2*exp(-1*s)/(s*(2*s+1))",
+     {"pv": "%", "mv": "%", "decimals": 1}),
+    ("FIC-301", "lag-dominant flow/pressure loop", "2*exp(-0.5*s)/((20*s+1)*(2*s+1))",
+     {"pv": "m³/h", "mv": "%", "decimals": 2}),
 )
 # Wall seconds between two monitor readings: at 20× a few plant seconds, so the trend after an experiment is
 # not a staircase (the default 1 s would be 20 plant seconds).
@@ -33,7 +37,8 @@ def demo_config(speed: float = 20.0) -> DaemonConfig:
          "ts": default_sample_time(parse_process(plant)) * EXPERIMENT_SAMPLES_PER_PERIOD / DEMO_SAMPLES_PER_PERIOD,
          "speed": speed,
          "monitor_period": MONITOR_PERIOD,
-         "tuning": {"amp": 5.0, "time_limit": 1000.0}, "limits": {"pv": [0.0, 100.0], "mv": [0.0, 100.0]}}
-        for loop_id, description, plant in DEMO_LOOPS
+         "tuning": {"amp": 5.0, "time_limit": 1000.0}, "limits": {"pv": [0.0, 100.0], "mv": [0.0, 100.0]},
+         "units": units}
+        for loop_id, description, plant, units in DEMO_LOOPS
     ]
     return DaemonConfig.model_validate({"history": ":memory:", "loops": loops})
