@@ -1,6 +1,6 @@
 """The OPC UA server of a real daemon process (`autotuner serve --config`) on a loop over Modbus TCP to a simulated
-PLC process (`autotuner sim --modbus`, tests/test_handback.py's rig), with asyncua's client: the loop-not-restored
-event while the PLC is frozen, and how refused method calls are logged.
+PLC process (`autotuner sim --modbus`, tests/test_handback.py's rig), with asyncua's client: how refusals are
+logged (the daemon's stderr), and the loop-not-restored event while the PLC is frozen.
 
 Every wait is a condition with a generous deadline; the plant runs 20× real time.
 """
@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
+import re
 from collections.abc import Iterator
 from typing import Any
 
@@ -54,6 +56,57 @@ def rig(tmp_path_factory) -> Iterator[tuple[Plc, Daemon, str]]:
 
 def rest_status(daemon: Daemon) -> dict[str, Any]:
     return httpx.get(f"{daemon.base}/loops/L1", headers=daemon.headers, timeout=5.0).json()
+
+
+def test_refusals_are_logged_once_as_expected_outcomes_with_the_loop_and_reason_without_asyncua_errors(rig):
+    _, daemon, url = rig
+    start = len(daemon.log())
+
+    async def main() -> None:
+        for user, password in ((None, ""), ("viewer", "wrong")):
+            with pytest.raises(ua.UaStatusCodeError):
+                async with client(url, user, password):
+                    pass
+        async with client(url, "viewer", VIEWER_PASSWORD) as c:
+            idx = await c.get_namespace_index(NAMESPACE)
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await call(c, "L1", "Tune", "", math.nan, math.nan, math.nan, math.nan, "")
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                await c.get_node(ua.NodeId("L1.TBSY", idx)).write_value(True)
+        async with client(url, "operator", OPERATOR) as c:
+            assert (await call(c, "L1", "AutoTuningOn")).StatusCode.is_good()
+            busy = await call(c, "L1", "AutoTuningOn")
+            assert busy.StatusCode.value == ua.StatusCodes.BadInvalidState, busy
+            invalid = await call(c, "L1", "Tune", "", -1.0, math.nan, math.nan, math.nan, "")
+            assert invalid.StatusCode.value == ua.StatusCodes.BadInvalidArgument, invalid
+            assert (await call(c, "L1", "Break")).StatusCode.is_good()
+            await until(lambda: _idle(c, daemon), WAIT, "the loop handed back after the break")
+            idle = await call(c, "L1", "AutoTuningOff")
+            assert idle.StatusCode.value == ua.StatusCodes.BadInvalidState, idle
+
+    run(main())
+    expected = [
+        r"WARNING autotuner\.api\.opcua: OPC UA: a login refused: only user name and password are accepted",
+        r"WARNING autotuner\.api\.opcua: OPC UA: login of 'viewer' refused: unknown user or wrong password",
+        r"WARNING autotuner\.api\.opcua: loop L1: Tune over OPC UA by opcua:viewer \(viewer\) refused: forbidden: "
+        r"this needs the operator role",
+        r"WARNING autotuner\.api\.opcua: OPC UA: write of L1\.TBSY by opcua:viewer \(viewer\) refused: forbidden: the "
+        r"variables are read-only",
+        r"INFO autotuner\.api\.opcua: loop L1: AutoTuningOn over OPC UA by opcua:operator refused: busy: ",
+        r"INFO autotuner\.api\.opcua: loop L1: Tune over OPC UA by opcua:operator refused: invalid: amp: Input should "
+        r"be greater than 0",
+        r"INFO autotuner\.api\.opcua: loop L1: AutoTuningOff over OPC UA by opcua:operator refused: idle: ",
+    ]
+    daemon.wait_until(lambda: re.search(expected[-1], daemon.log()[start:]), WAIT, "the last refusal's log line")
+    log = daemon.log()[start:]
+    for pattern in expected:
+        assert len(re.findall(pattern, log)) == 1, f"{pattern!r} once in:\n{log}"
+    assert not re.search(r"ERROR asyncua|Traceback", log), log  # asyncua's own error lines for them are kept out
+    assert log.count(" refused") == len(expected), log  # one line per refusal
+
+
+async def _idle(c: Any, daemon: Daemon) -> bool:
+    return await value(c, "L1", "TBSY") is False and rest_status(daemon)["restore"] is None
 
 
 def test_a_loop_not_restored_raises_the_event_and_shows_ite_20_until_the_plc_is_back(rig):

@@ -8,6 +8,10 @@
   AutoTuningOn/Off). Nobody writes attributes or changes the address space:
   the loops change only through the methods. asyncua's own roles (Admin,
   User) cannot say that, hence a ruleset of our own.
+- Refusals are expected outcomes, not errors: each is logged once at
+  WARNING in ``autotuner.api.opcua`` with who, what and why (a viewer's
+  Tune names the loop and the method), and :class:`QuietRefusals` keeps
+  asyncua's own ERROR lines for them out of the log.
 - :func:`ensure_certificate` makes the server's self-signed application
   certificate and key on first start (for Basic256Sha256) and reuses them after.
 """
@@ -15,6 +19,7 @@
 from __future__ import annotations
 
 import contextvars
+import logging
 import os
 import socket
 from dataclasses import dataclass
@@ -22,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from asyncua import ua
+from asyncua.common.utils import Buffer
 from asyncua.crypto import cert_gen
 from asyncua.crypto.permission_rules import PermissionRuleset, User, UserRole
 from cryptography.x509.oid import ExtendedKeyUsageOID
@@ -30,6 +36,8 @@ from api.auth import RANKS
 from autotuner.service.config import OpcUaUser, Role
 
 from .passwords import verify_password
+
+log = logging.getLogger("autotuner.api.opcua")
 
 # Request types every activated user may send: session housekeeping, browse, read, subscriptions.
 _READ_TYPES = (
@@ -42,6 +50,10 @@ _READ_TYPES = (
 )
 READ_REQUESTS = frozenset(ua.NodeId(getattr(ua.ObjectIds, f"{name}_Encoding_DefaultBinary")) for name in _READ_TYPES)
 CALL_REQUEST = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
+WRITE_REQUEST = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
+# Why a request is refused to an activated user (the only two cases: methods need the operator, nothing is written).
+NEEDS_OPERATOR = "forbidden: this needs the operator role"
+READ_ONLY = "forbidden: the variables are read-only (the loops change only through the methods)"
 
 # The user of the request being processed. asyncua handles one connection's requests in one task, one after
 # the other, and asks the ruleset right before running each; the methods read it to know who called.
@@ -69,6 +81,7 @@ class Users:
         """The user ``username`` if ``password`` matches its hash; None (BadUserAccessDenied) otherwise."""
         entry = self._users.get(username or "")
         if entry is None or password is None or not verify_password(password, entry.password_hash):
+            log.warning("OPC UA: login of %r refused: unknown user or wrong password", username)
             return None
         return RoledUser(role=UserRole.User, name=entry.name, api_role=entry.role)
 
@@ -85,9 +98,55 @@ class RoleRuleset(PermissionRuleset):
         if not isinstance(user, RoledUser):
             return False  # anonymous, or a session not activated by :class:`Users`
         CALLER.set(user)
-        if action_type_id in READ_REQUESTS:
+        if action_type_id in READ_REQUESTS or (action_type_id == CALL_REQUEST and may_call(user)):
             return True
-        return action_type_id == CALL_REQUEST and may_call(user)
+        _log_refusal(user, action_type_id, body)
+        return False
+
+
+def _targets(body: Buffer, parameters: type, items: str) -> list[ua.NodeId]:
+    """The NodeIds a Call's or Write's body names (``parameters``: its parameter struct, ``items`` its list)."""
+    from asyncua.ua.ua_binary import struct_from_binary
+
+    try:  # a copy: asyncua decodes the body itself after the ruleset
+        return [getattr(item, "MethodId", None) or item.NodeId
+                for item in getattr(struct_from_binary(parameters, body.copy()), items)]
+    except Exception:  # a body asyncua cannot decode either: the refusal is logged without its targets
+        return []
+
+
+def _log_refusal(user: RoledUser, action_type_id: ua.NodeId, body: Buffer) -> None:
+    """One WARNING line per refused request: who, what (the loop and method of a Call, the nodes of a Write), why."""
+    who = f"opcua:{user.name} ({user.api_role})"
+    if action_type_id == CALL_REQUEST:
+        for method in _targets(body, ua.CallParameters, "MethodsToCall"):
+            loop_id, _, name = str(method.Identifier).rpartition(".")
+            log.warning("loop %s: %s over OPC UA by %s refused: %s", loop_id or "?", name, who, NEEDS_OPERATOR)
+        return
+    if action_type_id == WRITE_REQUEST:
+        nodes = ", ".join(str(n.Identifier) for n in _targets(body, ua.WriteParameters, "NodesToWrite"))
+        log.warning("OPC UA: write of %s by %s refused: %s", nodes or "?", who, READ_ONLY)
+        return
+    request = ua.ObjectIdNames.get(action_type_id.Identifier, str(action_type_id)).removesuffix("_Encoding_DefaultBinary")
+    log.warning("OPC UA: %s by %s refused: %s", request, who, READ_ONLY)
+
+
+class QuietRefusals(logging.Filter):
+    """On asyncua's server loggers: drops its ERROR lines for refusals that are expected outcomes and logged
+    already (each refusal of :class:`RoleRuleset` and :class:`Users` at WARNING, a request without a session by
+    asyncua itself at WARNING); an anonymous login's ERROR becomes our WARNING. Other errors pass unchanged."""
+
+    FAULTS = frozenset({"BadUserAccessDenied", "BadIdentityTokenRejected"})
+    LOGGERS = ("asyncua.server.uaprocessor", "asyncua.server.internal_session")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = str(record.msg)
+        if message.startswith("sending service fault response") and record.args and record.args[-1] in self.FAULTS:
+            return False
+        if message.startswith("Rejected active session UserIdentityToken not supported"):
+            log.warning("OPC UA: a login refused: only user name and password are accepted (no anonymous sessions)")
+            return False
+        return True
 
 
 def state_dir(history: str) -> Path | None:

@@ -51,7 +51,7 @@ from autotuner.service.daemon import LoopManager, Refused
 
 from . import endpoint_url
 from .address_space import FOLDER, NAMESPACE, LoopNodes, event_type, node_id
-from .security import CALLER, RoleRuleset, Users, ensure_certificate, may_call
+from .security import CALLER, NEEDS_OPERATOR, QuietRefusals, RoleRuleset, Users, ensure_certificate, may_call
 
 log = logging.getLogger("autotuner.api.opcua")
 T = TypeVar("T")
@@ -86,6 +86,13 @@ def _result(code: int, session: str, message: str, inputs: int = 0, bad_input: i
     return ua.CallMethodResult(StatusCode=ua.StatusCode(code), InputArgumentResults=arg_results,
                                OutputArguments=[ua.Variant(session, ua.VariantType.String),
                                                 ua.Variant(message, ua.VariantType.String)])
+
+
+def _refused(what: str, code: str, message: str, inputs: int, bad_input: int | None = None) -> ua.CallMethodResult:
+    """The result of a call (``what``: loop, method, user) that the manager or the validation refused with the REST
+    error ``code: message``, logged as the expected outcome it is: INFO (WARNING when the loop's link failed)."""
+    log.log(logging.WARNING if code == "link" else logging.INFO, "%s refused: %s: %s", what, code, message)
+    return _result(_STATUS.get(code, ua.StatusCodes.BadInvalidState), "", f"{code}: {message}", inputs, bad_input)
 
 
 def tune_request(args: list[Any]) -> TuneRequest:
@@ -177,6 +184,17 @@ class OpcUaServer:
 
     async def _serve(self, ready: concurrent.futures.Future[None]) -> None:
         self._loop, self._halt = asyncio.get_running_loop(), asyncio.Event()
+        quiet = QuietRefusals()
+        for name in QuietRefusals.LOGGERS:
+            logging.getLogger(name).addFilter(quiet)
+        try:
+            await self._run_server(ready)
+        finally:
+            for name in QuietRefusals.LOGGERS:
+                logging.getLogger(name).removeFilter(quiet)
+
+    async def _run_server(self, ready: concurrent.futures.Future[None]) -> None:
+        assert self._halt is not None
         server = await self._build()
         async with server:
             pollers = [asyncio.create_task(self._poll(ids, period)) for period, ids in self._periods().items()]
@@ -221,30 +239,30 @@ class OpcUaServer:
         outputs = [_argument(*a) for a in OUTPUTS]
         tune_inputs = [_argument(*a) for a in TUNE_ARGS]
 
-        async def tune(_: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-            return await self._call(loop_id, "tune", list(args), len(TUNE_ARGS))
+        def method(name: str, action: str, inputs: int) -> Callable[..., Awaitable[ua.CallMethodResult]]:
+            async def callback(_: ua.NodeId, *args: Any) -> ua.CallMethodResult:
+                if action == "tune" and not inputs:  # AutoTuningOn: Tune with the loop's defaults
+                    args = (None,) * len(TUNE_ARGS)
+                return await self._call(loop_id, name, action, list(args), inputs)
 
-        async def on(_: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-            return await self._call(loop_id, "tune", [None] * len(TUNE_ARGS), 0)
+            return callback
 
-        async def abort(_: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-            return await self._call(loop_id, "abort", [], 0)
-
-        async def apply(_: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-            return await self._call(loop_id, "apply", [], 0)
-
-        for name, callback, inputs in (("Tune", tune, tune_inputs), ("Break", abort, []), ("Apply", apply, []),
-                                       ("AutoTuningOn", on, []), ("AutoTuningOff", abort, [])):
-            await obj.add_method(node_id(idx, loop_id, name), ua.QualifiedName(name, idx), callback, inputs, outputs)
+        for name, action, inputs in (("Tune", "tune", tune_inputs), ("Break", "abort", []), ("Apply", "apply", []),
+                                     ("AutoTuningOn", "tune", []), ("AutoTuningOff", "abort", [])):
+            await obj.add_method(node_id(idx, loop_id, name), ua.QualifiedName(name, idx),
+                                 method(name, action, len(inputs)), inputs, outputs)
 
     # -- methods ----------------------------------------------------------------------------------------------
 
-    async def _call(self, loop_id: str, action: str, args: list[Any], inputs: int) -> ua.CallMethodResult:
-        """Run ``action`` (tune, abort, apply) on the daemon's loop for the calling operator; the method's result."""
+    async def _call(self, loop_id: str, method: str, action: str, args: list[Any], inputs: int
+                    ) -> ua.CallMethodResult:
+        """Run ``action`` (tune, abort, apply) on the daemon's loop for the calling operator; the result of
+        ``method`` (its name, for the log), which has ``inputs`` input arguments."""
         user = CALLER.get()
         if not may_call(user):  # the ruleset refuses viewers already; a second check costs nothing
-            return _result(ua.StatusCodes.BadUserAccessDenied, "", "forbidden: this needs the operator role", inputs)
+            return _result(ua.StatusCodes.BadUserAccessDenied, "", NEEDS_OPERATOR, inputs)
         who = f"opcua:{user.name}"
+        what = f"loop {loop_id}: {method} over OPC UA by {who}"
         try:
             if action == "tune":
                 request = tune_request(args)
@@ -260,13 +278,12 @@ class OpcUaServer:
         except ValidationError as exc:
             bad = next((i for i, a in enumerate(TUNE_ARGS) if exc.errors() and exc.errors()[0]["loc"][:1] == (a[0],)),
                        None)
-            return _result(_STATUS["invalid"], "", f"invalid: {validation_message(exc.errors())}", inputs, bad)
+            return _refused(what, "invalid", validation_message(exc.errors()), inputs, bad)
         except ValueError as exc:
-            return _result(_STATUS["invalid"], "", f"invalid: {exc}", inputs)
-        except Refused as refused:
-            return _result(_STATUS.get(refused.code, ua.StatusCodes.BadInvalidState), "",
-                           f"{refused.code}: {refused.message}", inputs)
-        log.info("loop %s: %s over OPC UA by %s (session %s)", loop_id, action, who, sid)
+            return _refused(what, "invalid", str(exc), inputs)
+        except Refused as exc:
+            return _refused(what, exc.code, exc.message, inputs)
+        log.info("%s (session %s)", what, sid)
         await self._refresh([loop_id])  # TBSY rises now, not at the next poll
         return _result(ua.StatusCodes.Good, sid, message, inputs)
 
