@@ -133,6 +133,8 @@ def daemon(tmp_path_factory) -> Iterator[Daemon]:
     for loop in config["loops"]:
         if loop["id"] in ("LIC-201", "FIC-301"):
             loop["group"] = "utilities"
+        if loop["id"] == "FIC-301":
+            loop["units"]["pv_range"] = [0.0, 100.0]  # a display range well beyond the PV's (about 50)
     (tmp / "daemon.yaml").write_text(yaml.safe_dump(config))
     port = free_port()
     log = (tmp / "daemon.log").open("w")
@@ -254,6 +256,7 @@ def test_operator_tunes_from_the_page_applies_the_gains_and_finds_the_session_in
     assert page.locator("#trend path[data-series='relay ±1']").count() == 1  # the relay output while running
     # Finished: the Nyquist plot with the identified point and the Ms circle, the gains, the simulated steps.
     page.wait_for_selector("#badge:has-text('OK')")
+    assert page.inner_text("#stage") == "code 0 OK"  # once: not "code 0 OK: ok"
     assert page.inner_text("#status [data-flag=tbsy]") == "TBSY 0"
     assert page.inner_text("#status [data-flag=ite]") == "ite 0"
     page.wait_for_selector("#nyquist [data-role=point]")
@@ -312,6 +315,43 @@ def test_operator_tunes_from_the_page_applies_the_gains_and_finds_the_session_in
     assert int(page.get_attribute("#trace path[data-series=PV]", "data-points")) > 50
     assert "AUTOTUNER_TOKEN" in page.inner_text("main")
     page.wait_for_selector("#result #nyquist [data-role=point]")
+
+
+def test_every_value_shows_the_loops_engineering_units(page, daemon):
+    """The demo's units (TIC-101 °C and %, 2 decimals; FIC-301 m³/h with a PV display range 0–100) on the overview,
+    the loop page's readouts, form, trend axes and gains, and the session page."""
+    login(page, daemon, VIEWER, "viewer")
+    cell = "tr[data-loop=TIC-101] [data-col={}]"
+    page.wait_for_function("(s) => /^\\d+\\.\\d\\d °C$/.test(document.querySelector(s).textContent)", arg=cell.format("pv"))
+    assert page.inner_text(cell.format("sp")).endswith(" °C")
+    assert page.inner_text(cell.format("mv")).endswith(" %")
+    assert page.inner_text("tr[data-loop=FIC-301] [data-col=pv]").endswith(" m³/h")
+    assert "%/°C" in page.inner_text(cell.format("gains"))  # K is MV units per PV unit
+    page.click("tr[data-loop=TIC-101] a.loop-id")
+    page.wait_for_selector("#trend[data-samples]")
+    assert page.inner_text("[data-readout=pv]").endswith(" °C") and page.inner_text("[data-readout=mv]").endswith(" %")
+    assert page.inner_text("[data-unit=amp]") == "%" and page.inner_text("[data-unit=hysteresis]") == "°C"
+    assert "K (%/°C)" in page.inner_text("#current-gains")
+    labels = page.eval_on_selector_all("#trend .axis-label", "els => els.map(e => e.textContent)")
+    assert "PV, SP (°C)" in labels and "MV (%)" in labels
+    # A finished session of the loop: its gains table and the session page in the loop's units.
+    daemon.wait_idle("TIC-101")
+    if daemon.get("/loops/TIC-101")["session"] is None:
+        assert daemon.post("/loops/TIC-101/tune", {"apply": False}).status_code == 202
+    sid = daemon.wait_idle("TIC-101")["session"]
+    page.goto(daemon.url + f"#/session/{sid}")
+    page.wait_for_selector("#trace path[data-series=PV]")
+    page.wait_for_selector("#result #gains")
+    assert page.inner_text("#gains tr[data-gain=pk] td.unit") == "%/°C"
+    assert "SP " in page.inner_text("main") and " °C · MV " in page.inner_text("main")
+    labels = page.eval_on_selector_all("#trace .axis-label", "els => els.map(e => e.textContent)")
+    assert "PV (°C)" in labels and "MV (%)" in labels
+    # FIC-301's PV axis covers its display range 0–100 although the PV stays near 50.
+    page.goto(daemon.url + "#/loop/FIC-301")
+    page.wait_for_selector("#trend[data-samples]")
+    ticks = page.eval_on_selector_all("#trend [data-panel='PV, SP (m³/h)'] .tick",
+                                      "els => els.map(e => Number(e.textContent.replace('−', '-')))")
+    assert min(ticks) <= 0 and max(ticks) >= 100, ticks
 
 
 def test_viewer_sees_everything_and_can_press_nothing(page, daemon):

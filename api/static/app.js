@@ -4,6 +4,7 @@
 import { ApiError, clearToken, eventStream, get, getToken, onUnauthorized, post, setToken, whoami } from "./api.js";
 import { PARAMS, ROWS, cell, changes, fmt, paramText } from "./gains.js";
 import { clockTicks, cssWidth, el, fitted, nyquist, timeChart } from "./plot.js";
+import { NO_UNITS, axis, derived, mvText, pvText, quantity, unitsOf } from "./units.js";
 
 // ---------------------------------------------------------------- helpers
 
@@ -54,11 +55,6 @@ function codeName(code) {
 
 const STAGES = { noise: "measuring noise", relay: "relay experiment", done: "designing" };
 
-function num(x, unit = "", digits = 4) {
-  if (x === null || x === undefined || Number.isNaN(x)) return "—";
-  return unit ? `${fmt(x, digits)} ${unit}` : fmt(x, digits);
-}
-
 function when(iso) {
   if (!iso) return "—";
   const d = new Date(iso);
@@ -73,8 +69,11 @@ function clock(unix) {
   return `${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}`;
 }
 
-// The loop's state in words and a CSS class: tuning, failed, warn, ok, idle.
+// The loop's state in words and a CSS class: tuning, notrestored, failed, warn, ok, idle.
 function statusOf(loop) {
+  if (loop.restore) { // before everything else: the loop is not back in its mode (ite 20), whatever the session did
+    return { cls: "notrestored", badge: "LOOP NOT RESTORED", text: restoreText(loop.restore) };
+  }
   if (loop.tbsy) {
     return { cls: "tuning", badge: "TUNING", text: `${STAGES[loop.stage] || "starting"} · ${timeLeft(loop)}` };
   }
@@ -84,8 +83,31 @@ function statusOf(loop) {
   if (loop.session && CODES.get(code)?.warning) {
     return { cls: "warn", badge: "WARNING", text: `${codeName(code)}: ${loop.message || meaning}` };
   }
-  if (loop.session) return { cls: "ok", badge: "OK", text: `${codeName(code)}: ${meaning || loop.message}` };
+  if (loop.session) return { cls: "ok", badge: "OK", text: withMessage(codeName(code), meaning || loop.message) };
   return { cls: "idle", badge: "IDLE", text: "not tuned since the daemon started" };
+}
+
+// "code 0 OK" and a message, unless the message only repeats the code's name ("code 0 OK: ok" said it twice).
+function withMessage(code, message) {
+  return !message || code.toLowerCase().endsWith(` ${message.toLowerCase()}`) ? code : `${code}: ${message}`;
+}
+
+// A loop the daemon could not hand back yet: what it restores, since when, how often it tried and why it failed.
+function restoreText(r) {
+  return `the daemon retries handing it back to ${r.mode} at MV ${fmt(r.mv)} · ${r.attempts} attempt${r.attempts === 1 ? "" : "s"} `
+    + `since ${when(r.since)} · last error: ${r.last_error}`;
+}
+
+// The prominent box of a loop not handed back (overview row and loop page), with what the operator can do.
+function restoreBox(loop) {
+  const r = loop.restore;
+  const u = unitsOf(loop);
+  return h("div", { class: "not-restored", role: "alert", "data-restore": r.session },
+    h("strong", {}, "LOOP NOT RESTORED"),
+    h("div", {}, `Session ${r.session.slice(0, 8)} could not hand the loop back to ${r.mode} at MV ${mvText(r.mv, u)}.`),
+    h("div", { "data-restore-attempts": r.attempts }, `${r.attempts} attempt${r.attempts === 1 ? "" : "s"} since ${when(r.since)}; the daemon keeps retrying.`),
+    h("div", { class: "mono small", "data-restore-error": "" }, `last error: ${r.last_error}`),
+    h("div", { class: "small" }, `Or set mode ${r.mode} and MV ${mvText(r.mv, u)} at the controller by hand.`));
 }
 
 // The time left in wall-clock seconds (what the operator waits), and the plant seconds of ite where they differ
@@ -236,20 +258,21 @@ function overviewView() {
 
   function row(loop) {
     const st = statusOf(loop);
+    const u = unitsOf(loop);
     const tr = h("tr", { "data-loop": loop.id, class: `st-${st.cls}` },
       h("td", {}, h("a", { href: `#/loop/${esc(loop.id)}`, class: "loop-id" }, loop.id),
         h("div", { class: "muted small" }, loop.description || ""),
         loop.monitor_error ? h("div", { class: "bad small" }, `monitor: ${loop.monitor_error}`) : null),
       h("td", { "data-label": "Mode" }, modeBadge(loop.mode)),
-      h("td", { class: "num", "data-col": "pv", "data-label": "PV" }, num(loop.pv)),
-      h("td", { class: "num", "data-col": "sp", "data-label": "SP" }, num(loop.sp)),
-      h("td", { class: "num", "data-col": "mv", "data-label": "MV" }, num(loop.mv)),
+      h("td", { class: "num", "data-col": "pv", "data-label": "PV" }, pvText(loop.pv, u)),
+      h("td", { class: "num", "data-col": "sp", "data-label": "SP" }, pvText(loop.sp, u)),
+      h("td", { class: "num", "data-col": "mv", "data-label": "MV" }, mvText(loop.mv, u)),
       h("td", { "data-col": "status", "data-label": "Tuning" },
         h("div", { class: "status-line" }, h("span", { class: `badge ${st.cls}` }, st.badge), flags(loop)),
-        h("div", { class: "small" }, st.text), loop.tbsy ? progressBar(loop) : null),
+        loop.restore ? restoreBox(loop) : h("div", { class: "small" }, st.text), loop.tbsy ? progressBar(loop) : null),
       h("td", { "data-col": "last", "data-label": "Last tuning" }, loop.last_tuned_at ? h("div", {}, when(loop.last_tuned_at)) : h("div", { class: "muted" }, "never"),
         loop.last_outcome ? outcomeBadge(loop.last_outcome) : null),
-      h("td", { "data-col": "gains", "data-label": "Gains" }, gainsBrief(loop.current_gains || null),
+      h("td", { "data-col": "gains", "data-label": "Gains" }, gainsBrief(loop.current_gains || null, u),
         loop.pending_gains ? h("div", {}, h("span", { class: "badge pending" }, "new gains to apply")) : null));
     return tr;
   }
@@ -276,9 +299,11 @@ function overviewView() {
   return () => { stop = true; clearTimeout(timer); banner("poll", null); };
 }
 
-function gainsBrief(g) {
+// K (in the loop's MV/PV units when it names them), Ti and Td in a few characters.
+function gainsBrief(g, units = NO_UNITS) {
   if (!g) return h("span", { class: "muted" }, "—");
-  return h("span", { class: "mono small" }, `K ${fmt(g.pk, 3)} · Ti ${g.pti === null ? "∞" : `${fmt(g.pti, 3)} s`}`
+  const k = units.pv || units.mv ? ` ${derived("MV/PV", units)}` : "";
+  return h("span", { class: "mono small" }, `K ${fmt(g.pk, 3)}${k} · Ti ${g.pti === null ? "∞" : `${fmt(g.pti, 3)} s`}`
     + (g.ptd ? ` · Td ${fmt(g.ptd, 3)} s` : ""));
 }
 
@@ -352,7 +377,7 @@ function loopView(id) {
         h("thead", {}, h("tr", {}, h("th", {}, ""), h("th", { class: "num" }, "now"), h("th", {}, ""),
           h("th", { class: "num" }, "new"))),
         h("tbody", {}, changed.map((d) => h("tr", { "data-param": d.key },
-          h("th", {}, d.label), h("td", { class: "num old" }, d.before === undefined ? "unknown" : paramText(d.key, d.before, d.unit)),
+          h("th", {}, paramLabel(d.label, d.unit, unitsOf(loop))), h("td", { class: "num old" }, d.before === undefined ? "unknown" : paramText(d.key, d.before, d.unit)),
           h("td", { class: "arrow" }, "→"), h("td", { class: "num new" }, paramText(d.key, d.after, d.unit)))))),
       same.length ? h("p", { class: "muted small" }, `unchanged: ${same.map((d) => `${d.label} = ${paramText(d.key, d.after, d.unit)}`).join(", ")}`) : null,
       loop.current_gains ? null : h("p", { class: "muted small" }, "The controller's gains have not been read yet."),
@@ -374,23 +399,25 @@ function loopView(id) {
 
   function update() {
     if (!loop || closed) return;
+    const u = unitsOf(loop);
     fill(head, 
       h("div", { class: "title" }, h("a", { href: "#/", class: "muted small" }, "← all loops"),
         h("h1", {}, loop.id, " ", h("span", { class: "desc" }, loop.description || "")),
         h("div", { class: "muted small" }, `link ${loop.link}`, loop.group ? ` · exclusion group ${loop.group}` : "")),
       h("div", { class: "readouts" },
-        readout("Mode", modeBadge(loop.mode)), readout("PV", num(loop.pv), "pv"), readout("SP", num(loop.sp), "sp"),
-        readout("MV", num(loop.mv), "mv")),
+        readout("Mode", modeBadge(loop.mode)), readout("PV", pvText(loop.pv, u), "pv"),
+        readout("SP", pvText(loop.sp, u), "sp"), readout("MV", mvText(loop.mv, u), "mv")),
       loopTabs(loop.id, "live"));
     const st = statusOf(loop);
     status.className = `card status st-${st.cls}`;
     fill(status, h("h2", {}, "Tuning state"),
       h("div", { class: "status-line" }, h("span", { class: `badge big ${st.cls}`, id: "badge" }, st.badge), flags(loop)),
+      loop.restore ? restoreBox(loop) : null,
       h("div", { class: "stage", id: "stage" }, loop.tbsy ? `Stage: ${STAGES[loop.stage] || "starting"}` : st.text),
       loop.tbsy ? progressBar(loop) : null,
       h("div", { class: "muted small", id: "message" }, loop.message ? `message: ${loop.message}` : ""),
       loop.monitor_error ? h("div", { class: "bad small" }, `monitor: ${loop.monitor_error}`) : null,
-      currentGains(loop.current_gains),
+      currentGains(loop.current_gains, u),
       h("dl", { class: "kv small" },
         h("dt", {}, "last tuning"), h("dd", {}, loop.last_tuned_at ? when(loop.last_tuned_at) : "—", " ",
           loop.last_outcome ? outcomeBadge(loop.last_outcome) : ""),
@@ -400,9 +427,11 @@ function loopView(id) {
     form.setEnabled(operate && !loop.tbsy, !operate ? "needs an operator token" : loop.tbsy ? "the loop is tuning" : "");
     tbrk.disabled = !(operate && loop.tbsy);
     tbrk.title = !operate ? "needs an operator token" : loop.tbsy ? "abort the experiment and restore the loop" : "nothing runs";
-    const pending = loop.pending_gains;
+    const pending = loop.pending_gains && !loop.restore; // the daemon writes nothing to a loop not handed back
     apply.disabled = !(operate && !loop.tbsy && pending);
+    if (loop.restore) form.setEnabled(false, "the loop is not handed back yet (LOOP NOT RESTORED)");
     apply.title = !operate ? "needs an operator token" : loop.tbsy ? "the loop is tuning"
+      : loop.restore ? "the loop is not handed back yet"
       : !pending ? "no new gains to apply" : "write the new gains to the controller";
     if (apply.disabled) fill(applyBox);
     roleNote.textContent = operate ? "" : `Logged in with a ${me.role || "viewer"} token: you can watch, not act.`;
@@ -419,7 +448,8 @@ function loopView(id) {
     try {
       const session = await get(`/sessions/${esc(sid)}`);
       if (shownSession !== sid || closed) return;
-      await renderResult(result, session, { title: "Last session", pending: loop?.pending_gains });
+      await renderResult(result, session, { title: "Last session", pending: loop?.pending_gains, units: unitsOf(loop),
+                                            restore: loop?.restore });
     } catch (err) {
       if (shownSession === sid) notify(err, result);
     }
@@ -490,7 +520,7 @@ function loopView(id) {
     if (!loop) return;
     for (const k of ["pv", "sp", "mv"]) {
       const node = head.querySelector(`[data-readout="${k}"]`);
-      if (node) node.textContent = num(loop[k]);
+      if (node) node.textContent = k === "mv" ? mvText(loop.mv, unitsOf(loop)) : pvText(loop[k], unitsOf(loop));
     }
     if (loop.tbsy) {
       const st = statusOf(loop);
@@ -518,12 +548,14 @@ function loopView(id) {
     if (loop?.tbsy && loop.ite > 0) x1 = Math.min(x1 + loop.ite / (loop.speed || 1), x1 + Math.max(5, 2 * (x1 - x0)));
     x1 = Math.max(x1, x0 + 1);
     const hasRelay = trend.relay.some((r) => r !== null);
+    const u = unitsOf(loop);
     const panels = [
-      { height: 190, label: "PV, SP", series: [
+      { height: 190, label: axis("PV, SP", u.pv), yAtLeast: u.pv_range, series: [
         { name: "SP", cls: "s-sp", x: trend.time, y: trend.sp, step: true },
         { name: "PV", cls: "s-pv", x: trend.time, y: trend.pv },
       ] },
-      { height: 120, label: "MV", series: [{ name: "MV", cls: "s-mv", x: trend.time, y: trend.mv, step: true }] },
+      { height: 120, label: axis("MV", u.mv), yAtLeast: u.mv_range,
+        series: [{ name: "MV", cls: "s-mv", x: trend.time, y: trend.mv, step: true }] },
     ];
     if (hasRelay) {
       panels.push({ height: 54, label: "relay", yRange: [-1.4, 1.4], yTicks: [-1, 0, 1],
@@ -554,6 +586,8 @@ function loopView(id) {
         if (loop?.tbsy && !data.tbsy) gap();
         // Applied meanwhile (here or elsewhere): the result card says so.
         if (loop?.pending_gains && !data.pending_gains && !data.tbsy && data.session === shownSession) shownSession = null;
+        // Not handed back, or back now: the result card says which (the session's record changes too).
+        if (Boolean(loop?.restore) !== Boolean(data.restore)) shownSession = null;
         // A state event lacks nothing the page needs; keep the live values the samples brought meanwhile.
         loop = { ...loop, ...data };
         update();
@@ -583,12 +617,17 @@ function readout(label, value, key) {
     h("div", { class: "value", "data-readout": key || label.toLowerCase() }, value));
 }
 
+// A parameter's label with its unit when that is in the loop's MV/PV units ("K (%/°C)"); seconds stay with values.
+function paramLabel(label, unit, units) {
+  return /MV|PV/.test(unit) && (units.pv || units.mv) ? `${label} (${derived(unit, units)})` : label;
+}
+
 // The controller's gains now (as last read from it by the monitor, a session's end or an apply).
-function currentGains(g) {
+function currentGains(g, units) {
   return h("div", { class: "current-gains", id: "current-gains" },
     h("h3", {}, "Controller now (read from the device)"),
     g ? h("dl", { class: "kv small params" }, PARAMS.map(([key, label, unit]) => [
-      h("dt", {}, label), h("dd", { class: "mono", "data-current": key }, paramText(key, g[key], unit))]))
+      h("dt", {}, paramLabel(label, unit, units)), h("dd", { class: "mono", "data-current": key }, paramText(key, g[key], unit))]))
       : h("p", { class: "muted small" }, "not read yet"));
 }
 
@@ -606,7 +645,7 @@ function tuneForm(id, getLoop) {
   // Disabled until the loop's status is known (and the form holds its defaults): see setEnabled.
   const button = h("button", { type: "submit", class: "primary", id: "tune", disabled: true }, "TUNE");
   const row = (label, field, unit, hint) => h("label", { class: "field", "data-field": field.name },
-    h("span", { class: "label" }, label), field, h("span", { class: "unit" }, unit || ""), hint ? h("span", { class: "hint" }, hint) : null);
+    h("span", { class: "label" }, label), field, h("span", { class: "unit", "data-unit": field.name }, unit || ""), hint ? h("span", { class: "hint" }, hint) : null);
   const obj = { onError: null, onStart: null };
   const node = h("form", { class: "tune-form", id: "tune-form", novalidate: true, onsubmit: async (ev) => {
     ev.preventDefault();
@@ -646,6 +685,9 @@ function tuneForm(id, getLoop) {
   };
   obj.setDefaults = (loop) => {
     const d = loop.defaults;
+    const u = unitsOf(loop);
+    $("[data-unit=amp]", node).textContent = u.mv || "MV";
+    $("[data-unit=hysteresis]", node).textContent = u.pv || "PV";
     fields.controller.value = d.controller;
     fields.amp.value = d.amp;
     fields.hysteresis.value = d.hysteresis ?? "";
@@ -659,27 +701,35 @@ function tuneForm(id, getLoop) {
 // -- a session's result: summary, Nyquist plot, gains side by side, simulated steps
 
 // What the session identified, in words: the point and the static gain, or "nothing identified".
-function identified(r) {
+// |F| and the static gain are PV units per MV unit.
+function identified(r, units) {
   const point = r.point;
   if (!point) return h("span", { class: "identified none", "data-identified": "none" }, "nothing identified (no point, no gains)");
+  const per = units.pv || units.mv ? ` ${derived("PV/MV", units)}` : "";
   const kind = r.static_gain === null || r.static_gain === undefined ? "none found (integrating or not measured)"
-    : fmt(r.static_gain);
+    : `${fmt(r.static_gain)}${per}`;
   return h("span", { class: "mono small identified", "data-identified": "point" },
-    `identified ω = ${fmt(point.omega)} rad/s, |F| = ${fmt(point.gain)}, ∠F = ${fmt(point.phase_deg)}° · static gain ${kind}`);
+    `identified ω = ${fmt(point.omega)} rad/s, |F| = ${fmt(point.gain)}${per}, ∠F = ${fmt(point.phase_deg)}° · static gain ${kind}`);
 }
 
 // The card of a session's result. A failure shows what was identified and why it failed, never success colours;
 // a success whether its gains were written (applied) or wait to be (`pending`).
-async function renderResult(box, session, { title, pending = false }) {
+// A session whose loop is not handed back (`restore`, or the record's state) shows that first and no success colour,
+// whatever the experiment found.
+async function renderResult(box, session, { title, pending = false, units = NO_UNITS, restore = null }) {
   const r = session.result || {};
-  const ok = session.outcome === "success";
+  const notRestored = Boolean(restore) || session.state === "not_restored";
+  const ok = session.outcome === "success" && !notRestored;
   const warning = ok && CODES.get(session.code)?.warning;
-  box.classList.toggle("failed", session.outcome === "failure");
+  box.classList.toggle("failed", session.outcome === "failure" || notRestored);
   box.classList.toggle("warn", Boolean(warning));
   const applied = session.applied_at
     ? h("span", { class: "badge ok", id: "applied" }, `applied ${when(session.applied_at)}${session.applied_by ? ` by ${session.applied_by}` : ""}`)
     : ok && pending ? h("span", { class: "badge pending", id: "applied" }, "not applied yet") : null;
-  const why = session.outcome === "failure" || warning
+  const why = notRestored
+    ? h("p", { class: "why bad", id: "why" }, `LOOP NOT RESTORED: the loop is not handed back yet — ${
+      restore ? restoreText(restore) : session.message || "the daemon retries"}`)
+    : session.outcome === "failure" || warning
     ? h("p", { class: `why ${warning ? "warn" : "bad"}`, id: "why" },
       `${warning ? "Warning" : "Failed"}: ${codeName(session.code)} — ${session.message || CODES.get(session.code)?.message || ""}`)
     : null;
@@ -687,8 +737,10 @@ async function renderResult(box, session, { title, pending = false }) {
     h("div", { class: "card-head" }, h("h2", {}, title),
       h("span", { class: "muted small" }, h("a", { href: `#/session/${esc(session.id)}` }, `session ${session.id.slice(0, 8)}`),
         ` · ${when(session.started_at)} · by ${session.user}`)),
-    h("div", { class: "summary" }, outcomeBadge(session.outcome, session.code), applied,
-      ok ? h("span", {}, session.message || "") : null, identified(r)),
+    h("div", { class: "summary" }, notRestored ? h("span", { class: "badge notrestored" }, "loop not restored")
+      : outcomeBadge(session.outcome, session.code), notRestored ? null : applied,
+      ok && session.message && session.message.toLowerCase() !== "ok" ? h("span", {}, session.message) : null,
+      identified(r, units)),
     why);
   if (!r.gains) {
     add(box, h("p", { class: "muted", id: "no-gains" }, "No gains from this session: the controller keeps its gains."));
@@ -719,7 +771,7 @@ async function renderResult(box, session, { title, pending = false }) {
         + `, new ${fmt(analysis.new.ms, 3)}${analysis.new.stable === false ? " (unstable!)" : ""}`)));
     fitted(nq, (w) => nyquist(nq, { ...nqOpts, size: Math.min(w, 560) }), 420);
   }
-  add(grid, h("div", { class: "panel-box" }, h("h3", {}, "Gains"), gainsTable(oldGains, newGains)));
+  add(grid, h("div", { class: "panel-box" }, h("h3", {}, "Gains"), gainsTable(oldGains, newGains, units)));
   if (analysis) {
     const steps = h("div", { class: "steps" });
     for (const [key, label] of [["setpoint", "Set-point step"], ["load", "Load step"]]) {
@@ -760,14 +812,14 @@ function openLoopAt(g, point) {
   return { re: cre * point.re - cim * point.im, im: cre * point.im + cim * point.re };
 }
 
-function gainsTable(oldG, newG) {
+function gainsTable(oldG, newG, units) {
   const tbody = h("tbody");
   for (const group of ROWS) {
     add(tbody, h("tr", { class: "form-row" }, h("th", { colspan: 4 }, group.form)));
     for (const row of group.rows) {
       add(tbody, h("tr", { "data-gain": row[3] && group.form.startsWith("standard") ? row[3] : null },
         h("th", {}, row[0]), h("td", { class: "num old" }, cell(row, oldG, group.form)),
-        h("td", { class: "num new" }, cell(row, newG, group.form)), h("td", { class: "unit" }, row[1])));
+        h("td", { class: "num new" }, cell(row, newG, group.form)), h("td", { class: "unit" }, derived(row[1], units))));
     }
   }
   return h("table", { class: "gains", id: "gains" },
@@ -786,6 +838,7 @@ function historyView(id) {
   (async () => {
     try {
       const sessions = await get(`/loops/${esc(id)}/history?limit=200`);
+      const u = await loopUnits(id);
       if (closed) return;
       const tbody = h("tbody");
       for (const s of sessions) {
@@ -794,12 +847,13 @@ function historyView(id) {
         add(tbody, h("tr", { "data-session": s.id, class: "clickable", onclick: () => { location.hash = `#/session/${esc(s.id)}`; } },
           h("td", {}, h("a", { href: `#/session/${esc(s.id)}` }, when(s.started_at))),
           h("td", {}, s.user),
-          h("td", {}, s.state === "running" ? h("span", { class: "badge tuning" }, "running") : outcomeBadge(s.outcome, s.code),
+          h("td", {}, s.state === "running" ? h("span", { class: "badge tuning" }, "running")
+            : s.state === "not_restored" ? h("span", { class: "badge notrestored" }, "loop not restored") : outcomeBadge(s.outcome, s.code),
             h("div", { class: "small muted" }, s.message || (s.state === "interrupted" ? "interrupted" : ""))),
           h("td", { class: "mono small" }, s.request?.controller || "—"),
           h("td", { class: "mono small" }, p ? `${fmt(p.omega, 3)} rad/s · ${fmt(p.gain, 3)} ∠${fmt(p.phase_deg, 3)}°` : "—"),
-          h("td", {}, gainsBrief(s.gains_before)),
-          h("td", {}, gainsBrief(g || null)),
+          h("td", {}, gainsBrief(s.gains_before, u)),
+          h("td", {}, gainsBrief(g || null, u)),
           h("td", {}, s.applied_at ? h("span", { class: "badge ok" }, `applied${s.applied_by ? ` by ${s.applied_by}` : ""}`)
             : s.request?.apply && s.outcome === "success" ? h("span", { class: "badge ok" }, "written") : h("span", { class: "muted small" }, "—"))));
       }
@@ -817,6 +871,16 @@ function historyView(id) {
 
 // -- one session in full
 
+// The units of loop `id` from its status; none when the daemon no longer has the loop (an old session's).
+async function loopUnits(id) {
+  try {
+    return unitsOf(await get(`/loops/${esc(id)}`));
+  } catch (err) {
+    if (err.status === 404) return NO_UNITS;
+    throw err;
+  }
+}
+
 function sessionView(sid) {
   const box = h("section", { class: "card wide result", id: "result" });
   const head = h("section", { class: "loop-head" });
@@ -829,6 +893,7 @@ function sessionView(sid) {
   (async () => {
     try {
       const s = await get(`/sessions/${esc(sid)}`);
+      const u = await loopUnits(s.loop);
       if (closed) return;
       fill(head, h("div", { class: "title" }, h("a", { href: `#/loop/${esc(s.loop)}/history`, class: "muted small" }, `← history of ${s.loop}`),
         h("h1", {}, s.loop, " ", h("span", { class: "desc" }, `session ${s.id.slice(0, 8)}`))), loopTabs(s.loop, "history"));
@@ -838,22 +903,24 @@ function sessionView(sid) {
         h("dt", {}, "who"), h("dd", {}, s.user),
         h("dt", {}, "started"), h("dd", {}, when(s.started_at)),
         h("dt", {}, "finished"), h("dd", {}, when(s.finished_at)),
-        h("dt", {}, "state"), h("dd", {}, s.state),
-        h("dt", {}, "outcome"), h("dd", {}, outcomeBadge(s.outcome, s.code), " ", s.message || ""),
-        h("dt", {}, "settings"), h("dd", { class: "mono small" }, `${req.controller || "?"} · amp ${fmt(req.amp)} · hyst ${req.hysteresis === null ? "auto" : fmt(req.hysteresis)}`
+        h("dt", {}, "state"), h("dd", {}, s.state === "not_restored" ? h("span", { class: "badge notrestored" }, "loop not restored") : s.state),
+        h("dt", {}, "outcome"), h("dd", {}, s.state === "not_restored" ? null : outcomeBadge(s.outcome, s.code), " ", s.message || ""),
+        h("dt", {}, "settings"), h("dd", { class: "mono small" }, `${req.controller || "?"} · amp ${quantity(req.amp, u.mv)} · hyst ${req.hysteresis === null ? "auto" : quantity(req.hysteresis, u.pv)}`
           + ` · phase ${fmt(req.phase)}° · Ms ${fmt(req.ms)} · apply ${req.apply ? "yes" : "no"}`),
-        h("dt", {}, "saved loop"), h("dd", { class: "mono small" }, s.saved ? `${s.saved.mode} · SP ${fmt(s.saved.sp)} · MV ${fmt(s.saved.mv)}` : "—"),
+        h("dt", {}, "saved loop"), h("dd", { class: "mono small" }, s.saved ? `${s.saved.mode} · SP ${pvText(s.saved.sp, u)} · MV ${mvText(s.saved.mv, u)}` : "—"),
         h("dt", {}, "experiment"), h("dd", { class: "mono small" }, exp ? `${fmt(exp.duration)} s · ${exp.periods ?? "—"} periods · ${exp.samples} samples` : "—")));
       const tr = s.trace;
       if (tr && tr.t.length) {
         fitted(traceSvg, (w) => timeChart(traceSvg, { width: w, panels: [
-          { height: 170, label: "PV", series: [{ name: "PV", cls: "s-pv", x: tr.t, y: tr.pv }, ...(tr.sp ? [{ name: "SP", cls: "s-sp", x: tr.t, y: tr.sp, step: true }] : [])] },
-          { height: 110, label: "MV", series: [{ name: "MV", cls: "s-mv", x: tr.t, y: tr.mv, step: true }] },
+          { height: 170, label: axis("PV", u.pv), yAtLeast: u.pv_range,
+            series: [{ name: "PV", cls: "s-pv", x: tr.t, y: tr.pv }, ...(tr.sp ? [{ name: "SP", cls: "s-sp", x: tr.t, y: tr.sp, step: true }] : [])] },
+          { height: 110, label: axis("MV", u.mv), yAtLeast: u.mv_range,
+            series: [{ name: "MV", cls: "s-mv", x: tr.t, y: tr.mv, step: true }] },
         ], xLabel: "plant seconds from the start" }), 960);
       } else {
         add(traceCard, h("p", { class: "muted" }, "No trace recorded."));
       }
-      await renderResult(box, s, { title: "Result" });
+      await renderResult(box, s, { title: "Result", units: u });
     } catch (err) {
       notify(err, info);
     }

@@ -62,6 +62,13 @@ function extent(series, key, fallback) {
   return [lo - pad, hi + pad];
 }
 
+// The data's extent (null: no data) and a display range together; [0, 1] with neither.
+function covering(data, range) {
+  if (!range) return data || [0, 1];
+  if (!data) return [range[0], range[1]];
+  return [Math.min(range[0], data[0]), Math.max(range[1], data[1])];
+}
+
 // At most ~4 points per pixel column (first, min, max, last), in time order.
 function decimate(xs, ys, x0, x1, columns) {
   const n = xs.length;
@@ -108,7 +115,9 @@ function pathOf(points, sx, sy, step) {
 
 // Stacked panels sharing the x axis.
 // opts: {width, xRange:[a,b]?, xLabel, xTick(v)→text,
-//        panels:[{height, label, yRange?, series:[{name, cls, x:[], y:[], step?}]}]}
+//        panels:[{height, label, yRange?, yAtLeast?, series:[{name, cls, x:[], y:[], step?}]}]}
+// yRange fixes a panel's y axis; yAtLeast ([low, high], a loop's configured display range) is covered whatever the
+// data, and widened to data outside it (a value is never drawn off the panel).
 export function timeChart(svg, opts) {
   clear(svg);
   const width = opts.width || 800;
@@ -133,7 +142,7 @@ export function timeChart(svg, opts) {
   panels.forEach((panel, index) => {
     const h = panel.height;
     y += headH;
-    const [y0, y1] = panel.yRange || extent(panel.series, "y", [0, 1]);
+    const [y0, y1] = panel.yRange || covering(extent(panel.series, "y", null), panel.yAtLeast);
     const sy = (v) => y + h - ((v - y0) / (y1 - y0 || 1)) * h;
     const g = el("g", { class: "panel", "data-panel": panel.label }, svg);
     el("rect", { class: "plot-bg", x: left, y, width: plotW, height: h }, g);
