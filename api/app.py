@@ -34,7 +34,7 @@ from autotuner.service.history import History
 
 from . import docs, errors
 from .auth import Principal, Tokens, require
-from .events import stream
+from .events import LIVE_PERIOD, overview, stream
 from .gate import RequestGate
 from .models import (Accepted, Analysis, Applied, ApplyRequest, CodeOut, Health, LoopStatus, Session,
                      SessionSummary, Whoami)
@@ -198,6 +198,40 @@ async def events(loop_id: LoopId, manager: Manager, _: Viewer) -> StreamingRespo
     manager.get(loop_id)  # 404 before the stream starts
     return EventStream(stream(manager, loop_id), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+_OVERVIEW_DOC = f"""Server-Sent Events of every loop at once (`text/event-stream`), for an overview of all loops on one
+connection (the operator page's; a browser opens at most 6 connections per server), one JSON object per event:
+
+- `state`: first one for every loop (in the config's order), then on every change of any loop (as on
+  `/loops/{{id}}/events`): the loop's status, as `GET /loops/{{id}}` (its `id` says which loop).
+- `live`: a loop's newest `sample` (the fields of `/loops/{{id}}/events`' sample: an experiment sample while the
+  loop tunes, a monitor reading while idle) with `loop`, its id — at most one per loop every {LIVE_PERIOD:g} s
+  (the samples between are dropped; a `state` event carries the live values too).
+
+No `replay`: the trend is the loop's own stream. A comment line (`: keep-alive`) every 15 s keeps an idle stream
+open. Non-finite numbers are sent as null. The stream ends when the daemon stops, after every loop's last state."""
+
+_OVERVIEW_EXAMPLE = ('event: state\ndata: {"id": "TIC-101", "tbsy": false, "te": false, "ite": 0, ...}\n\n'
+                     'event: state\ndata: {"id": "LIC-201", "tbsy": true, "te": false, "ite": 84.2, ...}\n\n'
+                     'event: live\ndata: {"loop": "TIC-101", "time": 1796161111.1, "pv": 50.0, "sp": 50.0, '
+                     '"mv": 50.0, "mode": "AUTO"}\n\n')
+
+_OVERVIEW_SCHEMA = {**_EVENT_SCHEMA, "properties": {
+    **_EVENT_SCHEMA["properties"],
+    "event": {"type": "string", "enum": ["state", "live"], "description": "the event's type"}}}
+
+
+@router.get("/events", tags=["loops"], response_class=EventStream, description=_OVERVIEW_DOC,
+            responses={200: {"content": {"text/event-stream": {"schema": _OVERVIEW_SCHEMA,
+                                                              "example": _OVERVIEW_EXAMPLE}},
+                             "description": "state and live events of every loop"},
+                       401: {"description": _ERROR_TEXT[401], "content": {"application/json": {
+                           "schema": {"$ref": "#/components/schemas/ErrorBody"}}}}})
+async def all_events(manager: Manager, _: Viewer) -> StreamingResponse:
+    """Server-Sent Events of every loop: ``state`` and ``live`` (the description lists their fields)."""
+    return EventStream(overview(manager), media_type="text/event-stream",
+                       headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
 @router.get("/loops/{loop_id}/history", response_model=list[SessionSummary], tags=["history"],

@@ -16,6 +16,7 @@ import uvicorn
 from fastapi.testclient import TestClient
 
 from api.app import create_app
+from api.models import LoopStatus
 from api.auth import token_hash
 from autotuner.service.config import DaemonConfig, Token
 from autotuner.service.demo import demo_config
@@ -63,7 +64,7 @@ def test_health_needs_no_token_and_everything_else_does(client):
     assert client.get(f"{API}/health").json() == {"status": "ok", "loops": 3}
     for method, path in (("GET", "/loops"), ("GET", "/loops/TIC-101"), ("POST", "/loops/TIC-101/tune"),
                          ("POST", "/loops/TIC-101/break"), ("GET", "/loops/TIC-101/history"),
-                         ("GET", "/sessions/x"), ("GET", "/loops/TIC-101/events")):
+                         ("GET", "/sessions/x"), ("GET", "/loops/TIC-101/events"), ("GET", "/events")):
         r = client.request(method, API + path)
         assert r.status_code == 401, path
         assert r.json()["code"] == "unauthorized" and r.headers["www-authenticate"] == "Bearer"
@@ -154,7 +155,7 @@ def test_openapi_describes_the_endpoints(client):
     spec = client.get(f"{API}/openapi.json").json()
     assert {f"{API}/loops", f"{API}/loops/{{loop_id}}", f"{API}/loops/{{loop_id}}/tune",
             f"{API}/loops/{{loop_id}}/break", f"{API}/loops/{{loop_id}}/events", f"{API}/loops/{{loop_id}}/history",
-            f"{API}/sessions/{{sid}}", f"{API}/health"} <= spec["paths"].keys()
+            f"{API}/sessions/{{sid}}", f"{API}/health", f"{API}/events"} <= spec["paths"].keys()
     assert "409" in spec["paths"][f"{API}/loops/{{loop_id}}/tune"]["post"]["responses"]
 
 
@@ -203,6 +204,48 @@ def test_events_stream_samples_and_state_changes():
     samples = [d for k, d in events if k == "sample"]
     assert {"t", "pv", "mv", "relay", "filter_phase_deg", "ite", "stage", "progress"} <= samples[-1].keys()
     assert samples[-1]["t"] > samples[0]["t"]
+
+
+def test_the_overview_stream_carries_every_loops_state_and_throttled_live_values():
+    from api.events import LIVE_PERIOD
+
+    with server() as url, httpx.Client(base_url=url + API, headers=auth(VIEWER), timeout=30) as http:
+        events: list[tuple[str, dict]] = []
+        tuning_since = None
+        with http.stream("GET", "/events") as stream:
+            assert stream.headers["content-type"].startswith("text/event-stream")
+            kind = None
+            for line in stream.iter_lines():
+                if line.startswith("event: "):
+                    kind = line[7:]
+                elif line.startswith("data: "):
+                    events.append((kind, json.loads(line[6:])))
+                    if len(events) == 3:
+                        assert httpx.post(f"{url}{API}/loops/TIC-101/tune", headers=auth(OPERATOR)).status_code == 202
+                    if kind == "state" and events[-1][1]["id"] == "TIC-101" and events[-1][1]["tbsy"]:
+                        tuning_since = tuning_since or time.monotonic()
+                    # 3 s of wall time into the tuning: many experiment samples (about 20 a second), few live events.
+                    if tuning_since is not None and time.monotonic() > tuning_since + 3.0:
+                        break
+        assert httpx.post(f"{url}{API}/loops/TIC-101/break", headers=auth(OPERATOR)).status_code == 202
+    # Opens with every loop's state in the config's order (the status of GET /loops/{id}); then state and live only.
+    assert [k for k, _ in events[:3]] == ["state"] * 3
+    assert [d["id"] for _, d in events[:3]] == ["TIC-101", "LIC-201", "FIC-301"]
+    assert set(events[0][1]) == set(LoopStatus.model_fields)
+    assert {k for k, _ in events[3:]} == {"state", "live"}
+    live = [d for k, d in events if k == "live"]
+    assert {d["loop"] for d in live} == {"TIC-101", "LIC-201", "FIC-301"}  # the idle loops' monitor readings too
+    tuning = [d for d in live if d["loop"] == "TIC-101" and "relay" in d]
+    assert tuning and {"time", "pv", "sp", "mv", "relay", "ite", "stage", "progress"} <= tuning[-1].keys()
+    idle = [d for d in live if d["loop"] == "LIC-201"]
+    assert set(idle[-1]) == {"loop", "time", "pv", "sp", "mv", "mode"}
+    # At most one live event per loop every LIVE_PERIOD (the newest sample): the experiment's samples are thinned.
+    for loop_id in ("TIC-101", "LIC-201"):
+        times = [d["time"] for d in live if d["loop"] == loop_id]
+        assert len(times) >= 2, loop_id
+        gaps = [b - a for a, b in zip(times, times[1:])]
+        # Two sends are LIVE_PERIOD apart; the samples they carry, within one sample interval of that.
+        assert min(gaps) > LIVE_PERIOD - 0.3, (loop_id, gaps)
 
 
 @contextlib.contextmanager
@@ -279,7 +322,7 @@ def test_codes_lists_every_outcome_code_for_the_page(client):
 
 
 def test_status_has_exactly_the_documented_keys_and_the_loops_units(client):
-    from api.models import LoopStatus, UnitsOut
+    from api.models import UnitsOut
 
     statuses = client.get(f"{API}/loops", headers=auth(VIEWER)).json()
     for status in statuses:

@@ -354,6 +354,35 @@ def test_every_value_shows_the_loops_engineering_units(page, daemon):
     assert min(ticks) <= 0 and max(ticks) >= 100, ticks
 
 
+def test_the_overview_updates_from_one_event_stream_without_polling(page, daemon):
+    """The overview opens one stream (GET /events) and nothing else: a tuning started elsewhere shows as TUNING with
+    its PV moving, then its end, with no request to /loops at all."""
+    daemon.wait_idle("FIC-301")
+    daemon.wait_idle("LIC-201")
+    requests: list[str] = []
+    page.on("request", lambda r: requests.append(r.url))
+    login(page, daemon, VIEWER, "viewer")
+    pv = "tr[data-loop=LIC-201] [data-col=pv]"
+    page.wait_for_function("(s) => /\\d/.test(document.querySelector(s).textContent)", arg=pv)
+    opened = len(requests)
+    sid = daemon.post("/loops/LIC-201/tune").json()["session"]
+    try:
+        page.wait_for_selector("tr[data-loop=LIC-201] .badge.tuning")
+        page.wait_for_selector("tr[data-loop=LIC-201] .progress")
+        # The PV the row shows moves with the experiment: several different values (polled in the page).
+        page.wait_for_function("(s) => { const seen = window.pvSeen = window.pvSeen || new Set();"
+                               " seen.add(document.querySelector(s).textContent); return seen.size >= 5; }", arg=pv)
+    finally:
+        daemon.post("/loops/LIC-201/break")
+    page.wait_for_selector("tr[data-loop=LIC-201] .badge.failed")
+    assert "code 1" in page.inner_text("tr[data-loop=LIC-201] [data-col=status]")
+    assert daemon.wait_idle("LIC-201")["session"] == sid
+    api = [url.split("/api/v1", 1)[1] for url in requests if "/api/v1/" in url]
+    assert [u for u in api if u.startswith("/loops")] == [], api  # no polling of GET /loops (or of a loop)
+    assert api.count("/events") == 1, api  # one stream, never reconnected
+    assert all("/api/v1/" not in url or url.endswith("/events") for url in requests[opened:]), requests[opened:]
+
+
 def test_viewer_sees_everything_and_can_press_nothing(page, daemon):
     login(page, daemon, VIEWER, "viewer")
     assert page.locator("#loops tbody tr").count() == 3

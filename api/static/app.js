@@ -253,8 +253,6 @@ function overviewView() {
   fill(main(), h("section", { class: "card wide" },
     h("div", { class: "card-head" }, h("h1", {}, "Loops"), h("span", { class: "muted", id: "updated" }, "")), table));
   const rows = new Map();
-  let stop = false;
-  let timer = null;
 
   function row(loop) {
     const st = statusOf(loop);
@@ -263,13 +261,11 @@ function overviewView() {
       h("td", {}, h("a", { href: `#/loop/${esc(loop.id)}`, class: "loop-id" }, loop.id),
         h("div", { class: "muted small" }, loop.description || ""),
         loop.monitor_error ? h("div", { class: "bad small" }, `monitor: ${loop.monitor_error}`) : null),
-      h("td", { "data-label": "Mode" }, modeBadge(loop.mode)),
+      h("td", { "data-col": "mode", "data-label": "Mode" }, modeBadge(loop.mode)),
       h("td", { class: "num", "data-col": "pv", "data-label": "PV" }, pvText(loop.pv, u)),
       h("td", { class: "num", "data-col": "sp", "data-label": "SP" }, pvText(loop.sp, u)),
       h("td", { class: "num", "data-col": "mv", "data-label": "MV" }, mvText(loop.mv, u)),
-      h("td", { "data-col": "status", "data-label": "Tuning" },
-        h("div", { class: "status-line" }, h("span", { class: `badge ${st.cls}` }, st.badge), flags(loop)),
-        loop.restore ? restoreBox(loop) : h("div", { class: "small" }, st.text), loop.tbsy ? progressBar(loop) : null),
+      h("td", { "data-col": "status", "data-label": "Tuning" }, statusCell(loop, st)),
       h("td", { "data-col": "last", "data-label": "Last tuning" }, loop.last_tuned_at ? h("div", {}, when(loop.last_tuned_at)) : h("div", { class: "muted" }, "never"),
         loop.last_outcome ? outcomeBadge(loop.last_outcome) : null),
       h("td", { "data-col": "gains", "data-label": "Gains" }, gainsBrief(loop.current_gains || null, u),
@@ -277,26 +273,51 @@ function overviewView() {
     return tr;
   }
 
-  async function poll() {
-    try {
-      const loops = await get("/loops");
-      banner("poll", null);
-      for (const loop of loops) {
-        const tr = row(loop);
-        const old = rows.get(loop.id);
-        if (old) old.replaceWith(tr);
-        else tbody.appendChild(tr);
-        rows.set(loop.id, tr);
-      }
-      $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
-    } catch (err) {
-      if (err.status === 401) return;
-      banner("poll", `Daemon unreachable — retrying (${err instanceof ApiError ? err.text : err.message})`);
-    }
-    if (!stop) timer = setTimeout(poll, 1000);
+  function statusCell(loop, st) {
+    return [h("div", { class: "status-line" }, h("span", { class: `badge ${st.cls}` }, st.badge), flags(loop)),
+      loop.restore ? restoreBox(loop) : h("div", { class: "small" }, st.text), loop.tbsy ? progressBar(loop) : null];
   }
-  poll();
-  return () => { stop = true; clearTimeout(timer); banner("poll", null); };
+
+  // A live value in place (the row stays: a link being clicked is not replaced under the pointer).
+  function refresh(loop) {
+    const tr = rows.get(loop.id);
+    if (!tr) return;
+    const u = unitsOf(loop);
+    $("[data-col=pv]", tr).textContent = pvText(loop.pv, u);
+    $("[data-col=sp]", tr).textContent = pvText(loop.sp, u);
+    $("[data-col=mv]", tr).textContent = mvText(loop.mv, u);
+    fill($("[data-col=mode]", tr), modeBadge(loop.mode));
+    if (loop.tbsy) fill($("[data-col=status]", tr), statusCell(loop, statusOf(loop)));
+    $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
+  }
+
+  // One event stream for every loop (GET /events): each loop's state when it opens and on every change, its
+  // live values (the newest sample, at most one per loop every 0.5 s) in between. No polling.
+  const loops = new Map();
+  function show(loop) {
+    loops.set(loop.id, loop);
+    const tr = row(loop);
+    const old = rows.get(loop.id);
+    if (old) old.replaceWith(tr);
+    else tbody.appendChild(tr);
+    rows.set(loop.id, tr);
+    $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
+  }
+  const stream = eventStream("/events", {
+    state: show,
+    live(s) {
+      const loop = loops.get(s.loop);
+      if (!loop) return;
+      for (const k of ["pv", "sp", "mv", "mode"]) if (s[k] !== undefined) loop[k] = s[k];
+      if (loop.tbsy && s.stage) Object.assign(loop, { stage: s.stage, progress: s.progress, ite: s.ite });
+      refresh(loop);
+    },
+    status(connected, detail) {
+      banner("overview", connected ? null : `Live stream lost — reconnecting… (${detail || "connection closed"})`);
+      tbody.classList.toggle("stale", !connected);
+    },
+  });
+  return () => { stream.close(); banner("overview", null); };
 }
 
 // K (in the loop's MV/PV units when it names them), Ti and Td in a few characters.
