@@ -308,9 +308,8 @@ class SecurityHeaders:
             await self.app(scope, receive, send)
             return
         path = scope["path"]
-        # The operator page's policy; the API docs' own (Swagger UI needs inline style attributes); none for JSON.
-        policy = (docs.DOCS_POLICY if path == f"{PREFIX}/docs" or path.startswith(f"{PREFIX}/docs/")
-                  else None if path.startswith(PREFIX) else PAGE_POLICY)
+        # The operator page's policy; the API docs' own (Swagger UI and ReDoc need inline styles); none for JSON.
+        policy = docs.policy_of(path, PREFIX) or (None if path.startswith(PREFIX) else PAGE_POLICY)
 
         async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -364,6 +363,6 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
     app.add_middleware(RequestGate, prefix=PREFIX)
     app.add_middleware(SecurityHeaders)
     app.include_router(router)
-    docs.install(app, PREFIX)  # Swagger UI from the daemon itself (no CDN)
+    docs.install(app, PREFIX)  # Swagger UI and ReDoc from the daemon itself (no CDN)
     app.router.routes.append(_Page("/", StaticFiles(directory=STATIC, html=True), name="page"))
     return app

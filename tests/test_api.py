@@ -343,3 +343,22 @@ def test_status_has_exactly_the_documented_keys_and_the_loops_units(client):
         a, b = (other.get(f"{API}/loops/{i}", headers=auth(OPERATOR)).json()["units"] for i in "AB")
     assert a == {"pv": "bar", "mv": "", "decimals": None, "pv_range": [0.0, 16.0], "mv_range": None}
     assert b == {"pv": "", "mv": "", "decimals": None, "pv_range": None, "mv_range": None}
+
+
+def test_the_docs_pages_are_served_offline_under_their_own_policies(client):
+    from api.docs import DOCS_POLICY, REDOC_LOGO, REDOC_POLICY
+
+    swagger, redoc = client.get(f"{API}/docs"), client.get(f"{API}/redoc")
+    assert swagger.headers["Content-Security-Policy"] == DOCS_POLICY
+    assert redoc.headers["Content-Security-Policy"] == REDOC_POLICY and "worker-src 'self' blob:" in REDOC_POLICY
+    assert "unsafe-eval" not in REDOC_POLICY and "script-src 'self';" in REDOC_POLICY
+    # Every script and style the pages name is the daemon's own (relative URLs), and is served.
+    import re
+
+    for page in (swagger, redoc):
+        for url in re.findall(r'(?:src|href)="([^"]+)"', page.text):
+            assert "//" not in url, url
+            assert client.get(f"{API}/{url}").status_code == 200, url
+    bundle = client.get(f"{API}/docs/redoc.standalone.js")
+    assert bundle.headers["content-type"].startswith("text/javascript") and len(bundle.content) > 500_000
+    assert REDOC_LOGO not in bundle.text and "cdn." not in bundle.text

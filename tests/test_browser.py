@@ -573,9 +573,8 @@ def test_a_page_opened_mid_experiment_shows_the_whole_trend_from_the_start(page,
     daemon.wait_idle("FIC-301")
 
 
-def test_api_docs_render_with_every_non_localhost_request_blocked(page, daemon):
-    """Swagger UI comes from the daemon itself: with the network beyond localhost cut, the docs page still renders
-    every endpoint, with no Content-Security-Policy violation (the page fixture fails on one)."""
+def block_the_network(page) -> list[str]:
+    """Every request of ``page`` to a host other than localhost is aborted; the list of them fills as they come."""
     blocked: list[str] = []
 
     def route(r):
@@ -587,6 +586,13 @@ def test_api_docs_render_with_every_non_localhost_request_blocked(page, daemon):
             r.abort()
 
     page.route("**/*", route)
+    return blocked
+
+
+def test_api_docs_render_with_every_non_localhost_request_blocked(page, daemon):
+    """Swagger UI comes from the daemon itself: with the network beyond localhost cut, the docs page still renders
+    every endpoint, with no Content-Security-Policy violation (the page fixture fails on one)."""
+    blocked = block_the_network(page)
     page.goto(daemon.url + "api/v1/docs")
     page.wait_for_selector(".swagger-ui .opblock-summary-path")
     paths = page.eval_on_selector_all(".opblock-summary-path", "els => els.map(e => e.textContent)")
@@ -599,3 +605,24 @@ def test_api_docs_render_with_every_non_localhost_request_blocked(page, daemon):
     props = [(name, key, prop) for name, schema in spec["components"]["schemas"].items()
              if name not in ("HTTPValidationError", "ValidationError") for key, prop in schema.get("properties", {}).items()]
     assert props and [(n, k) for n, k, p in props if not p.get("description")] == []
+
+
+def test_redoc_renders_with_every_non_localhost_request_blocked(page, daemon):
+    """ReDoc too comes from the daemon (fastapi-offline's bundle): with the network beyond localhost cut, it renders
+    every operation with its fields, asks for nothing outside (not even its CDN logo), and violates no
+    Content-Security-Policy (the page fixture fails on one)."""
+    spec = httpx.get(daemon.api + "/openapi.json").json()
+    blocked = block_the_network(page)
+    page.goto(daemon.url + "api/v1/redoc")
+    page.wait_for_selector("#redoc [data-section-id='tag/loops']")
+    operations = {op["operationId"] for methods in spec["paths"].values() for op in methods.values()}
+    shown = set(page.eval_on_selector_all("#redoc [data-section-id^='operation/']",
+                                          "els => els.map(e => e.getAttribute('data-section-id').slice(10))"))
+    assert operations == shown, operations ^ shown
+    # A schema's field descriptions (with units) are rendered, not only the operations' names.
+    page.click("#redoc [data-section-id='tag/loops/operation/loop_status_api_v1_loops__loop_id__get']")
+    page.wait_for_selector("#redoc :text('process value now, PV units')")
+    assert page.title() == "autotuner · API reference"
+    assert not blocked, blocked
+    assert page.evaluate("() => [...document.images].filter(i => !i.src.startsWith(location.origin)"
+                         " && !i.src.startsWith('data:')).map(i => i.src)") == []
