@@ -8,6 +8,12 @@
   AutoTuningOn/Off). Nobody writes attributes or changes the address space:
   the loops change only through the methods. asyncua's own roles (Admin,
   User) cannot say that, hence a ruleset of our own.
+- :class:`TrustedClients` (config ``trusted_clients``, a folder of trusted
+  client certificates) refuses a session whose client certificate is not
+  trusted: at CreateSession (asyncua's certificate validator over its
+  TrustStore, reloaded per session) and again at ActivateSession on the
+  secure channel's own certificate (:class:`Users`), which the client has
+  proved it holds the key of.
 - Refusals are expected outcomes, not errors: each is logged once at
   WARNING in ``autotuner.api.opcua`` with who, what and why (a viewer's
   Tune names the loop and the method), and :class:`QuietRefusals` keeps
@@ -27,10 +33,14 @@ from pathlib import Path
 from typing import Any
 
 from asyncua import ua
-from asyncua.common.utils import Buffer
+from asyncua.common.utils import Buffer, ServiceError
 from asyncua.crypto import cert_gen
 from asyncua.crypto.permission_rules import PermissionRuleset, User, UserRole
-from cryptography.x509.oid import ExtendedKeyUsageOID
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from api.auth import RANKS
 from autotuner.service.config import OpcUaUser, Role
@@ -67,11 +77,65 @@ class RoledUser(User):
     api_role: Role = "viewer"
 
 
-class Users:
-    """The user manager asyncua asks at ActivateSession: a known name with its password, or None (refused)."""
+def describe(cert: x509.Certificate) -> str:
+    """A client certificate as an administrator finds it again: its CN, application URI and SHA-1 thumbprint
+    (what UaExpert and most clients show)."""
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    try:
+        uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value \
+            .get_values_for_type(x509.UniformResourceIdentifier)
+    except x509.ExtensionNotFound:
+        uris = []
+    return (f"CN={names[0].value if names else '?'}, URI={uris[0] if uris else '?'}, "
+            f"SHA-1 {cert.fingerprint(hashes.SHA1()).hex()}")  # noqa: S303 - a thumbprint, not a signature
 
-    def __init__(self, users: list[OpcUaUser]) -> None:
+
+class TrustedClients:
+    """The client certificates trusted by the server: the certificates in ``folder`` (DER or PEM), and every
+    certificate signed by a CA certificate there; asyncua's :class:`TrustStore`, without revocation lists.
+
+    Called by asyncua at CreateSession (``Server.set_certificate_validator``) with the client's certificate:
+    it must be within its validity period, name the client's application URI and be trusted, else the
+    session is refused (``BadCertificateUntrusted``, …) and logged at WARNING. The folder is read again for
+    every new session, so a certificate copied in is trusted from the next connection, without a restart.
+    """
+
+    OPTIONS = (CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.URI
+               | CertificateValidatorOptions.TRUSTED | CertificateValidatorOptions.PEER_CLIENT)
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.store = TrustStore([folder], [])
+        self._validator = CertificateValidator(self.OPTIONS, self.store)
+
+    async def load(self) -> None:
+        """Read the folder (at start: an unreadable folder fails the start)."""
+        await self.store.load_trust()
+
+    async def __call__(self, cert: x509.Certificate, client: ua.ApplicationDescription) -> None:
+        await self.load()
+        try:
+            await self._validator.validate(cert, client)
+        except ServiceError as exc:
+            log.warning("OPC UA: client certificate %s of %s refused: %s (trusted certificates: %s)", describe(cert),
+                        client.ApplicationUri, ua.StatusCode(exc.code).name, self.folder)
+            raise
+
+    def trusts(self, der: bytes | None) -> bool:
+        """Whether the certificate ``der`` (None: the channel has none) is trusted, as loaded last."""
+        return der is not None and self.store.validate(x509.load_der_x509_certificate(der))
+
+
+class Users:
+    """The user manager asyncua asks at ActivateSession: a known name with its password, or None (refused).
+
+    With ``trusted`` the secure channel's client certificate must be trusted too: CreateSession checked the
+    certificate the client named, this checks the one whose key signed the channel (they could differ).
+    """
+
+    def __init__(self, users: list[OpcUaUser], trusted: TrustedClients | None = None) -> None:
         self._users = {user.name: user for user in users}
+        self._trusted = trusted
 
     def __len__(self) -> int:
         return len(self._users)
@@ -82,6 +146,10 @@ class Users:
         entry = self._users.get(username or "")
         if entry is None or password is None or not verify_password(password, entry.password_hash):
             log.warning("OPC UA: login of %r refused: unknown user or wrong password", username)
+            return None
+        if self._trusted is not None and not self._trusted.trusts(certificate):
+            log.warning("OPC UA: login of %r refused: the secure channel's client certificate is not trusted "
+                        "(trusted certificates: %s)", username, self._trusted.folder)
             return None
         return RoledUser(role=UserRole.User, name=entry.name, api_role=entry.role)
 
@@ -133,15 +201,21 @@ def _log_refusal(user: RoledUser, action_type_id: ua.NodeId, body: Buffer) -> No
 
 class QuietRefusals(logging.Filter):
     """On asyncua's server loggers: drops its ERROR lines for refusals that are expected outcomes and logged
-    already (each refusal of :class:`RoleRuleset` and :class:`Users` at WARNING, a request without a session by
-    asyncua itself at WARNING); an anonymous login's ERROR becomes our WARNING. Other errors pass unchanged."""
+    already (each refusal of :class:`RoleRuleset`, :class:`Users` and :class:`TrustedClients` at WARNING, a
+    request without a session by asyncua itself at WARNING); an anonymous login's ERROR becomes our WARNING.
+    Other errors pass unchanged."""
 
-    FAULTS = frozenset({"BadUserAccessDenied", "BadIdentityTokenRejected"})
-    LOGGERS = ("asyncua.server.uaprocessor", "asyncua.server.internal_session")
+    FAULTS = frozenset({"BadUserAccessDenied", "BadIdentityTokenRejected", "BadCertificateUntrusted",
+                        "BadCertificateTimeInvalid", "BadCertificateUriInvalid", "BadCertificateUseNotAllowed",
+                        "BadCertificateInvalid"})
+    # asyncua's TrustStore logs every untrusted certificate with a traceback, under a logger of its own.
+    LOGGERS = ("asyncua.server.uaprocessor", "asyncua.server.internal_session", "asyncuagds.validate")
 
     def filter(self, record: logging.LogRecord) -> bool:
         message = str(record.msg)
         if message.startswith("sending service fault response") and record.args and record.args[-1] in self.FAULTS:
+            return False
+        if message.startswith("Not trusted certificate used"):  # TrustedClients logs the refusal
             return False
         if message.startswith("Rejected active session UserIdentityToken not supported"):
             log.warning("OPC UA: a login refused: only user name and password are accepted (no anonymous sessions)")

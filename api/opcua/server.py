@@ -51,7 +51,8 @@ from autotuner.service.daemon import LoopManager, Refused
 
 from . import endpoint_url
 from .address_space import FOLDER, NAMESPACE, LoopNodes, event_type, node_id
-from .security import CALLER, NEEDS_OPERATOR, QuietRefusals, RoleRuleset, Users, ensure_certificate, may_call
+from .security import (CALLER, NEEDS_OPERATOR, QuietRefusals, RoleRuleset, TrustedClients, Users, ensure_certificate,
+                       may_call)
 
 log = logging.getLogger("autotuner.api.opcua")
 T = TypeVar("T")
@@ -207,8 +208,14 @@ class OpcUaServer:
                 await asyncio.gather(*pollers, return_exceptions=True)
 
     async def _build(self) -> Server:
-        server = Server(user_manager=Users(self.users))
+        trusted = None
+        if self.config.trusted_clients is not None:
+            trusted = TrustedClients(self.config.trusted_clients)
+            await trusted.load()
+        server = Server(user_manager=Users(self.users, trusted))
         await server.init()
+        if trusted is not None:
+            server.set_certificate_validator(trusted)
         server.set_endpoint(self.url)
         server.set_server_name("relaytune autotuner")
         await server.set_application_uri(APP_URI)

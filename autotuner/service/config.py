@@ -241,6 +241,9 @@ class OpcUaConfig(Strict):
     ``host`` None: the REST API's host. ``certificate``/``private_key``: the
     server's application certificate (DER or PEM) and key (PEM); both unset:
     generated on first start and kept beside the history (docs/opcua.md).
+    ``trusted_clients``: a folder of trusted client certificates (DER or PEM,
+    a CA's trusting what it signed); set, a session needs a trusted client
+    certificate (so ``security`` must not offer None); unset, any is accepted.
     """
 
     host: str | None = None
@@ -248,12 +251,16 @@ class OpcUaConfig(Strict):
     security: Annotated[list[SecurityPolicy], Field(min_length=1)] = ["None", "Basic256Sha256_SignAndEncrypt"]
     certificate: Path | None = None
     private_key: Path | None = None
+    trusted_clients: Path | None = None
     users: list[OpcUaUser] = []
 
     @model_validator(mode="after")
     def _pair(self) -> OpcUaConfig:
         if (self.certificate is None) != (self.private_key is None):
             raise ValueError("give both 'certificate' and 'private_key', or neither (then they are generated)")
+        if self.trusted_clients is not None and "None" in self.security:
+            raise ValueError("'trusted_clients' needs 'security' without None: a client on the None policy has no "
+                             "certificate to check")
         names = [user.name for user in self.users]
         if len(set(names)) != len(names):
             raise ValueError("a user name is used twice")
@@ -450,7 +457,9 @@ def load_config(path: Path) -> DaemonConfig:
     plain_file = config.history != ":memory:" and "://" not in config.history
     history = str(base / config.history) if plain_file else config.history
     opcua = config.opcua
-    if opcua is not None and opcua.certificate is not None:
-        opcua = opcua.model_copy(update={"certificate": resolve(opcua.certificate) or opcua.certificate,
-                                         "private_key": resolve(opcua.private_key) or opcua.private_key})
+    if opcua is not None:
+        opcua = opcua.model_copy(update={key: resolve(getattr(opcua, key)) or getattr(opcua, key)
+                                         for key in ("certificate", "private_key", "trusted_clients")})
+        if opcua.trusted_clients is not None and not opcua.trusted_clients.is_dir():
+            raise ConfigError(f"{path}: opcua.trusted_clients: {opcua.trusted_clients} is not a directory")
     return config.model_copy(update={"loops": loops, "history": history, "opcua": opcua})
