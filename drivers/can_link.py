@@ -71,6 +71,26 @@ REQUIRED: dict[str, tuple[str, ...]] = {
 # How often the notifier's receive thread wakes to see whether it is stopped (s);
 # close() waits for it, so this bounds the time close() takes. The simulated node uses it too.
 RX_POLL = 0.05
+# A frame's interface timestamp is taken as its bus time only if it lies within this many seconds
+# before the frame reached the link (an interface whose timestamps are not on the wall clock, e.g.
+# a hardware counter from 0, is far outside it: the arrival time is used instead).
+BUS_TIME_WINDOW = 30.0
+
+
+def bus_time(timestamp: float, arrival: float, wall_offset: float) -> float:
+    """The monotonic time a frame was on the bus, from its interface ``timestamp`` (wall seconds, as
+    python-can's virtual, socketcan and pcan interfaces stamp it), ``arrival`` (monotonic, when the frame
+    reached the link) and ``wall_offset`` (``time.time() - time.monotonic()`` at arrival); ``arrival`` if the
+    timestamp is not on the wall clock.
+
+    Why not the arrival time alone: under load frames wait in the interface's queue, the receive thread and
+    the event loop, so a frame sent before a change can reach the link after it — a read that waits for
+    frames "received after now" would take that stale frame as fresh.
+    """
+    mono = timestamp - wall_offset
+    if arrival - BUS_TIME_WINDOW <= mono <= arrival + 1.0:
+        return min(mono, arrival)
+    return arrival
 
 
 def default_dbc() -> Path:
@@ -213,7 +233,7 @@ class CanLink:
         self._notifier: can.Notifier | None = None
         self._ids = {m.frame_id: m for m in self.db.messages
                      if m.name in (PROCESS, STATUS, SETPOINT, *GAINS)}
-        # name -> (decoded signals, monotonic receive time)
+        # name -> (decoded signals, monotonic bus time: see bus_time)
         self._latest: dict[str, tuple[dict[str, Any], float]] = {}
         # Replaced (and the old one set) on every frame: waiters wake and look again.
         self._changed = asyncio.Event()
@@ -260,7 +280,8 @@ class CanLink:
     # ----------------------------------------------------------------- receive
 
     def _received(self, msg: can.Message) -> None:
-        now = time.monotonic()
+        arrival = time.monotonic()
+        now = bus_time(float(msg.timestamp), arrival, time.time() - arrival)
         if msg.is_error_frame:
             self.stats["error_frames"] += 1
             return

@@ -90,6 +90,26 @@ class NotTracking(Exception):
     """The device does not take the saved MV (its actual MV does not read it back in time)."""
 
 
+async def read_back(link: Link, holds: Callable[[LoopState], bool], timeout: float) -> tuple[bool, LoopState]:
+    """Read the loop until ``holds(state)`` or ``timeout`` wall seconds pass; whether it held, and the state read
+    last.
+
+    Why a loop and not one read: a write takes effect at the device's next cycle, and on a cyclic transport
+    (CAN) the frames it sent before that cycle may still be on their way; one read right after a write can show
+    the state before it.
+    """
+    deadline = time.monotonic() + timeout
+    pause = TRACK_POLL[0]
+    while True:
+        state = await link.read_state()
+        if holds(state):
+            return True, state
+        if time.monotonic() + pause > deadline:
+            return False, state
+        await asyncio.sleep(pause)
+        pause = min(2.0 * pause, TRACK_POLL[1])
+
+
 async def track(link: Link, mv: float, timeout: float) -> LoopState:
     """Write the manual MV ``mv`` and read the loop back until its actual MV is ``mv`` within the link's resolution.
 
@@ -100,30 +120,25 @@ async def track(link: Link, mv: float, timeout: float) -> LoopState:
     """
     await link.write_mv(mv)
     tolerance = link.mv_resolution(mv)
-    deadline = time.monotonic() + timeout
-    pause = TRACK_POLL[0]
-    while True:
-        state = await link.read_state()
-        if abs(state.mv - mv) <= tolerance:
-            return state
-        if time.monotonic() + pause > deadline:
-            raise NotTracking(f"the actual MV reads {state.mv:g} after {timeout:g} s, not the {mv:g} written "
-                              f"(mode {Mode(state.mode).name}): the device does not take the manual MV")
-        await asyncio.sleep(pause)
-        pause = min(2.0 * pause, TRACK_POLL[1])
+    held, state = await read_back(link, lambda s: abs(s.mv - mv) <= tolerance, timeout)
+    if not held:
+        raise NotTracking(f"the actual MV reads {state.mv:g} after {timeout:g} s, not the {mv:g} written "
+                          f"(mode {Mode(state.mode).name}): the device does not take the manual MV")
+    return state
 
 
 async def hand_back_once(link: Link, saved: LoopState, track_timeout: float) -> None:
-    """One try of the bumpless hand-back: saved MV until read back, watchdog off, saved mode, mode read back.
+    """One try of the bumpless hand-back: saved MV until read back, watchdog off, saved mode until read back.
 
     Raises LinkError or NotTracking.
     """
     await track(link, saved.mv, track_timeout)
     await link.write_watchdog(Watchdog())
-    await link.write_mode(Mode(saved.mode))
-    state = await link.read_state()
-    if state.mode is not Mode(saved.mode):
-        raise NotTracking(f"mode reads {Mode(state.mode).name} after {Mode(saved.mode).name} was written")
+    mode = Mode(saved.mode)
+    await link.write_mode(mode)
+    held, state = await read_back(link, lambda s: s.mode is mode, track_timeout)
+    if not held:
+        raise NotTracking(f"mode reads {Mode(state.mode).name} {track_timeout:g} s after {mode.name} was written")
 
 
 def not_restored(saved: LoopState, why: str) -> str:
