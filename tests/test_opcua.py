@@ -30,12 +30,14 @@ OPERATOR, VIEWER_TOKEN, VIEWER_PASSWORD = "op-secret", "view-token", "viewer-pw"
 API = "/api/v1"
 NAN = math.nan
 LOOPS = ("TIC-1", "TIC-2", "TIC-3")
+UNITS = {"pv": "°C", "mv": "%", "pv_range": [0.0, 150.0]}
 
 
 def config(tmp_path, port: int) -> DaemonConfig:
     loops = [{"id": loop_id, "sim": {"plant": "exp(-0.5*s)/(s+1)"}, "ts": 0.1, "speed": 2.0, "monitor_period": 0.1,
               "tuning": {"amp": 5.0, "time_limit": 200.0}, "limits": {"pv": [0.0, 100.0], "mv": [0.0, 100.0]}}
              for loop_id in LOOPS]
+    loops[0]["units"] = UNITS  # TIC-2 and TIC-3 have none
     return DaemonConfig.model_validate({
         "history": str(tmp_path / "history.sqlite"),
         "tokens": [{"name": "hmi", "role": "viewer", "sha256": token_hash(VIEWER_TOKEN)}],
@@ -80,6 +82,43 @@ def test_browse_the_address_space_with_units_and_stable_ids(daemon):
             tune = c.get_node(ua.NodeId("TIC-1.Tune", idx))
             args = await (await tune.get_child(["0:InputArguments"])).read_value()
             assert [a.Name for a in args] == ["controller", "amp", "hysteresis", "phase", "ms", "apply"]
+
+    run(main())
+
+
+async def _eu(c: Client, idx: int, node: str) -> tuple[str, int, str, str] | None:
+    """(display name, UnitId, description, namespace URI) of the node's EngineeringUnits; None without one."""
+    prop = c.get_node(ua.NodeId(f"{node}.EngineeringUnits", idx))
+    try:
+        eu = await prop.read_value()
+    except ua.uaerrors.BadNodeIdUnknown:
+        return None
+    assert (await prop.read_browse_name()) == ua.QualifiedName("EngineeringUnits", 0)  # the standard property
+    return eu.DisplayName.Text, eu.UnitId, eu.Description.Text, eu.NamespaceUri
+
+
+def test_the_loops_engineering_units_are_published_on_pv_sp_mv_and_the_gains(daemon):
+    _, url, _ = daemon
+    unece = "http://www.opcfoundation.org/UA/units/un/cefact"
+
+    async def main() -> None:
+        async with client(url, "viewer", VIEWER_PASSWORD) as c:
+            idx = await c.get_namespace_index(NAMESPACE)
+            celsius = ("°C", 4408652, "degree Celsius", unece)  # UNECE "CEL"
+            assert await _eu(c, idx, "TIC-1.PV") == await _eu(c, idx, "TIC-1.SP") == celsius
+            assert await _eu(c, idx, "TIC-1.MV") == ("%", 20529, "percent", unece)  # "P1"
+            for gain in ("TIC-1.k", "TIC-1.pk", "TIC-1.PIDParameters.P"):  # no UNECE code for %/°C: UnitId -1
+                assert await _eu(c, idx, gain) == ("%/°C", -1, "%/°C", unece), gain
+            for gain in ("TIC-1.gain", "TIC-1.static_gain"):
+                assert await _eu(c, idx, gain) == ("°C/%", -1, "°C/%", unece), gain
+            pv_range = await c.get_node(ua.NodeId("TIC-1.PV.EURange", idx)).read_value()
+            assert (pv_range.Low, pv_range.High) == (0.0, 150.0)
+            nodes = {(await n.read_browse_name()).Name for n in await c.get_node(ua.NodeId("TIC-1.MV", idx))
+                     .get_properties()}
+            assert "EURange" not in nodes  # no mv_range in its config
+            for name in ("PV", "SP", "MV", "k", "gain"):  # a loop without units: no unit is published
+                assert await _eu(c, idx, f"TIC-2.{name}") is None, name
+            assert (await _eu(c, idx, "TIC-2.ti"))[:2] == ("s", 5457219)  # seconds are seconds everywhere
 
     run(main())
 

@@ -37,34 +37,66 @@ NAMESPACE = "urn:relaytune:autotuner"
 FOLDER = "Loops"
 # UNECE codes of OPC UA's EUInformation (OPC 10000-8 §5.6.3): UnitId = the code's characters as a base-256 number.
 UNECE = "http://www.opcfoundation.org/UA/units/un/cefact"
-_UNITS = {"s": ("SEC", "s", "second"), "rad/s": ("2A", "rad/s", "radian per second"),
-          "deg": ("DD", "°", "degree (angle)"), "1": ("C62", "1", "one (fraction)")}
+# Unit symbols (as a config's ``units`` writes them) with their UN/CEFACT Recommendation 20 code and name. A symbol
+# not here is published with UnitId -1 ("no code", OPC 10000-8) and itself as its display name.
+UNECE_CODES: dict[str, tuple[str, str]] = {
+    "s": ("SEC", "second"), "min": ("MIN", "minute"), "h": ("HUR", "hour"), "rad/s": ("2A", "radian per second"),
+    "°": ("DD", "degree (angle)"), "1": ("C62", "one (fraction)"), "%": ("P1", "percent"),
+    "°C": ("CEL", "degree Celsius"), "K": ("KEL", "kelvin"), "°F": ("FAH", "degree Fahrenheit"),
+    "Pa": ("PAL", "pascal"), "kPa": ("KPA", "kilopascal"), "MPa": ("MPA", "megapascal"), "bar": ("BAR", "bar"),
+    "mbar": ("MBR", "millibar"), "psi": ("PS", "pound-force per square inch"),
+    "m³/h": ("MQH", "cubic metre per hour"), "m3/h": ("MQH", "cubic metre per hour"),
+    "m³/s": ("MQS", "cubic metre per second"), "m3/s": ("MQS", "cubic metre per second"),
+    "l/min": ("L2", "litre per minute"), "L/min": ("L2", "litre per minute"), "l": ("LTR", "litre"),
+    "L": ("LTR", "litre"), "kg/h": ("E93", "kilogram per hour"), "t/h": ("E18", "tonne per hour"),
+    "kg": ("KGM", "kilogram"), "g": ("GRM", "gram"), "m": ("MTR", "metre"), "cm": ("CMT", "centimetre"),
+    "mm": ("MMT", "millimetre"), "m/s": ("MTS", "metre per second"), "Hz": ("HTZ", "hertz"), "V": ("VLT", "volt"),
+    "mV": ("2Z", "millivolt"), "A": ("AMP", "ampere"), "mA": ("4K", "milliampere"), "W": ("WTT", "watt"),
+    "kW": ("KWT", "kilowatt"),
+}
 # The ``ite`` of a session whose loop could not be put back (docs/handback.md).
 NOT_RESTORED = float(Code.LOOP_NOT_RESTORED)
 # Severity of the events (1-1000).
 TE_SEVERITY, NOT_RESTORED_SEVERITY = 600, 1000
 
 
-def unit(name: str) -> ua.EUInformation:
-    """The EUInformation of one of :data:`_UNITS`."""
-    code, display, description = _UNITS[name]
+def unece_id(code: str) -> int:
+    """The UnitId of a UN/CEFACT code: its characters as a base-256 number (``"CEL"`` → 4408652)."""
     unit_id = 0
     for ch in code:
         unit_id = (unit_id << 8) | ord(ch)
-    return ua.EUInformation(NamespaceUri=UNECE, UnitId=unit_id, DisplayName=ua.LocalizedText(display),
-                            Description=ua.LocalizedText(description))
+    return unit_id
+
+
+def unit(symbol: str) -> ua.EUInformation:
+    """The EUInformation of the unit ``symbol`` (``°C``, ``%/°C``): its UN/CEFACT code where
+    :data:`UNECE_CODES` has one, else UnitId -1 with the symbol as display name and description."""
+    code, description = UNECE_CODES.get(symbol, (None, symbol))
+    return ua.EUInformation(NamespaceUri=UNECE, UnitId=-1 if code is None else unece_id(code),
+                            DisplayName=ua.LocalizedText(symbol), Description=ua.LocalizedText(description))
+
+
+def unit_symbol(template: str, units: dict[str, Any]) -> str | None:
+    """``template`` (a :class:`Var`'s unit: ``s``, or ``{pv}``, ``{mv}/{pv}`` …) with the loop's ``units``
+    (its REST status' ``units``); None when it names a unit the config leaves empty (no unit is published)."""
+    names = {key: units.get(key) or "" for key in ("pv", "mv")}
+    if any(f"{{{key}}}" in template and not text for key, text in names.items()):
+        return None
+    return template.format(**names)
 
 
 @dataclass(frozen=True)
 class Var:
     """One variable of a loop: its browse name (and NodeId suffix), how to get it from the status, its type,
-    its unit (a key of :data:`_UNITS`, or None) and what it means."""
+    its unit (a symbol, or a template of the loop's units: :func:`unit_symbol`; None: none), what it means,
+    and the key of the loop's ``units`` with its EURange (``pv_range``, ``mv_range``; None: none)."""
 
     name: str
     get: Callable[[dict[str, Any]], Any]
     kind: ua.VariantType
     unit: str | None
     description: str
+    eu_range: str | None = None
 
 
 def _gain(group: str, key: str) -> Callable[[dict[str, Any]], Any]:
@@ -89,13 +121,17 @@ def _key(key: str) -> Callable[[dict[str, Any]], Any]:
 
 
 D, B, S = ua.VariantType.Double, ua.VariantType.Boolean, ua.VariantType.String
+# The units of the loop's config (``units.pv``, ``units.mv``) and of its gains (the controller's k; the process's
+# |F| and static gain).
+PV_UNIT, MV_UNIT, K_UNIT, F_UNIT = "{pv}", "{mv}", "{mv}/{pv}", "{pv}/{mv}"
 VARIABLES: tuple[Var, ...] = (
-    Var("PV", _key("pv"), D, None, "process value, PV units (the monitor's reading; the experiment's while tuning)"),
-    Var("SP", _key("sp"), D, None, "set point, PV units (the saved SP while tuning)"),
-    Var("MV", _key("mv"), D, None, "manipulated variable, MV units"),
+    Var("PV", _key("pv"), D, PV_UNIT, "process value, PV units (the monitor's reading; the experiment's while tuning)",
+        "pv_range"),
+    Var("SP", _key("sp"), D, PV_UNIT, "set point, PV units (the saved SP while tuning)", "pv_range"),
+    Var("MV", _key("mv"), D, MV_UNIT, "manipulated variable, MV units", "mv_range"),
     Var("Mode", _key("mode"), S, None, "MAN or AUTO; empty when unknown"),
     *(Var(name, _gain("current_gains", key), D, u, f"controller's current {text}")
-      for name, key, u, text in (("k", "pk", None, "gain k, MV units per PV unit"),
+      for name, key, u, text in (("k", "pk", K_UNIT, "gain k, MV units per PV unit"),
                                  ("ti", "pti", "s", "integral time ti, s (+Inf: no integral action)"),
                                  ("td", "ptd", "s", "derivative time td, s"),
                                  ("nd", "pnd", None, "derivative filter nd"),
@@ -110,11 +146,13 @@ VARIABLES: tuple[Var, ...] = (
     Var("session", lambda s: s.get("session") or "", S, None, "id of the running or last session (REST history)"),
     Var("controller", lambda s: s.get("controller") or "", S, None, "PI or PID of the last session"),
     Var("omega", _point("omega"), D, "rad/s", "identified point: frequency, rad/s"),
-    Var("gain", _point("gain"), D, None, "identified point: |F(jω)|, PV units per MV unit"),
-    Var("phase_deg", _point("phase_deg"), D, "deg", "identified point: arg F(jω), degrees (negative: lag)"),
-    Var("static_gain", _key("static_gain"), D, None, "static gain of the last session (NaN: integrating/none)"),
+    Var("gain", _point("gain"), D, F_UNIT, "identified point: |F(jω)|, PV units per MV unit"),
+    Var("phase_deg", _point("phase_deg"), D, "°", "identified point: arg F(jω), degrees (negative: lag)"),
+    Var("static_gain", _key("static_gain"), D, F_UNIT,
+        "static gain of the last session, PV units per MV unit (NaN: integrating/none)"),
     *(Var(key, _gain("gains", key), D, u, f"last tuned {text}")
-      for key, u, text in (("pk", None, "gain k"), ("pti", "s", "integral time ti, s (+Inf: no integral)"),
+      for key, u, text in (("pk", K_UNIT, "gain k, MV units per PV unit"),
+                           ("pti", "s", "integral time ti, s (+Inf: no integral)"),
                            ("ptd", "s", "derivative time td, s"), ("pnd", None, "derivative filter nd"),
                            ("pb", None, "set-point weight b"), ("pc", None, "set-point weight c"))),
     Var("pending_gains", _key("pending_gains"), B, None, "the last session succeeded and its gains are not applied"),
@@ -123,7 +161,7 @@ VARIABLES: tuple[Var, ...] = (
 )
 # OPC 40083's PIDParameters (P, I, D) of the controller's current gains, children of ``LOOP.PIDParameters``.
 PID_PARAMETERS: tuple[Var, ...] = (
-    Var("P", _gain("current_gains", "pk"), D, None, "OPC 40083 P = k, the proportional gain"),
+    Var("P", _gain("current_gains", "pk"), D, K_UNIT, "OPC 40083 P = k, the proportional gain, MV units per PV unit"),
     Var("I", _gain("current_gains", "pti"), D, "s", "OPC 40083 I = ti, the integral time, s (+Inf: none)"),
     Var("D", _gain("current_gains", "ptd"), D, "s", "OPC 40083 D = td, the derivative time, s"),
 )
@@ -151,17 +189,26 @@ def _data_value(var: Var, status: dict[str, Any]) -> tuple[Any, ua.DataValue]:
                              SourceTimestamp=datetime.now(timezone.utc))
 
 
-async def _add_variable(parent: Node, idx: int, prefix: tuple[str, ...], var: Var, period: float) -> Node:
+async def _add_variable(parent: Node, idx: int, prefix: tuple[str, ...], var: Var, period: float,
+                        units: dict[str, Any]) -> Node:
+    """``var`` under ``parent``, with its EngineeringUnits and EURange properties where the loop's ``units``
+    (its REST status') give them."""
     node = await parent.add_variable(node_id(idx, *prefix, var.name), ua.QualifiedName(var.name, idx),
                                      "" if var.kind is S else False if var.kind is B else math.nan, var.kind)
     await node.write_attribute(ua.AttributeIds.Description, ua.DataValue(ua.Variant(
         ua.LocalizedText(var.description), ua.VariantType.LocalizedText)))
     await node.write_attribute(ua.AttributeIds.MinimumSamplingInterval, ua.DataValue(ua.Variant(
         period * 1000.0, ua.VariantType.Double)))
-    if var.unit is not None:
+    symbol = None if var.unit is None else unit_symbol(var.unit, units)
+    if symbol is not None:
         await node.add_property(node_id(idx, *prefix, var.name, "EngineeringUnits"),
-                                ua.QualifiedName("EngineeringUnits", 0), unit(var.unit),
+                                ua.QualifiedName("EngineeringUnits", 0), unit(symbol),
                                 datatype=ua.NodeId(ua.ObjectIds.EUInformation))
+    span = None if var.eu_range is None else units.get(var.eu_range)
+    if span is not None:
+        await node.add_property(node_id(idx, *prefix, var.name, "EURange"), ua.QualifiedName("EURange", 0),
+                                ua.Range(Low=float(span[0]), High=float(span[1])),
+                                datatype=ua.NodeId(ua.ObjectIds.Range))
     return node
 
 
@@ -196,10 +243,11 @@ class LoopNodes:
         obj = await folder.add_object(node_id(idx, loop_id), ua.QualifiedName(loop_id, idx))
         await obj.write_attribute(ua.AttributeIds.Description, ua.DataValue(ua.Variant(
             ua.LocalizedText(status.get("description") or loop_id), ua.VariantType.LocalizedText)))
-        nodes = {var: await _add_variable(obj, idx, (loop_id,), var, period) for var in VARIABLES}
+        units = status.get("units") or {}
+        nodes = {var: await _add_variable(obj, idx, (loop_id,), var, period, units) for var in VARIABLES}
         pid = await obj.add_object(node_id(idx, loop_id, "PIDParameters"), ua.QualifiedName("PIDParameters", idx))
         for var in PID_PARAMETERS:
-            nodes[var] = await _add_variable(pid, idx, (loop_id, "PIDParameters"), var, period)
+            nodes[var] = await _add_variable(pid, idx, (loop_id, "PIDParameters"), var, period, units)
         events: dict[str, list[Any]] = {}
         for name, etype in event_types.items():  # to the loop's subscribers and to the Server object's
             events[name] = [await server.get_event_generator(etype, obj),

@@ -195,7 +195,8 @@ def _log_refusal(user: RoledUser, action_type_id: ua.NodeId, body: Buffer) -> No
         nodes = ", ".join(str(n.Identifier) for n in _targets(body, ua.WriteParameters, "NodesToWrite"))
         log.warning("OPC UA: write of %s by %s refused: %s", nodes or "?", who, READ_ONLY)
         return
-    request = ua.ObjectIdNames.get(action_type_id.Identifier, str(action_type_id)).removesuffix("_Encoding_DefaultBinary")
+    request = ua.ObjectIdNames.get(action_type_id.Identifier, str(action_type_id))
+    request = request.removesuffix("_Encoding_DefaultBinary")
     log.warning("OPC UA: %s by %s refused: %s", request, who, READ_ONLY)
 
 
