@@ -23,3 +23,18 @@ def test_loadbench_two_loops_over_modbus():
     assert row[:2] == ["2", "2/2"]
     assert int(row[3]) > 100  # samples
     assert float(row[5]) < 1000.0  # p99 lateness, ms: finite and sane
+
+
+def test_loadbench_two_loops_published_over_opcua_to_a_subscribed_client():
+    from api.opcua.address_space import VARIABLES
+
+    result = CliRunner().invoke(app, ["loadbench", "--loops", "2", "--speed", "5", "--opcua", "--monitor-period",
+                                      "0.2", "--markdown"])
+    assert result.exit_code == 0, result.output
+    lines = result.output.strip().splitlines()
+    header, row = (line.strip("| ").split(" | ") for line in (lines[-3], lines[-1]))
+    assert header[-2:] == ["OPC UA changes", "CPU OPC UA %"]
+    assert row[:2] == ["2", "2/2"]
+    # Beyond the first value of each subscribed variable: the tunings' changes reached the client.
+    assert int(row[-2]) > 2 * len(VARIABLES), row
+    assert 0.0 < float(row[-1]) < 100.0  # the server thread's CPU, % of a core
