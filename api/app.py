@@ -258,7 +258,7 @@ async def session(sid: str, manager: Manager, _: Viewer) -> dict[str, Any]:
     409: {"model": errors.ErrorBody, "description": "no_result: the session has no identified point or no design"}})
 async def analysis(sid: str, request: Request, manager: Manager, _: Viewer) -> dict[str, Any]:
     """What the session's gains (new) and the controller's gains before it (old) do on the identified model:
-    Ms, Nyquist curve, unit set-point and load step responses (autotuner/analysis.py)."""
+    Ms, Nyquist curve, unit set-point and load step responses (autotuner/engine/design/analysis.py)."""
     cache: dict[str, dict[str, Any]] = request.app.state.analyses
     if sid in cache:
         return cache[sid]
@@ -266,7 +266,7 @@ async def analysis(sid: str, request: Request, manager: Manager, _: Viewer) -> d
     if record is None:
         raise errors.ApiError(404, "not_found", f"no session {sid!r}")
     result = record["result"]
-    if not result or not result.get("point") or not result.get("gains"):
+    if result is None or result.point is None or result.gains is None:
         raise errors.ApiError(409, "no_result", f"session {sid} has no identified point and design")
     ms = record["request"].get("ms", Tuning().ms)
     try:  # about 0.1 s of CPU: in a thread, so the live loops keep sampling on time

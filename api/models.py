@@ -10,9 +10,12 @@ example (taken from the demo's TIC-101) into the OpenAPI document.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+
+from autotuner.engine.result import GainsRecord, PointRecord, ResultRecord
 
 SID = "3f2c9a7e5b1d4c6a8e0f2b4d6a8c0e1f"
 WHEN = "2026-12-01T20:57:36.412Z"
@@ -26,25 +29,6 @@ def _f(description: str, example: Any) -> Any:
 def _d(description: str) -> Any:
     """A required field holding a model (or null): its description; the example comes from the model's fields."""
     return Field(description=description)
-
-
-class Point(BaseModel):
-    """The identified point F(jω₀) of the process."""
-
-    omega: float = _f("frequency ω₀ of the point, rad/s (plant time)", 0.4187)
-    gain: float = _f("|F(jω₀)|, PV units per MV unit", 0.3941)
-    phase_deg: float = _f("∠F(jω₀), degrees (negative: lag)", -135.1)
-
-
-class GainsOut(BaseModel):
-    """PID gains in the standard (ISA) form K·(b·SP − PV + (1/(Ti·s))·e + Td·s/(1 + Td·s/N)·(c·SP − PV))."""
-
-    pk: float = _f("proportional gain K, MV units per PV unit", 0.6865)
-    pti: float | None = _f("integral time Ti, seconds (null: no integral action)", 5.776)
-    ptd: float = _f("derivative time Td, seconds (0: PI)", 0.0)
-    pnd: float = _f("derivative filter N (Td/N is the filter's time constant), dimensionless", 10.0)
-    pb: float = _f("set-point weight b of the proportional part, dimensionless (0–1)", 0.365)
-    pc: float = _f("set-point weight c of the derivative part, dimensionless (0–1)", 0.0)
 
 
 class TuneDefaults(BaseModel):
@@ -119,16 +103,16 @@ class LoopStatus(BaseModel):
     message: str = _f("the last session's message (tuning while one runs, idle before any)", "ok")
     session: str | None = _f("id of the running or last session (null: none since the daemon started)", SID)
     controller: str | None = _f("controller type of the last session", "PI")
-    point: Point | None = _d("point identified by the last session (null: none)")
+    point: PointRecord | None = _d("point identified by the last session (null: none)")
     static_gain: float | None = _f("static gain of the process identified by the last session, PV units per MV "
                                    "unit (null: integrating or not identified)", 1.478)
-    gains: GainsOut | None = _d("gains designed by the last session (null: none)")
+    gains: GainsRecord | None = _d("gains designed by the last session (null: none)")
     mode: Literal["MAN", "AUTO"] | None = _f("the loop's mode now (MAN while a session holds it; null: not read yet "
                                              "or the link is down)", "AUTO")
     pv: float | None = _f("process value now, PV units (null: not read yet or the link is down)", 50.0)
     sp: float | None = _f("set point now, PV units (while tuning: the SP saved before the experiment)", 50.0)
     mv: float | None = _f("manipulated value now, MV units", 50.0)
-    current_gains: GainsOut | None = _d("the gains in the controller as last read from it (monitor, end of a "
+    current_gains: GainsRecord | None = _d("the gains in the controller as last read from it (monitor, end of a "
                                         "session, apply); null until read")
     last_tuned_at: str | None = _f("finish time of the newest finished session, UTC ISO 8601 (null: none)", WHEN)
     last_outcome: Literal["success", "failure"] | None = _f("outcome of that session (null: none)", "success")
@@ -163,14 +147,13 @@ class SessionSummary(BaseModel):
                                   "apply": False})
     saved: dict[str, Any] | None = _f("the loop's state before the experiment: mode, MV (MV units), SP (PV units), "
                                       "gains (null: not read)", {"mode": "AUTO", "mv": 50.0, "sp": 50.0})
-    gains_before: GainsOut | None = _d("the controller's gains before the session")
-    gains_after: GainsOut | None = _d("the gains read back after the session or the last apply")
+    gains_before: GainsRecord | None = _d("the controller's gains before the session")
+    gains_after: GainsRecord | None = _d("the gains read back after the session or the last apply")
     outcome: Literal["success", "failure"] | None = _f("success (gains designed) or failure (null: running)",
                                                        "success")
     code: int | None = _f("the outcome code, the final ite (GET /codes); null: running", 0)
     message: str | None = _f("what happened, for people", "ok")
-    result: dict[str, Any] | None = _f("the result object of docs/design.md (point, static_gain, gains, "
-                                       "experiment, ...)", None)
+    result: ResultRecord | None = _d("the result object of docs/design.md (null: running)")
     applied_at: str | None = _f("when its gains were last written to the controller, UTC ISO 8601 (null: never)",
                                 None)
     applied_by: str | None = _f("who wrote them (a token's name)", None)
@@ -214,14 +197,15 @@ class Applied(BaseModel):
 
     loop: str = _f("loop id", "TIC-101")
     session: str = _f("the session whose gains were written", SID)
-    gains: GainsOut = _d("the gains as read back from the controller")
+    gains: GainsRecord = _d("the gains as read back from the controller")
 
 
-class AnalysisPoint(Point):
+@dataclass(frozen=True)
+class AnalysisPoint(PointRecord):
     """The identified point with its real and imaginary parts."""
 
-    re: float = _f("Re F(jω₀), PV units per MV unit", -0.279)
-    im: float = _f("Im F(jω₀), PV units per MV unit", -0.279)
+    re: float = field(metadata={"description": "Re F(jω₀), PV units per MV unit", "examples": [-0.279]})
+    im: float = field(metadata={"description": "Im F(jω₀), PV units per MV unit", "examples": [-0.279]})
 
 
 class Model(BaseModel):
@@ -260,7 +244,7 @@ class StepOut(BaseModel):
 class LoopResponse(BaseModel):
     """What one set of gains does on the model."""
 
-    gains: GainsOut = _d("the gains analysed")
+    gains: GainsRecord = _d("the gains analysed")
     ms: float | None = _f("maximum sensitivity reached, dimensionless (null: the closed loop is unstable)", 1.4)
     stable: bool = _f("whether the closed loop is stable on the model", True)
     nyquist: Nyquist = _d("open loop L(jω)")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from autotuner.engine.design.point_design import design
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.design.process_data import exact_point
+from autotuner.engine.result import DesignRecord, ExperimentRecord, GainsRecord, PointRecord, ResultRecord
 from drivers.simplc import safe_gains
 
 from test_api import CONFIG, OPERATOR, VIEWER, auth, wait_idle
@@ -30,15 +32,22 @@ TIC = "1.5*exp(-0.7*s)/(4*s+1)^2"  # lag with dead time: FOPDT model
 LIC = "0.2*exp(-1*s)/(s*(2*s+1))"  # integrating: IPDT model
 
 
-def result_for(plant: str, controller: str = "PI", ms: float = 1.4) -> tuple[dict, Gains]:
-    """A session's result JSON as the daemon records it (exact 135° point), and the PLC's initial gains."""
+def result_for(plant: str, controller: str = "PI", ms: float = 1.4) -> tuple[ResultRecord, Gains]:
+    """A session's result as a row stored before the design key existed records it (exact 135° point, no model),
+    and the PLC's initial gains."""
     process = parse_process(plant)
     point = exact_point(process, 135.0)
     static = process.static_gain()
     d = design(point, static, controller, ms)
-    result = {"controller": controller, "gains": d.gains.as_json(), "static_gain": None if math.isinf(static)
-              else static, "point": {"omega": point.omega, "gain": point.gain, "phase_deg": point.phase_deg}}
+    result = ResultRecord(False, False, 0, "ok", controller, PointRecord.of(point),
+                          None if math.isinf(static) else static, GainsRecord.of(d.gains),
+                          ExperimentRecord(60.0, 6.0, 600))
     return result, safe_gains(process)
+
+
+def with_model(result: ResultRecord, model: str) -> ResultRecord:
+    """The result with ``model`` stored as the design's model."""
+    return replace(result, design=DesignRecord(model, 1.4, 1.4, 0.0, ()))
 
 
 def model_response(model: dict, w: np.ndarray) -> np.ndarray:
@@ -99,7 +108,7 @@ def test_analysis_agrees_with_an_independent_computation(plant, kind):
     else:
         assert model["k"] == pytest.approx(1.5)
     assert a["ms_circle"] == {"center_re": -1.0, "radius": pytest.approx(1 / 1.4)}
-    assert a["new"]["gains"] == result["gains"] and a["old"]["gains"] == old.as_json()
+    assert a["new"]["gains"] == asdict(result.gains) and a["old"]["gains"] == old.as_json()
 
     w = np.logspace(math.log10(w0) - 4, math.log10(w0) + 2, 200000)
     for loop in (a["new"], a["old"]):
@@ -134,7 +143,7 @@ def test_analysis_agrees_with_an_independent_computation(plant, kind):
         ref = np.interp(t, te, ye)
         assert np.max(np.abs(np.array(new["pv"]) - ref)) <= 0.04 * np.max(np.abs(ye)), step
         if step == "setpoint":  # MV at t = 0: the proportional kick k·b
-            assert new["mv"][0] == pytest.approx(result["gains"]["pk"] * result["gains"]["pb"])
+            assert new["mv"][0] == pytest.approx(result.gains.pk * result.gains.pb)
         else:  # the controller ends up cancelling the unit load
             assert new["mv"][-1] == pytest.approx(-1.0, abs=0.03)
 
@@ -146,7 +155,7 @@ def test_the_stored_model_is_analysed_and_old_results_are_fitted_again():
     fitted = analyse(result, 1.4, old.as_json())["model"]
     # A model through the same point with another static gain (what a design of another family could use).
     other = "1.2*exp(-3.1*s)/(6.5*s+1)"
-    stored = analyse({**result, "design": {"model": other}}, 1.4, old.as_json())["model"]
+    stored = analyse(with_model(result, other), 1.4, old.as_json())["model"]
     assert (stored["kind"], stored["k"], stored["t"], stored["l"]) == ("FOPDT", pytest.approx(1.2),
                                                                        pytest.approx(6.5), pytest.approx(3.1))
     assert fitted["k"] == pytest.approx(1.5, rel=0.05) and fitted["k"] != pytest.approx(1.2, rel=0.05)
@@ -154,7 +163,7 @@ def test_the_stored_model_is_analysed_and_old_results_are_fitted_again():
     process = parse_process(TIC)
     point = exact_point(process, 135.0)
     d = design(point, process.static_gain(), "PI", 1.4)
-    same = analyse({**result, "design": {"model": str(d.model)}}, 1.4, old.as_json())["model"]
+    same = analyse(with_model(result, str(d.model)), 1.4, old.as_json())["model"]
     assert same["kind"] == fitted["kind"] and same["text"] == fitted["text"]
     assert [same[k] for k in "ktl"] == pytest.approx([fitted[k] for k in "ktl"], rel=1e-9)
 

@@ -17,6 +17,7 @@ from api.app import create_app
 from autotuner.service.config import DaemonConfig
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
+from autotuner.engine.result import ResultRecord
 from autotuner.service.history import History
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE
 from drivers.link import LoopState, Mode
@@ -36,10 +37,11 @@ def record_session(path: str, sid: str, loop: str, ok: bool = True, gains: Gains
     history.begin(sid, loop, "alice", {"controller": "PI", "amp": 5.0, "hysteresis": None, "phase": 135.0,
                                        "ms": 1.4, "apply": False})
     history.saved(sid, LoopState(mode=Mode.AUTO, mv=50.0, sp=50.0, gains=BEFORE))
-    result = {"tbsy": False, "te": not ok, "ite": 0 if ok else 3, "message": "ok" if ok else "no oscillation",
-              "controller": "PI", "point": {"omega": 1.2, "gain": 0.6, "phase_deg": -135.0}, "static_gain": 1.0,
-              "gains": None if gains is None else gains.as_json(),
-              "experiment": {"duration": 60.0, "periods": 6.0, "samples": 600}}
+    result = ResultRecord.from_json({
+        "tbsy": False, "te": not ok, "ite": 0 if ok else 3, "message": "ok" if ok else "no oscillation",
+        "controller": "PI", "point": {"omega": 1.2, "gain": 0.6, "phase_deg": -135.0}, "static_gain": 1.0,
+        "gains": None if gains is None else gains.as_json(),
+        "experiment": {"duration": 60.0, "periods": 6.0, "samples": 600}})
     history.finish(sid, result, BEFORE, {"t": [0.0], "pv": [50.0], "mv": [50.0]})
     history.close()
 

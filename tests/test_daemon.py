@@ -81,7 +81,7 @@ def test_tune_busy_ite_counts_down_then_success_with_gains_applied():
     assert record["gains_before"] == before.as_json()
     assert record["gains_after"]["pk"] == pytest.approx(gains.k)
     # The whole experiment is stored at full resolution (fewer samples than TRACE_POINTS).
-    assert len(record["trace"]["t"]) == record["result"]["experiment"]["samples"]
+    assert len(record["trace"]["t"]) == record["result"].experiment.samples
     assert 10 < len(record["trace"]["t"]) <= TRACE_POINTS
     kinds = {e["event"] for e in samples}
     assert kinds == {"sample", "state"}

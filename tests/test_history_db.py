@@ -24,6 +24,7 @@ from autotuner.service.config import ConfigError, load_config
 from autotuner.engine.control.gains import Gains
 from autotuner.service.history import History, database_url
 from autotuner.engine.outcome import Code
+from autotuner.engine.result import ExperimentRecord, GainsRecord, ResultRecord
 from drivers.link import LoopState, Mode
 from helpers import free_port
 from test_daemon import loop, manager, running
@@ -82,7 +83,8 @@ def test_sessions_round_trip_newest_first_and_survive_reopening(database):
     history = History(database)
     history.begin("s1", "A", "alice", {"controller": "PI", "amp": 5.0})
     history.saved("s1", SAVED)
-    result = {"te": False, "ite": 0, "message": "ok", "controller": "PI", "gains": {"pk": 1.0}}
+    result = ResultRecord(False, False, 0, "ok", "PI", None, None, GainsRecord.of(Gains(k=1.0)),
+                          ExperimentRecord(0.0, None, 0))
     history.finish("s1", result, Gains(k=1.0, ti=2.0), {"t": [0.0, 0.5], "pv": [1.0, 2.0], "mv": [0.0, 5.0]})
     history.begin("s2", "A", "bob", {"controller": "PID"})
     history.begin("s3", "B", "bob", {})

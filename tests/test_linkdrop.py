@@ -63,7 +63,7 @@ async def scenario() -> dict[str, Any]:
             history.close()
             if replacement is not None:
                 await replacement.close()
-    return {"a": manager.loops["A"].result, "b": manager.loops["B"].result, "plc_a": plcs["A"],
+    return {"a": manager.loops["A"].result.to_json(), "b": manager.loops["B"].result.to_json(), "plc_a": plcs["A"],
             "stamps": [t for link in links if link.session for t in link.done], "down": down, "up": up}
 
 

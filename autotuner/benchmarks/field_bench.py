@@ -37,8 +37,8 @@ from autotuner.engine.design.robustness import Plant, log_grid, migo
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.plant.simulation import PlantSim
-from autotuner.engine.simulated_tuning import (EXPERIMENT_SAMPLES_PER_PERIOD, TuneResult, ramp_loads, result_of,
-                                              run_experiment)
+from autotuner.engine.result import TuneResult
+from autotuner.engine.simulated_tuning import EXPERIMENT_SAMPLES_PER_PERIOD, ramp_loads, result_of, run_experiment
 
 MS_LIMIT = 1.6
 TIME_LIMIT_PERIODS = 200

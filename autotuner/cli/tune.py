@@ -29,7 +29,7 @@ if TYPE_CHECKING:
     from autotuner.engine.experiment.relay import RelayConfig, Status
     from autotuner.engine.plant.process import Process
     from autotuner.engine.plant.simulation import PlantSim
-    from autotuner.engine.simulated_tuning import TuneResult
+    from autotuner.engine.result import TuneResult
     from autotuner.service.config import LoopConfig, TuneRequest
 
 

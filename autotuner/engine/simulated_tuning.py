@@ -10,18 +10,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 
-from autotuner.engine.control.gains import forms_json
-from autotuner.engine.design.point_design import Design, design
+from autotuner.engine.design.point_design import design
 from autotuner.engine.design.unstable_design import Refusal
 from autotuner.engine.design.process_data import exact_point
 from autotuner.engine.plant.process import Process
-from autotuner.engine.outcome import MESSAGES, Code, is_failure
-from autotuner.engine.experiment.relay import Identification, RelayConfig, RelayExperiment, Status
+from autotuner.engine.outcome import MESSAGES, Code
+from autotuner.engine.result import Trace, TuneResult
+from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Status
 from autotuner.engine.plant.simulation import PlantSim
 
 # Samples per oscillation period of the default sample time (default_sample_time).
@@ -30,81 +29,6 @@ EXPERIMENT_SAMPLES_PER_PERIOD = 100
 # oscillation, or this many samples when the plant never reaches the phase.
 LIMIT_PERIODS = 200
 LIMIT_SAMPLES = 20000
-
-
-@dataclass(frozen=True)
-class Trace:
-    """Recorded samples: times (s), PV, and the MV held from each sample on."""
-
-    t: np.ndarray = field(metadata={"description": "sample times, plant seconds"})
-    pv: np.ndarray = field(metadata={"description": "PV at each sample, PV units"})
-    mv: np.ndarray = field(metadata={"description": "MV held from each sample on, MV units"})
-
-
-@dataclass(frozen=True)
-class TuneResult:
-    """Outcome of one tuning; ``code`` is 0 on success, otherwise the error code shown in ``ite``.
-
-    :meth:`as_json` is the one encoder of a result: the CLI's ``--json``, the daemon's loop status and
-    history, and the REST sessions all carry what it gives.
-    """
-
-    code: Code = field(metadata={"description": "outcome, the value ite shows once the tuning has ended"})
-    message: str = field(metadata={"description": "what happened, for people ('ok', or why not)"})
-    controller: str = field(metadata={"description": "controller type designed: PI or PID"})
-    identification: Identification | None = field(
-        metadata={"description": "what the experiment identified (point, static gain, length); None if nothing"})
-    design: Design | None = field(
-        metadata={"description": "gains with the model they were designed on, Ms there and notes; None if none"})
-    trace: Trace = field(metadata={"description": "the experiment's samples"})
-
-    @classmethod
-    def failed(cls, code: Code, message: str, controller: str) -> TuneResult:
-        """A tuning that ended before anything was identified (no point, no gains, no samples)."""
-        return cls(code, message, controller, None, None, Trace(np.zeros(0), np.zeros(0), np.zeros(0)))
-
-    @property
-    def ok(self) -> bool:
-        """True when gains were computed (``te`` false): code OK, or a warning that says what was missed."""
-        return not is_failure(self.code) and self.design is not None
-
-    def as_json(self) -> dict[str, Any]:
-        """The result object of design.md (``tbsy, te, ite, message, point, gains, ...``)."""
-        ident, des = self.identification, self.design
-        return {
-            "tbsy": False,
-            "te": not self.ok,
-            "ite": int(self.code),
-            "message": self.message,
-            "controller": self.controller,
-            "point": None
-            if ident is None
-            else {
-                "omega": float(ident.point.omega),
-                "gain": float(ident.point.gain),
-                "phase_deg": float(ident.point.phase_deg),
-            },
-            "static_gain": None if ident is None or math.isinf(ident.static_gain) else float(ident.static_gain),
-            "gains": None if des is None else des.gains.as_json(),
-            "design": None if des is None else design_json(des),
-            "forms": None if des is None else forms_json(des.gains),
-            "experiment": {
-                "duration": float(self.trace.t[-1] - self.trace.t[0]) if len(self.trace.t) else 0.0,
-                "periods": None if ident is None else round(ident.periods, 2),
-                "samples": len(self.trace.t),
-            },
-        }
-
-
-def design_json(des: Design) -> dict[str, Any]:
-    """The ``design`` object of the result: the model (expression), its Ms, the target, noise gain and notes."""
-    return {
-        "model": str(des.model),
-        "ms_model": float(des.model_ms),
-        "ms_target": float(des.ms_target),
-        "noise_gain": float(des.noise_gain),
-        "notes": list(des.notes),
-    }
 
 
 def phase_frequency(process: Process, phase_deg: float) -> float | None:

@@ -18,7 +18,7 @@ from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
 from autotuner.service.daemon import connector, relay_config, settings_of, simulated_plc
 from autotuner.engine.experiment.relay import Status
 from autotuner.service.remote_tuning import tune_opened
-from autotuner.engine.simulated_tuning import TuneResult
+from autotuner.engine.result import TuneResult
 
 
 def find_loop(config: DaemonConfig, loop_id: str) -> LoopConfig:

@@ -69,7 +69,7 @@ import time
 import uuid
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 
@@ -88,7 +88,7 @@ from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, field_config
 from autotuner.service.link_session import (HandBack, NotTracking, close_design_pool, hand_back_once, not_restored,
                                             tune_link)
 from autotuner.service.trend import Trend
-from autotuner.engine.simulated_tuning import TuneResult
+from autotuner.engine.result import ResultRecord, TuneResult
 
 # Events kept per subscriber before the oldest are dropped.
 QUEUE_EVENTS = 1000
@@ -283,7 +283,7 @@ class Loop:
     stop: asyncio.Event = field(default_factory=asyncio.Event)
     session: str | None = None
     status: Status | None = None
-    result: dict[str, Any] | None = None
+    result: ResultRecord | None = None
     subscribers: set[asyncio.Queue[dict[str, Any]]] = field(default_factory=set)
     mode: Mode | None = None
     pv: float | None = None
@@ -324,11 +324,11 @@ class Loop:
         """Idle, and the newest session succeeded with gains nobody has applied yet."""
         last = self.latest
         return (not self.busy and last is not None and last["outcome"] == "success"
-                and last["applied_at"] is None and (last["result"] or {}).get("gains") is not None)
+                and last["applied_at"] is None and last["result"] is not None and last["result"].gains is not None)
 
     def as_json(self) -> dict[str, Any]:
         """The status of design.md: tbsy, te, ite, stage, progress, last point and gains."""
-        c, s, r = self.config, self.status, self.result
+        c, s, r = self.config, self.status, None if self.result is None else self.result.to_json()
         running = self.busy
         if running:
             ite = 0.0 if s is None else s.ite
@@ -469,7 +469,7 @@ class LoopManager:
             if loop.task is not None and loop.session is not None:  # its hand-back did not end within the bound
                 self.history.finish(loop.session, TuneResult.failed(
                     Code.LOOP_NOT_RESTORED, "the daemon stopped before the loop was handed back",
-                    "PI").as_json(), None, None, "not_restored")
+                    "PI").record(), None, None, "not_restored")
                 unrestored.append(loop.config.id)
             elif loop.pending is not None:
                 unrestored.append(loop.config.id)
@@ -666,7 +666,7 @@ class LoopManager:
         sid = record["id"]
         if record["outcome"] != "success":
             raise Refused("nothing_to_apply", f"session {sid} did not succeed: {record['message']}")
-        gains = usable_gains((record["result"] or {}).get("gains"))
+        gains = None if record["result"] is None else usable_gains(record["result"].gains)
         if gains is None:
             raise Refused("nothing_to_apply", f"session {sid} has no usable gains")
         loop.applying = True
@@ -792,7 +792,7 @@ class LoopManager:
                     await link.close()
                 if result is None:  # cancelled: tune_link has handed the loop back (or said why not)
                     result = TuneResult.failed(Code.ABORTED, "aborted: the daemon stopped", settings.controller)
-                loop.result = result.as_json()
+                loop.result = result.record()
                 applied = intended is not None and gains_after is not None and same_gains(gains_after, intended)
                 if restore_error and loop.saved is not None:  # shown with the idle loop, not while still busy
                     pending = Pending(sid, loop.saved, levels, result.code, state, restore_error)
@@ -972,13 +972,13 @@ class LoopManager:
                 message += " (before it touched the loop)"
             elif loop is None:
                 message += f"; loop {record['loop']!r} is no longer configured: check it by hand"
-            result = TuneResult.failed(Code.ABORTED, message, record["request"].get("controller", "PI")).as_json()
+            result = TuneResult.failed(Code.ABORTED, message, record["request"].get("controller", "PI")).record()
             self.history.finish(record["id"], result, None, None,
                                 "not_restored" if saved is not None and loop is not None else "interrupted")
             code, final = Code.ABORTED, "interrupted"
         else:
             result = record["result"]
-            code, final = Code(int(result["ite"])) if result else Code.ABORTED, "interrupted"
+            code, final = result.code if result else Code.ABORTED, "interrupted"
             if loop is None:
                 log.critical("loop %s: session %s left it not restored, and it is no longer configured: check it "
                              "by hand", record["loop"], record["id"])
@@ -1043,8 +1043,8 @@ class LoopManager:
             await link.close()
         self.history.restored(p.sid, p.final, message, int(code))
         loop.pending = None
-        loop.result = {**(loop.result or {}), "ite": int(code), "te": True,
-                       "message": f"{(loop.result or {}).get('message', '')}; {message}"}
+        if loop.result is not None:
+            loop.result = replace(loop.result, ite=int(code), te=True, message=f"{loop.result.message}; {message}")
         loop.latest = self.history.latest(loop_id)
         self._publish(loop, "state", loop.as_json())
         return True

@@ -38,6 +38,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from datetime import UTC, datetime
 from typing import Any
 
@@ -49,7 +50,7 @@ from sqlalchemy.pool import StaticPool
 from autotuner.engine.control.gains import Gains
 from drivers.link import LoopState, Mode
 
-from autotuner.engine.simulated_tuning import Trace
+from autotuner.engine.result import ResultRecord, Trace
 
 # Largest number of points of a stored trace: a whole experiment at full resolution (the demo's take 300–1500
 # samples; a 2-hour experiment at 1 s is 7200), thinned evenly past that.
@@ -249,9 +250,9 @@ class History:
         left it from one an operator changed)."""
         self._write(sid, saved=json.dumps({**state_json(saved), "relay_levels": [float(x) for x in relay_levels]}))
 
-    def finish(self, sid: str, result: dict[str, Any], gains_after: Gains | None,
+    def finish(self, sid: str, result: ResultRecord, gains_after: Gains | None,
                trace: dict[str, list[float]] | None, state: str = "finished", applied_by: str | None = None) -> None:
-        """Record the end of session ``sid``: the result JSON, the controller's gains after it and the trace.
+        """Record the end of session ``sid``: its result, the controller's gains after it and the trace.
 
         ``applied_by``: who had the designed gains written at the end of the
         session (the session's user, when it asked to apply them and they
@@ -262,7 +263,7 @@ class History:
         values: dict[str, Any] = {}
         if gains_after is not None:
             values["gains_intent"] = None
-        self._write(sid, finished_at=at, state=state, result=json.dumps(result, allow_nan=False),
+        self._write(sid, finished_at=at, state=state, result=json.dumps(result.to_json(), allow_nan=False),
                     gains_after=None if gains_after is None else json.dumps(gains_after.as_json()),
                     trace=None if trace is None else json.dumps(trace, allow_nan=False),
                     applied_at=None if applied_by is None else at, applied_by=applied_by, **values)
@@ -275,13 +276,11 @@ class History:
         """A ``not_restored`` session whose loop has now been dealt with: its final ``state``, a message that says
         how (appended to the result's message) and, if given, the result's new ``code`` (te stays true)."""
         rows = self._read(sa.select(_SESSIONS.c.result).where(_SESSIONS.c.id == sid))
-        result = _load(rows[0]["result"]) if rows else None
+        result = _result(rows[0]["result"]) if rows else None
         values: dict[str, Any] = {"state": state}
         if result is not None:
-            result["message"] = f"{result['message']}; {message}"
-            if code is not None:
-                result["ite"] = code
-            values["result"] = json.dumps(result, allow_nan=False)
+            result = replace(result, message=f"{result.message}; {message}", ite=result.ite if code is None else code)
+            values["result"] = json.dumps(result.to_json(), allow_nan=False)
         self._write(sid, **values)
 
     def not_restored(self) -> list[dict[str, Any]]:
@@ -343,9 +342,14 @@ def _load(text: str | None) -> Any:
     return None if text is None else json.loads(text)
 
 
+def _result(text: str | None) -> ResultRecord | None:
+    return None if text is None else ResultRecord.from_json(json.loads(text))
+
+
 def _record(row: RowMapping, with_trace: bool) -> dict[str, Any]:
+    """A session's row as a dict of its columns, decoded (``result``: a :class:`ResultRecord`)."""
     saved = _load(row["saved"])
-    result = _load(row["result"])
+    result = _result(row["result"])
     record = {
         "id": row["id"],
         "loop": row["loop"],
@@ -357,9 +361,9 @@ def _record(row: RowMapping, with_trace: bool) -> dict[str, Any]:
         "saved": saved,
         "gains_before": None if saved is None else saved["gains"],
         "gains_after": _load(row["gains_after"]),
-        "outcome": None if result is None else ("success" if not result["te"] else "failure"),
-        "code": None if result is None else result["ite"],
-        "message": None if result is None else result["message"],
+        "outcome": None if result is None else ("success" if not result.te else "failure"),
+        "code": None if result is None else result.ite,
+        "message": None if result is None else result.message,
         "result": result,
         "applied_at": row["applied_at"],
         "applied_by": row["applied_by"],

@@ -37,7 +37,8 @@ from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags, Watchdog
 
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Status
-from autotuner.engine.simulated_tuning import Trace, TuneResult, result_of
+from autotuner.engine.result import Trace, TuneResult
+from autotuner.engine.simulated_tuning import result_of
 
 # Handshake bits (TBSY, ite) and the watchdog's heartbeat are written this often, wall seconds.
 FLAGS_PERIOD = 0.5

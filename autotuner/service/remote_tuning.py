@@ -26,7 +26,7 @@ from autotuner.engine.plant.process import Process
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.relay import RelayConfig, Status
 from autotuner.service.link_session import deadlines, tune_link
-from autotuner.engine.simulated_tuning import TuneResult
+from autotuner.engine.result import TuneResult
 
 # Sampling a PLC through a link scatters the per-period estimates by about
 # ±0.5°, ±0.4 % and ±0.03 in |F|/K0 (the PLC's clock and the session's are

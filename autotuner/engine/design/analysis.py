@@ -25,8 +25,8 @@ daemon runs it in a thread.
 
 from __future__ import annotations
 
-import cmath
 import math
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -36,7 +36,7 @@ from autotuner.engine.design.point_design import fit_model
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.plant.process import Process
-from autotuner.engine.experiment.relay import Point
+from autotuner.engine.result import GainsRecord, ResultRecord
 from autotuner.engine.design.robustness import log_grid
 
 # Points of a Nyquist curve and of a time response.
@@ -60,21 +60,14 @@ SETTLE_BAND = 0.02
 CLIP = 10.0
 
 
-def point_of(result: dict[str, Any]) -> Point:
-    """The identified point of a session's result JSON (``point.omega`` rad/s, ``gain``, ``phase_deg``)."""
-    p = result["point"]
-    return Point(float(p["omega"]), cmath.rect(float(p["gain"]), math.radians(float(p["phase_deg"]))))
-
-
-def model_of(result: dict[str, Any]) -> Process:
+def model_of(result: ResultRecord) -> Process:
     """The model the design used: the result's ``design.model`` (an expression, stored since the design key
     exists); for a result stored before that, the model fitted again through its point and static gain (null
-    static gain: integrating)."""
-    stored = (result.get("design") or {}).get("model")
-    if stored:
-        return parse_process(stored)
-    static_gain = result.get("static_gain")
-    return fit_model(point_of(result), math.inf if static_gain is None else float(static_gain))
+    static gain: integrating). The result must have a point."""
+    if result.design is not None:
+        return parse_process(result.design.model)
+    static_gain = math.inf if result.static_gain is None else result.static_gain
+    return fit_model(result.point.point(), static_gain)
 
 
 def model_json(model: Process) -> dict[str, Any]:
@@ -159,27 +152,27 @@ def responses(model: Process, gains: list[Gains], stable: list[bool], omega: flo
     return out
 
 
-def usable_gains(data: dict[str, Any] | None) -> Gains | None:
-    """Gains from their JSON (``pk, pti, ...``), or None if absent or not a valid controller."""
+def usable_gains(data: dict[str, Any] | GainsRecord | None) -> Gains | None:
+    """Gains from their JSON (``pk, pti, ...``) or record, or None if absent or not a valid controller."""
     if not data:
         return None
     try:
-        return Gains.from_json(data)
+        return Gains.from_json(asdict(data) if isinstance(data, GainsRecord) else data)
     except (ValueError, TypeError, KeyError):
         return None
 
 
-def analyse(result: dict[str, Any], ms_target: float, gains_before: dict[str, Any] | None) -> dict[str, Any]:
-    """The analysis of a session's result JSON: model, point, Ms circle, and old and new gains on the model.
+def analyse(result: ResultRecord, ms_target: float, gains_before: dict[str, Any] | None) -> dict[str, Any]:
+    """The analysis of a session's result: model, point, Ms circle, and old and new gains on the model.
 
     ``result`` must have a ``point`` and ``gains`` (the designed ones);
     ``gains_before`` (JSON, may be None) are the controller's gains before the
     session. The body of ``GET /sessions/{sid}/analysis`` without ``session``
     and ``loop``.
     """
-    point = point_of(result)
+    point = result.point.point()
     model = model_of(result)
-    new = Gains.from_json(result["gains"])
+    new = result.gains.gains()
     old = usable_gains(gains_before)
     gains = [new] if old is None else [new, old]
     checks = [loop_check(model, g, point.omega) for g in gains]
@@ -188,7 +181,7 @@ def analyse(result: dict[str, Any], ms_target: float, gains_before: dict[str, An
     loops = [{"gains": g.as_json(), "ms": ms, "stable": ok, "nyquist": nyquist(model, g, point.omega), **s}
              for g, (ok, ms), s in zip(gains, checks, steps)]
     return {
-        "controller": result.get("controller"),
+        "controller": result.controller,
         "ms_target": ms_target,
         "point": {"omega": point.omega, "gain": point.gain, "phase_deg": point.phase_deg,
                   "re": point.value.real, "im": point.value.imag},
