@@ -92,11 +92,9 @@ def euler_loop(model: dict, g: dict, step: str, t_end: float, dt: float) -> tupl
 @pytest.mark.parametrize("plant, kind", [(TIC, "FOPDT"), (LIC, "IPDT")])
 def test_analysis_agrees_with_an_independent_computation(plant, kind):
     result, old = result_for(plant)
-    t0 = time.perf_counter()
     a = analyse(result, 1.4, old.as_json())
-    took = time.perf_counter() - t0
     model, point = a["model"], a["point"]
-    assert model["kind"] == kind and took < 2.0
+    assert model["kind"] == kind
     w0 = point["omega"]
     f0 = complex(point["re"], point["im"])
     assert abs(f0) == pytest.approx(point["gain"]) and math.degrees(np.angle(f0)) == pytest.approx(point["phase_deg"])
