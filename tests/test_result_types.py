@@ -12,7 +12,7 @@ import pytest
 from pydantic import TypeAdapter
 
 from api.models import LoopStatus, SessionSummary
-from autotuner.engine.design.point_design import design
+from autotuner.engine.design.point_design import Design, design
 from autotuner.engine.design.process_data import exact_point
 from autotuner.engine.experiment.relay import Identification
 from autotuner.engine.outcome import Code
@@ -34,7 +34,7 @@ RECORDS = (ResultRecord, PointRecord, GainsRecord, DesignRecord, ExperimentRecor
 
 
 def test_every_field_of_the_result_says_what_it_is() -> None:
-    for cls in (TuneResult, Trace, *RECORDS):
+    for cls in (TuneResult, Trace, Identification, Design, *RECORDS):
         for f in dataclasses.fields(cls):
             assert f.metadata.get("description"), f"{cls.__name__}.{f.name} has no description"
 

@@ -18,12 +18,13 @@ from __future__ import annotations
 
 import cmath
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
 from autotuner.engine.control.gains import Gains, forms_json
+from autotuner.engine.described import described
 from autotuner.engine.design.point_design import Design
 from autotuner.engine.experiment.point import Point
 from autotuner.engine.experiment.relay import Identification
@@ -31,36 +32,34 @@ from autotuner.engine.outcome import Code, is_failure
 
 
 def _f(description: str, example: Any) -> Any:
-    """A field's description (unit included) and one example (the demo's TIC-101), as pydantic reads them."""
-    return field(metadata={"description": description, "examples": [example]})
+    """A field's description (unit included) and one example (the demo's TIC-101)."""
+    return described(description, example=example)
 
 
 def _o(description: str) -> Any:
     """An optional field (absent in records written before it existed): null by default."""
-    return field(default=None, metadata={"description": description})
+    return described(description, None)
 
 
 @dataclass(frozen=True)
 class Trace:
     """Recorded samples: times (s), PV, and the MV held from each sample on."""
 
-    t: np.ndarray = field(metadata={"description": "sample times, plant seconds"})
-    pv: np.ndarray = field(metadata={"description": "PV at each sample, PV units"})
-    mv: np.ndarray = field(metadata={"description": "MV held from each sample on, MV units"})
+    t: np.ndarray = described("sample times, plant seconds")
+    pv: np.ndarray = described("PV at each sample, PV units")
+    mv: np.ndarray = described("MV held from each sample on, MV units")
 
 
 @dataclass(frozen=True)
 class TuneResult:
     """Outcome of one tuning; ``code`` is 0 on success, otherwise the error code shown in ``ite``."""
 
-    code: Code = field(metadata={"description": "outcome, the value ite shows once the tuning has ended"})
-    message: str = field(metadata={"description": "what happened, for people ('ok', or why not)"})
-    controller: str = field(metadata={"description": "controller type designed: PI or PID"})
-    identification: Identification | None = field(
-        metadata={"description": "what the experiment identified (point, static gain, length); None if nothing"})
-    design: Design | None = field(
-        metadata={"description": "gains with the model they were designed on, Ms there and notes; None if none"})
-    trace: Trace = field(metadata={"description": "the experiment's samples"})
+    code: Code = described("outcome, the value ite shows once the tuning has ended")
+    message: str = described("what happened, for people ('ok', or why not)")
+    controller: str = described("controller type designed: PI or PID")
+    identification: Identification | None = described("what the experiment identified (point, static gain, length); None if nothing")
+    design: Design | None = described("gains with the model they were designed on, Ms there and notes; None if none")
+    trace: Trace = described("the experiment's samples")
 
     @classmethod
     def failed(cls, code: Code, message: str, controller: str) -> TuneResult:
@@ -159,11 +158,11 @@ class ResultRecord:
     ite: int = _f("the outcome code (GET /codes): 0 ok, a warning with gains, or an error", 0)
     message: str = _f("what happened, for people", "ok")
     controller: str = _f("controller type designed: PI or PID", "PI")
-    point: PointRecord | None = field(metadata={"description": "the identified point (null: none)"})
+    point: PointRecord | None = described("the identified point (null: none)")
     static_gain: float | None = _f("static gain of the process, PV units per MV unit (null: integrating or not "
                                    "identified)", 1.478)
-    gains: GainsRecord | None = field(metadata={"description": "the designed gains (null: none)"})
-    experiment: ExperimentRecord = field(metadata={"description": "how long the experiment ran"})
+    gains: GainsRecord | None = described("the designed gains (null: none)")
+    experiment: ExperimentRecord = described("how long the experiment ran")
     design: DesignRecord | None = _o("the model the gains were designed on, Ms there and the notes (null: no gains, "
                                      "or a record written before this key existed)")
     forms: dict[str, Any] | None = _o("the gains in parallel {kp, ki, kd} and series {k, ti, td} form (series null "

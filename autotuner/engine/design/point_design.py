@@ -46,6 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from autotuner.engine.described import described
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.outcome import Code
 from autotuner.engine.plant.process import Process
@@ -80,27 +81,20 @@ _MS_SLACK = 1e-3
 
 @dataclass(frozen=True)
 class Design:
-    """Gains with the model they were designed on, what they achieve there, and what was given up.
+    """Gains with the model they were designed on, what they achieve there, and what was given up."""
 
-    model_ms: Ms on ``model``; ms_target: the Ms the gains were designed for
-    (the requested one, or raised for an unstable process); bound: the second
-    extreme model of the family (None if none); family: every model the design
-    held to its target (``model`` first); noise_gain: MV noise per PV noise,
-    the controller's high-frequency gain ``k`` (PI) or ``k(1 + N)`` (PID), MV
-    units per PV unit; notes: one sentence per target missed or action given
-    up, empty when the design met everything asked; warning: the outcome code
-    for the notes (``Code.OK`` when there are none).
-    """
-
-    gains: Gains
-    model: Process
-    model_ms: float
-    bound: Process | None
-    ms_target: float = 1.4
-    family: tuple[Process, ...] = ()
-    noise_gain: float = 0.0
-    notes: tuple[str, ...] = ()
-    warning: Code = Code.OK
+    gains: Gains = described("the designed gains (standard form, times in seconds)")
+    model: Process = described("the model the gains were designed on (plant seconds)")
+    model_ms: float = described("maximum sensitivity Ms of the gains on model")
+    bound: Process | None = described("the second extreme model of the family (None if none)")
+    ms_target: float = described("the Ms the gains were designed for: the requested one, or raised for an "
+                                 "unstable process", 1.4)
+    family: tuple[Process, ...] = described("every model the design held to its target (model first)", ())
+    noise_gain: float = described("MV noise per PV noise: the controller's high-frequency gain k (PI) or k(1 + N) "
+                                  "(PID), MV units per PV unit", 0.0)
+    notes: tuple[str, ...] = described("one sentence per target missed or action given up, empty when the design "
+                                       "met everything asked", ())
+    warning: Code = described("the outcome code for the notes (Code.OK when there are none)", Code.OK)
 
 
 def fit_model(point: Point, static_gain: float) -> Process:

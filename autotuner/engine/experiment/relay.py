@@ -32,6 +32,7 @@ from enum import Enum
 
 import numpy as np
 
+from autotuner.engine.described import described as _d
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
 from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
@@ -125,39 +126,27 @@ class RelayConfig:
 
 @dataclass(frozen=True)
 class Identification:
-    """What a successful experiment found.
+    """What a successful experiment found (each field's description says its unit)."""
 
-    static_gain: ``F(0)`` estimate (PV units per MV unit); ``inf`` when the
-        data cannot tell it from an integrating process (the mean MV shift is
-        too small to measure); negative for an open-loop unstable process.
-    duration: seconds from the first sample to the end; periods: ``duration``
-        in oscillation periods; hysteresis and noise_std in PV units
-        (noise_std: standard deviation of the measurement noise, estimated
-        from the whole experiment).
-    phase_target_deg: the process phase lag the phase filter aimed at,
-        degrees: the requested one, or a reachable one when the requested
-        phase was out of reach (``phase_moved`` then says so).
-    static_gain_std: standard error of ``static_gain`` (same units; ``inf``
-        for an integrating process or when unknown).
-    disturbance: a load step, drift or non-steady start was detected and
-        estimated through or discarded; periods_discarded: whole periods left
-        out of the estimates because of it; load_estimate: the load at the
-        process input at the end, in MV units (relative to the start).
-    """
-
-    point: Point
-    static_gain: float
-    duration: float
-    periods: float
-    samples: int
-    hysteresis: float
-    noise_std: float
-    phase_target_deg: float = 135.0
-    phase_moved: bool = False
-    static_gain_std: float = math.inf
-    disturbance: bool = False
-    periods_discarded: int = 0
-    load_estimate: float = 0.0
+    point: Point = _d("the identified point F(jω) of the process, ω in rad/s")
+    static_gain: float = _d("F(0) estimate, PV units per MV unit; inf when the data cannot tell it from an "
+                            "integrating process (the mean MV shift is too small to measure); negative for an "
+                            "open-loop unstable process")
+    duration: float = _d("seconds from the first sample to the end")
+    periods: float = _d("the duration in oscillation periods")
+    samples: int = _d("samples taken")
+    hysteresis: float = _d("the relay's hysteresis, PV units")
+    noise_std: float = _d("standard deviation of the measurement noise estimated from the whole experiment, "
+                          "PV units")
+    phase_target_deg: float = _d("the process phase lag the phase filter aimed at, degrees: the requested one, "
+                                 "or a reachable one when the requested phase was out of reach", 135.0)
+    phase_moved: bool = _d("the target was moved from the requested phase (out of reach)", False)
+    static_gain_std: float = _d("standard error of static_gain, PV units per MV unit (inf for an integrating "
+                                "process or when unknown)", math.inf)
+    disturbance: bool = _d("a load step, drift or non-steady start was detected and estimated through or "
+                           "discarded", False)
+    periods_discarded: int = _d("whole periods left out of the estimates because of a disturbance", 0)
+    load_estimate: float = _d("the load at the process input at the end relative to the start, MV units", 0.0)
 
 
 @dataclass(frozen=True)
