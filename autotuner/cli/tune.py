@@ -263,7 +263,8 @@ def tune_command(
         def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
             return tune_configured(loop, request, on_status)
     elif link is not None:
-        from autotuner.service.remote_tuning import LINK_TIME_LIMIT, tune_url
+        from autotuner.service.link_session import tune_link
+        from autotuner.service.remote_tuning import LINK_TIME_LIMIT, field_config, open_link, tune_opened
 
         if ts is None:
             bad_input("--link needs --ts, the loop's sample time in seconds")
@@ -276,9 +277,10 @@ def tune_command(
         config = _config(amp, hysteresis, phase, time_limit or LINK_TIME_LIMIT, limits)
         sample_time = ts
 
-        def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
-            return tune_url(link, config, ts, controller.value, ms, apply,
-                            None if map_file is None else str(map_file), None if dbc is None else str(dbc), on_status)
+        async def start(on_status: Callable[[Status], None] | None) -> TuneResult:
+            opened = open_link(link, None if map_file is None else str(map_file), None if dbc is None else str(dbc))
+            return await tune_opened(opened, controller.value, lambda on: tune_link(
+                on, field_config(config), ts, controller.value, ms, apply, on_status=on_status))
     elif via is not None:
         from autotuner.service.remote_tuning import default_via_speed, tune_via
 

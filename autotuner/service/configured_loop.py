@@ -17,6 +17,7 @@ from drivers.simplc import run
 from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
 from autotuner.service.daemon import connector, relay_config, settings_of, simulated_plc
 from autotuner.engine.experiment.relay import Status
+from autotuner.service.link_session import tune_link
 from autotuner.service.remote_tuning import tune_opened
 from autotuner.engine.result import TuneResult
 
@@ -42,8 +43,9 @@ async def tune_configured(
     halt = asyncio.Event()
     plant = None if plc is None else asyncio.create_task(run(plc, loop.speed, halt))
     try:
-        return await tune_opened(connector(loop, plc)(), relay_config(loop, settings), loop.ts, settings.controller,
-                                 settings.ms, settings.apply, loop.speed, on_status)
+        return await tune_opened(connector(loop, plc)(), settings.controller, lambda link: tune_link(
+            link, relay_config(loop, settings), loop.ts, settings.controller, settings.ms, settings.apply, loop.speed,
+            on_status=on_status))
     finally:
         halt.set()
         if plant is not None:

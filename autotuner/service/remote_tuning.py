@@ -1,7 +1,8 @@
 """Tuning through a field link: a device at a URL, or a simulated plant behind a real protocol stack.
 
 ``modbus://HOST:PORT[/UNIT]`` and ``can://INTERFACE/CHANNEL`` name a loop;
-:func:`tune_url` tunes it in real time. :func:`tune_via` serves a simulated
+:func:`open_link` makes its link, :func:`tune_opened` opens it and runs a session
+on it (:func:`~autotuner.service.link_session.tune_link`). :func:`tune_via` serves a simulated
 plant (a process under a PID unit) over a real in-process Modbus TCP server
 on an ephemeral localhost port or on a python-can virtual bus, and tunes it
 through the same link code — the self-test of an installation.
@@ -13,7 +14,7 @@ import asyncio
 import contextlib
 import os
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -79,39 +80,15 @@ def open_link(url: str, map_path: str | None = None, dbc_path: str | None = None
     )
 
 
-async def tune_url(
-    url: str,
-    config: RelayConfig,
-    ts: float,
-    controller: str = "PI",
-    ms: float = 1.4,
-    apply: bool = False,
-    map_path: str | None = None,
-    dbc_path: str | None = None,
-    on_status: Callable[[Status], None] | None = None,
-) -> TuneResult:
-    """Tune the loop at ``url`` in real time, sampling every ``ts`` seconds."""
-    return await tune_opened(open_link(url, map_path, dbc_path), field_config(config), ts, controller, ms, apply,
-                             on_status=on_status)
-
-
-async def tune_opened(
-    link: Link,
-    config: RelayConfig,
-    ts: float,
-    controller: str = "PI",
-    ms: float = 1.4,
-    apply: bool = False,
-    speed: float = 1.0,
-    on_status: Callable[[Status], None] | None = None,
-) -> TuneResult:
-    """Open ``link``, tune its loop (:func:`~autotuner.service.link_session.tune_link`), close it; code 7 if it cannot open."""
+async def tune_opened(link: Link, controller: str, session: Callable[[Link], Awaitable[TuneResult]]) -> TuneResult:
+    """Open ``link``, run ``session`` on it (a :func:`~autotuner.service.link_session.tune_link` call), close it;
+    code 7 naming why if it cannot open (``controller``: the one the failed result names)."""
     try:
         await link.open()
     except LinkError as exc:
         return TuneResult.failed(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", controller)
     try:
-        return await tune_link(link, config, ts, controller, ms, apply, speed, on_status=on_status)
+        return await session(link)
     finally:
         await link.close()
 
@@ -176,8 +153,8 @@ async def tune_via(
     """Serve ``process`` over ``transport`` ("modbus" or "can") and tune it through the real link."""
     plc = SimulatedPlc(process, ts=ts / PLANT_TICKS_PER_SAMPLE, noise_std=noise, seed=seed)
     async with served(plc, transport, speed) as (url, _):
-        return await tune_opened(open_link(url), field_config(config), ts, controller, ms, speed=speed,
-                                 on_status=on_status)
+        return await tune_opened(open_link(url), controller, lambda link: tune_link(
+            link, field_config(config), ts, controller, ms, speed=speed, on_status=on_status))
 
 
 @dataclass(frozen=True)
