@@ -256,8 +256,8 @@ async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS,
         child.join(10)
         if child.is_alive():
             child.kill()
-    results = {loop_id: item.result or {} for loop_id, item in manager.loops.items()}
-    failures = {loop_id: r.get("message", "no result") for loop_id, r in results.items() if r.get("ite") != 0}
+    failures = {loop_id: "no result" if item.result is None else item.result.message
+                for loop_id, item in manager.loops.items() if item.result is None or item.result.ite != 0}
     late = 1e3 * np.concatenate([lateness(link.starts, link.done, ts / speed) for link in links if link.session]
                                 + [np.zeros(0)])
     p50, p99 = np.percentile(late, [50, 99]) if late.size else (float("nan"),) * 2
