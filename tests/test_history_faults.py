@@ -25,6 +25,7 @@ from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.modbus_server import ModbusPlcServer, serve_modbus
 from drivers.simplc import SimulatedPlc, run
 from helpers import Daemon
+from test_handback import Plc, daemon as handback_daemon, history_row, wait_for
 
 PLANT = "exp(-s)/(2*s+1)"
 SPEED = 10.0
@@ -81,12 +82,14 @@ def test_a_history_locked_by_another_process_never_leaves_a_loop_busy_nor_stalls
                 assert httpx.get(f"{daemon.base}/loops", headers=daemon.headers, timeout=30).status_code == 200
                 worst = max(worst, time.monotonic() - start)
             assert worst < 1.0, worst
-            # TUNE while locked: accepted, never 500 (its records wait in the history's thread); TBRK ends it.
+            # TUNE while locked: accepted, never 500 (its records wait in the history's thread); its saved state
+            # cannot be recorded, so it ends before it touches the loop (TBRK meanwhile changes nothing).
             second = httpx.post(f"{daemon.base}/loops/B/tune", headers=daemon.headers)
             assert second.status_code == 202, second.text
             assert httpx.post(f"{daemon.base}/loops/B/break", headers=daemon.headers).status_code == 202
             daemon.wait_until(lambda: not status(daemon, "B")["tbsy"], 60, "B idle with the history locked")
             assert status(daemon, "B")["mode"] == "AUTO"
+            assert status(daemon, "B")["ite"] == Code.HISTORY_UNAVAILABLE
             assert "retrying" in daemon.log()
         # The lock released: the retried writes land, the history agrees with what happened.
         def recorded() -> bool:
@@ -97,9 +100,47 @@ def test_a_history_locked_by_another_process_never_leaves_a_loop_busy_nor_stalls
         record = httpx.get(f"{daemon.base}/sessions/{first}", headers=daemon.headers).json()
         assert record["code"] == Code.ABORTED and record["saved"]["mode"] == "AUTO"
         b = httpx.get(f"{daemon.base}/sessions/{second.json()['session']}", headers=daemon.headers).json()
-        assert b["state"] == "finished" and b["code"] == Code.ABORTED
+        assert b["state"] == "finished" and b["code"] == Code.HISTORY_UNAVAILABLE
         assert "written after" in daemon.log()
     assert "Traceback" not in daemon.log()
+
+
+def test_a_saved_state_that_cannot_be_recorded_ends_the_session_before_it_touches_the_loop(tmp_path: Path):
+    """TUNE while another process locks the history: the session must not take the loop over without its saved
+    state on record (a crash would leave nothing to restore it from), so it ends untouched. An external simulated
+    PLC, read by a separate Modbus client from the TUNE to the end of the session."""
+    plc = Plc(tmp_path)
+    try:
+        with handback_daemon(tmp_path, plc) as d:
+            before = plc.read()
+            assert before["mode"] == "AUTO" and before["tbsy"] is False
+            seen: list[dict] = []
+
+            def ended() -> bool:
+                seen.append(plc.read())
+                return d.status()["tbsy"] is False
+
+            with locked(d.history):
+                sid = d.tune()
+                wait_for(ended, 90, "the session to end with the history locked")
+                status = d.status()
+                seen.append(plc.read())
+            assert len(seen) > 10
+            for now in seen:  # never MAN, never the relay's MV, no TBSY, no watchdog: nothing written to the loop
+                assert (now["mode"], now["hv"], now["tbsy"], now["wd_time"]) == ("AUTO", before["hv"], False, 0.0), now
+            assert status["ite"] == Code.HISTORY_UNAVAILABLE and status["te"] is True, status
+            assert "saved state could not be recorded" in status["message"], status
+            assert "ends without touching the loop: its saved state is not recorded" in d.output()
+            # The lock gone, the session's records land: ended untouched, with its code.
+            def recorded() -> bool:  # the begin is in once the lock is gone and its retry comes round
+                with sqlite3.connect(d.history) as db:
+                    row = db.execute("SELECT state FROM sessions WHERE id = ?", (sid,)).fetchone()
+                return row is not None and row[0] == "finished"
+
+            wait_for(recorded, 150, "the session's end recorded")
+            assert history_row(d.history, sid)["result"]["ite"] == int(Code.HISTORY_UNAVAILABLE)
+    finally:
+        plc.close()
 
 
 class ThreadedPlc:

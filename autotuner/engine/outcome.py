@@ -43,6 +43,8 @@ class Code(IntEnum):
     REFUSED_BAD_PV = 24
     REFUSED_LINK = 25
     REFUSED_DEVICE_BUSY = 26
+    # The session's start: the saved state could not be recorded durably, so the loop is not touched.
+    HISTORY_UNAVAILABLE = 27
 
 
 MESSAGES: dict[Code, str] = {
@@ -60,6 +62,8 @@ MESSAGES: dict[Code, str] = {
     Code.REFUSED_BAD_PV: "refused: the PV is not a finite, fresh value (the loop is untouched)",
     Code.REFUSED_LINK: "refused: the link to the loop is not healthy (the loop is untouched)",
     Code.REFUSED_DEVICE_BUSY: "refused: the device already shows TBSY, another tuner owns the loop (untouched)",
+    Code.HISTORY_UNAVAILABLE: "refused: the loop's saved state could not be recorded in the history (the loop is "
+                              "untouched)",
     Code.DISTURBANCE: (
         "a load disturbance or drift too large for the experiment: following it needs more than ±amp "
         "of MV shift, or it never settled within the time limit"

@@ -412,8 +412,8 @@ class LoopManager:
         for loop in self.loops.values():
             if loop.plc is not None:
                 self._plants.append(asyncio.create_task(run(loop.plc, loop.config.speed, self._halt)))
-        recovered = [loop for record in (*self.history.running(), *self.history.not_restored())
-                     if (loop := self._recover(record)) is not None]
+        left = await self._record(lambda: (*self.history.running(), *self.history.not_restored()))
+        recovered = [loop for record in left if (loop := self._recover(record)) is not None]
         done = await asyncio.gather(*(self._try_restore(loop) for loop in recovered))
         for loop, ok in zip(recovered, done):
             if not ok:
@@ -467,7 +467,8 @@ class LoopManager:
         for loop in self.loops.values():
             loop.watcher = loop.restorer = None
             if loop.task is not None and loop.session is not None:  # its hand-back did not end within the bound
-                self.history.finish(loop.session, TuneResult.failed(
+                # In the history's thread after the session's earlier records; stop() waits for it before the exit.
+                self._record(self.history.finish, loop.session, TuneResult.failed(
                     Code.LOOP_NOT_RESTORED, "the daemon stopped before the loop was handed back",
                     "PI").record(), None, None, "not_restored")
                 unrestored.append(loop.config.id)
@@ -524,8 +525,14 @@ class LoopManager:
 
     async def _durable(self, method: Callable[..., Any], *args: Any) -> str:
         """Record ``method(*args)`` and wait up to :data:`RECORD_WAIT` s; '' once recorded, else why not."""
+        return await self._waited(self._record(method, *args))
+
+    @staticmethod
+    async def _waited(record: asyncio.Future[Any]) -> str:
+        """Wait up to :data:`RECORD_WAIT` s for a write of :meth:`_record` (it goes on after); '' once recorded,
+        else why not."""
         try:
-            await asyncio.wait_for(asyncio.shield(self._record(method, *args)), RECORD_WAIT)
+            await asyncio.wait_for(asyncio.shield(record), RECORD_WAIT)
         except asyncio.TimeoutError:
             return f"the history did not record it within {RECORD_WAIT:g} s (still retried)"
         except Exception as exc:  # the history's error after its retries (logged by _recorded)
@@ -746,10 +753,16 @@ class LoopManager:
         restore_error = ""
         pending: Pending | None = None
 
-        def on_saved(saved: LoopState, relay_levels: tuple[float, float]) -> None:
+        async def on_saved(saved: LoopState, relay_levels: tuple[float, float]) -> str:
+            """Durably, before the session touches the loop (after the begin, in the history's thread)."""
             nonlocal levels
+            why = await self._durable(self.history.saved, sid, saved, relay_levels)
+            if why:
+                log.error("loop %s: session %s ends without touching the loop: its saved state is not recorded (%s)",
+                          loop.config.id, sid, why)
+                return why
             loop.saved, levels = saved, relay_levels
-            self._record(self.history.saved, sid, saved, relay_levels)  # in the history's thread, after the begin
+            return ""
 
         def on_handed_back(error: str) -> None:
             nonlocal restore_error
@@ -973,8 +986,8 @@ class LoopManager:
             elif loop is None:
                 message += f"; loop {record['loop']!r} is no longer configured: check it by hand"
             result = TuneResult.failed(Code.ABORTED, message, record["request"].get("controller", "PI")).record()
-            self.history.finish(record["id"], result, None, None,
-                                "not_restored" if saved is not None and loop is not None else "interrupted")
+            self._record(self.history.finish, record["id"], result, None, None,
+                         "not_restored" if saved is not None and loop is not None else "interrupted")
             code, final = Code.ABORTED, "interrupted"
         else:
             result = record["result"]
@@ -1041,12 +1054,18 @@ class LoopManager:
             return False
         finally:
             await link.close()
-        self.history.restored(p.sid, p.final, message, int(code))
-        loop.pending = None
-        if loop.result is not None:
-            loop.result = replace(loop.result, ite=int(code), te=True, message=f"{loop.result.message}; {message}")
-        loop.latest = self.history.latest(loop_id)
-        self._publish(loop, "state", loop.as_json())
+        # In the history's thread, after the session's end (a write queued before it, e.g. one retried while the
+        # database is locked): the event loop never waits on the database, and the records keep their order.
+        written = self._record(self.history.restored, p.sid, p.final, message, int(code))
+        try:  # shown restored once recorded (bounded; not during a shutdown, whose bound is for the hand-backs)
+            if not self._stopping and (why := await self._waited(written)):
+                log.error("loop %s: the restore of session %s is not recorded yet: %s", loop_id, p.sid, why)
+        finally:  # cancelled while waiting (a shutdown): the loop is dealt with all the same
+            loop.pending = None
+            if loop.result is not None:
+                loop.result = replace(loop.result, ite=int(code), te=True, message=f"{loop.result.message}; {message}")
+            self._refresh_latest(loop)
+            self._publish(loop, "state", loop.as_json())
         return True
 
 

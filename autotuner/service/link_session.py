@@ -26,7 +26,7 @@ import os
 import threading
 import time
 import math
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -187,15 +187,19 @@ async def tune_link(
     stop: asyncio.Event | None = None,
     on_status: Callable[[Status], None] | None = None,
     handback: HandBack | None = None,
-    on_saved: Callable[[LoopState, tuple[float, float]], None] | None = None,
+    on_saved: Callable[[LoopState, tuple[float, float]], Awaitable[str]] | None = None,
     on_handed_back: Callable[[str], None] | None = None,
 ) -> TuneResult:
     """Run the experiment on the loop behind ``link`` every ``ts`` plant seconds and design ``controller``.
 
     ``handback``: how the loop is handed back (default :class:`HandBack`());
     its watchdog time is wall seconds, written to the device as ``speed``
-    times as many device seconds. ``on_saved(saved, relay_levels)`` is called
-    once the loop's state is read, before the loop is touched.
+    times as many device seconds. ``on_saved(saved, relay_levels)`` is awaited
+    once the loop's state is read, before the loop is touched: it records the
+    saved state durably and returns '' — or why it could not, and the session
+    then ends without touching the loop (HISTORY_UNAVAILABLE): a loop taken
+    over without its saved state on record could not be restored after a
+    crash. A ``stop`` set by then also ends it untouched (ABORTED).
     """
     handback = HandBack() if handback is None else handback
     if not ts > 0.0 or not speed > 0.0:
@@ -206,8 +210,10 @@ async def tune_link(
         return TuneResult.failed(Code.LINK_FAULT, f"cannot read the loop: {exc}", controller)
 
     experiment = RelayExperiment(config, mv0=saved.mv)
-    if on_saved is not None:
-        on_saved(saved, experiment.levels)
+    if on_saved is not None and (why := await on_saved(saved, experiment.levels)):
+        return TuneResult.failed(Code.HISTORY_UNAVAILABLE, f"{MESSAGES[Code.HISTORY_UNAVAILABLE]}: {why}", controller)
+    if stop is not None and stop.is_set():
+        return TuneResult.failed(Code.ABORTED, f"{MESSAGES[Code.ABORTED]} before the loop was touched", controller)
     times: list[float] = []
     pvs: list[float] = []
     mvs: list[float] = []
