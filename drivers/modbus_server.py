@@ -142,6 +142,7 @@ class ModbusPlcServer:
     async def start(self) -> None:
         framer = FramerType.RTU if self.rtu_framing else FramerType.SOCKET
         server = ModbusTcpServer(self._device(), framer=framer, address=(self.host, self._requested_port))
+        self._refuse_unmapped_bit_reads(server)
         await server.serve_forever(background=True)
         self._server = server
         sockets = getattr(server.transport, "sockets", None) or []
@@ -184,6 +185,30 @@ class ModbusPlcServer:
 
     # -- the live datastore ------------------------------------------------------
 
+    def _mapped_bits(self, table: str, address: int, count: int) -> bool:
+        """Whether every bit ``address`` .. ``address + count - 1`` of ``table`` is a signal of the map."""
+        return count > 0 and all(a in self._bits[table] for a in range(address, address + count))
+
+    def _refuse_unmapped_bit_reads(self, server: ModbusTcpServer) -> None:
+        """A read of coils or discrete inputs that runs into an unmapped bit answers exception 2 (docs/modbus.md).
+
+        pymodbus keeps bits in 16-bit words and tells the datastore's action only the words a read touches, so
+        the action cannot see how many bits were asked for; the server's datastore entry point still has the
+        request's bit count, and the check is made there (writes carry their bits: the action checks those).
+        """
+        core = server.context
+        served = core.async_getValues
+
+        async def get_values(device_id: int, func_code: int, address: int, count: int = 1) -> object:
+            table = _FC_TABLE.get(func_code)
+            if table in BIT_TABLES and not self._mapped_bits(table, address, count):
+                if self._hang:
+                    await self._release.wait()
+                return ExcCodes.ILLEGAL_ADDRESS
+            return await served(device_id, func_code, address, count)
+
+        core.async_getValues = get_values  # type: ignore[method-assign]
+
     async def _action(self, func_code: int, start: int, address: int, count: int,
                       registers: list[int], values: list[int] | list[bool] | None) -> ExcCodes | None:
         if self._hang:
@@ -193,9 +218,9 @@ class ModbusPlcServer:
             return ExcCodes.ILLEGAL_FUNCTION
         if table in BIT_TABLES:
             # pymodbus keeps bits in 16-bit words, so the neighbours of a mapped bit would answer: the map's don't.
-            # (For a read pymodbus passes the count in words: the first bit is what can be checked.)
+            # (A read's bit count is checked before, in _refuse_unmapped_bit_reads: here it is in words.)
             bits = len(values) if values is not None else 1
-            if not all(a in self._bits[table] for a in range(address, address + bits)):
+            if not self._mapped_bits(table, address, bits):
                 return ExcCodes.ILLEGAL_ADDRESS
         writing = values is not None
         if self._fail is not None and (not writing or self._fail_writes):

@@ -41,10 +41,31 @@ def test_unmapped_coils_answer_exception_2_and_mapped_ones_work():
             assert written.isError() and written.exception_code == 2, coil
         many = await client.write_coils(2, [True, True, True], device_id=1)  # 2, 3 mapped; 4 is not
         assert many.isError() and many.exception_code == 2 and plc.flags.tbsy is False
+        # Range reads that run into unmapped coils (inside the first 16-bit word and past it) are refused too.
+        for first, count in ((0, 5), (3, 2), (2, 8), (0, 16), (0, 17), (15, 2)):
+            read = await client.read_coils(first, count=count, device_id=1)
+            assert read.isError() and read.exception_code == 2, (first, count)
+        assert (await client.read_discrete_inputs(0, count=1, device_id=1)).exception_code == 2  # none mapped
+        for first, count in ((0, 4), (1, 3), (3, 1)):
+            read = await client.read_coils(first, count=count, device_id=1)
+            assert not read.isError() and len(read.bits) >= count, (first, count)
         assert not (await client.read_coils(0, count=4, device_id=1)).isError()
         assert not (await client.write_coil(2, True, device_id=1)).isError() and plc.flags.tbsy is True
 
     asyncio.run(_with_server(body))
+
+
+def test_the_simulated_plc_process_refuses_range_reads_into_unmapped_coils(tmp_path):
+    """The same on `autotuner sim --modbus` as a process, read by a client of its own."""
+    from test_handback import Plc
+
+    plc = Plc(tmp_path)
+    try:
+        into = plc.client.read_coils(0, count=5, device_id=1)
+        assert into.isError() and into.exception_code == 2
+        assert not plc.client.read_coils(0, count=4, device_id=1).isError()
+    finally:
+        plc.close()
 
 
 def test_only_its_own_unit_id_answers_with_data():
