@@ -167,7 +167,7 @@ def test_a_session_left_running_by_a_crash_is_closed_and_its_loop_restored(tmp_p
     crashed = History(path)
     saved = LoopState(mode=Mode.AUTO, mv=50.0, sp=50.0, gains=Gains(k=0.7, ti=3.0))
     crashed.begin("s1", "A", "alice", {"controller": "PI", "amp": 5.0})
-    crashed.saved("s1", saved)
+    crashed.saved("s1", saved, (47.0, 55.0))  # with the relay's levels, as the daemon records them
     crashed.begin("s0", "B", "alice", {"controller": "PI"})  # never touched its loop
     crashed.close()
 

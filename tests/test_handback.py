@@ -300,7 +300,11 @@ def test_sigkill_then_the_device_watchdog_hands_the_loop_back(tmp_path, plc):
     # The PV has drifted for the watchdog's time at a relay level, so the PI moves faster after the switch: twice the
     # tolerance, still well below the bump.
     assert abs(auto["mv"] - SAVED_MV) < 2 * FIRST_AUTO_TOL, auto
-    assert auto["tbsy"] is False and auto["te"] is True and auto["ite"] == float(Code.WATCHDOG_FALLBACK)
+    # The flags from a read after that one: Plc.read() takes the coils, then the mode, in separate requests, so the
+    # first AUTO reading may hold the coils of the tick before the fallback (tbsy still 1); the fallback sets mode and
+    # flags in one tick, and with the daemon dead nothing writes them after.
+    now = plc.read()
+    assert now["tbsy"] is False and now["te"] is True and now["ite"] == float(Code.WATCHDOG_FALLBACK), now
     # The next start finds it handed back: nothing written, recorded.
     with daemon(tmp_path, plc, watchdog=1.5) as d:
         row = wait_for(lambda: (r := history_row(d.history, sid))["state"] != "running" and r, WAIT, "recovery")
