@@ -505,6 +505,9 @@ function loopView(id) {
     experiment = null;
     for (let i = 0; i < r.time.length; i++) push(r.time[i], r.pv[i], r.sp[i], r.mv[i], r.relay[i]);
     if (r.time.length) trim(r.time[r.time.length - 1]);
+    // After a daemon restart the status names no session yet, the replay its newest one (from the history): the
+    // result card shows that one, as it would have before the restart.
+    if (r.session && loop && !loop.session && !loop.tbsy && shownSession !== r.session) showResult(r.session);
     schedule();
   }
 

@@ -423,6 +423,10 @@ class LoopManager:
         self._polling = True
         for loop_id, loop in self.loops.items():
             loop.latest = await self._record(self.history.latest, loop_id)
+            if loop.latest is not None:  # its trace, so a page opened after the restart draws the last experiment
+                record = await self._record(self.history.get, loop.latest["id"])
+                if record is not None:
+                    loop.trend.seed(record, loop.config.speed)
         for loop in self.loops.values():  # no await between these and the return: a subscriber sees the first reading
             loop.watcher = asyncio.create_task(self._watch(loop))
 
