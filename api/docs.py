@@ -42,36 +42,20 @@ DOCS_POLICY = ("default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-
                "connect-src 'self'; frame-ancestors 'none'; base-uri 'none'; form-action 'self'; object-src 'none'")
 REDOC_POLICY = f"{DOCS_POLICY}; worker-src 'self' blob:"
 
+# A docs page: its title, an extra line in the head (a style sheet), the root element and the two scripts (the
+# bundle, then ours that starts it on the OpenAPI document).
 _PAGE = """<!doctype html>
 <html lang="en">
 <head>
   <meta charset="utf-8">
   <meta name="viewport" content="width=device-width, initial-scale=1">
-  <title>{title} · API</title>
-  <link rel="icon" href="docs/assets/favicon.png">
-  <link rel="stylesheet" href="docs/assets/swagger-ui.css">
+  <title>{title}</title>
+  <link rel="icon" href="docs/assets/favicon.png">{head}
 </head>
 <body>
-  <div id="swagger-ui" data-openapi="openapi.json"></div>
-  <script src="docs/assets/swagger-ui-bundle.js"></script>
-  <script src="docs/docs-init.js"></script>
-</body>
-</html>
-"""
-
-
-_REDOC_PAGE = """<!doctype html>
-<html lang="en">
-<head>
-  <meta charset="utf-8">
-  <meta name="viewport" content="width=device-width, initial-scale=1">
-  <title>{title} · API reference</title>
-  <link rel="icon" href="docs/assets/favicon.png">
-</head>
-<body>
-  <div id="redoc" data-openapi="openapi.json"></div>
-  <script src="docs/redoc.standalone.js"></script>
-  <script src="docs/redoc-init.js"></script>
+  <div id="{root}" data-openapi="openapi.json"></div>
+  <script src="{bundle}"></script>
+  <script src="{init}"></script>
 </body>
 </html>
 """
@@ -96,8 +80,10 @@ def install(app: FastAPI, prefix: str) -> None:
     """Serve Swagger UI at ``{prefix}/docs``, ReDoc at ``{prefix}/redoc`` and their files below ``{prefix}/docs/``
     (relative URLs: works behind a proxy's path)."""
     router = APIRouter(prefix=prefix, include_in_schema=False)
-    page = _PAGE.format(title=app.title)
-    redoc_page = _REDOC_PAGE.format(title=app.title)
+    page = _PAGE.format(title=f"{app.title} · API", head='\n  <link rel="stylesheet" href="docs/assets/swagger-ui.css">',
+                        root="swagger-ui", bundle="docs/assets/swagger-ui-bundle.js", init="docs/docs-init.js")
+    redoc_page = _PAGE.format(title=f"{app.title} · API reference", head="", root="redoc",
+                              bundle="docs/redoc.standalone.js", init="docs/redoc-init.js")
 
     @router.get("/docs")
     async def docs() -> HTMLResponse:

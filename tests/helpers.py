@@ -4,12 +4,14 @@ condition, the distribution's Chromium."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import shutil
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -41,6 +43,29 @@ def chromium_path() -> str:
         pytest.fail("the browser tests need Chromium: apt-get install chromium (Debian), or set AUTOTUNER_CHROMIUM "
                     "to its executable", pytrace=False)
     return path
+
+
+@contextlib.contextmanager
+def logged_in_page(url: str, token: str, timeout_ms: float = 90_000) -> Iterator[Any]:
+    """A Playwright page of headless Chromium (1400×900) on the operator page at ``url``, logged in with ``token``
+    (the overview shown); at the exit, an AssertionError if the page had a JavaScript error."""
+    from playwright.sync_api import sync_playwright
+
+    errors: list[str] = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium_path(), args=CHROMIUM_ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.set_default_timeout(timeout_ms)
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.goto(url)
+            page.fill("#token", token)
+            page.click("#login button[type=submit]")
+            page.wait_for_selector("#loops tbody tr")
+            yield page
+        finally:
+            browser.close()
+    assert not errors, f"JavaScript errors on the page: {errors[:3]}"
 
 
 class Daemon:

@@ -9,6 +9,7 @@ import queue
 import socket
 import threading
 import time
+from collections.abc import Iterator
 
 import httpx
 import pytest
@@ -178,21 +179,27 @@ def server():
         sock.close()
 
 
+def sse(stream: httpx.Response) -> Iterator[tuple[str, dict]]:
+    """The (event type, data) pairs of a Server-Sent Events response as they arrive."""
+    assert stream.headers["content-type"].startswith("text/event-stream")
+    kind = "message"
+    for line in stream.iter_lines():
+        if line.startswith("event: "):
+            kind = line[7:]
+        elif line.startswith("data: "):
+            yield kind, json.loads(line[6:])
+
+
 def test_events_stream_samples_and_state_changes():
     with server() as url, httpx.Client(base_url=url + API, headers=auth(OPERATOR), timeout=30) as http:
         events: list[tuple[str, dict]] = []
         with http.stream("GET", "/loops/TIC-101/events") as stream:
-            assert stream.headers["content-type"].startswith("text/event-stream")
-            kind = None
-            for line in stream.iter_lines():
-                if line.startswith("event: "):
-                    kind = line[7:]
-                elif line.startswith("data: "):
-                    events.append((kind, json.loads(line[6:])))
-                    if len(events) == 2:
-                        assert http.post("/loops/TIC-101/tune").status_code == 202
-                    if sum(k == "sample" for k, _ in events) >= 40:
-                        break
+            for event in sse(stream):
+                events.append(event)
+                if len(events) == 2:
+                    assert http.post("/loops/TIC-101/tune").status_code == 202
+                if sum(k == "sample" for k, _ in events) >= 40:
+                    break
         assert http.post("/loops/TIC-101/break").status_code == 202
     # The stream opens with the state and the replay of the trend kept (here the monitor's readings so far); then
     # state, sample (monitor or experiment) events only.
@@ -216,20 +223,15 @@ def test_the_overview_stream_carries_every_loops_state_and_throttled_live_values
         events: list[tuple[str, dict]] = []
         tuning_since = None
         with http.stream("GET", "/events") as stream:
-            assert stream.headers["content-type"].startswith("text/event-stream")
-            kind = None
-            for line in stream.iter_lines():
-                if line.startswith("event: "):
-                    kind = line[7:]
-                elif line.startswith("data: "):
-                    events.append((kind, json.loads(line[6:])))
-                    if len(events) == 3:
-                        assert httpx.post(f"{url}{API}/loops/TIC-101/tune", headers=auth(OPERATOR)).status_code == 202
-                    if kind == "state" and events[-1][1]["id"] == "TIC-101" and events[-1][1]["tbsy"]:
-                        tuning_since = tuning_since or time.monotonic()
-                    # 3 s of wall time into the tuning: many experiment samples (about 20 a second), few live events.
-                    if tuning_since is not None and time.monotonic() > tuning_since + 3.0:
-                        break
+            for kind, data in sse(stream):
+                events.append((kind, data))
+                if len(events) == 3:
+                    assert httpx.post(f"{url}{API}/loops/TIC-101/tune", headers=auth(OPERATOR)).status_code == 202
+                if kind == "state" and data["id"] == "TIC-101" and data["tbsy"]:
+                    tuning_since = tuning_since or time.monotonic()
+                # 3 s of wall time into the tuning: many experiment samples (about 20 a second), few live events.
+                if tuning_since is not None and time.monotonic() > tuning_since + 3.0:
+                    break
         assert httpx.post(f"{url}{API}/loops/TIC-101/break", headers=auth(OPERATOR)).status_code == 202
     # Opens with every loop's state in the config's order (the status of GET /loops/{id}); then state and live only.
     assert [k for k, _ in events[:3]] == ["state"] * 3

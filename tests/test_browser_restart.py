@@ -7,14 +7,11 @@ from datetime import datetime
 
 import httpx
 import yaml
-from playwright.sync_api import sync_playwright
 
 from autotuner.service.demo import demo_config
-from helpers import CHROMIUM_ARGS, Daemon, chromium_path
+from helpers import Daemon, logged_in_page
 
 TOKEN = "restart-operator-token"
-# Generous: the plant runs in real time (scaled) on a machine shared with the rest of the suite.
-TIMEOUT_MS = 90_000
 
 
 def test_a_finished_sessions_trend_and_result_survive_a_daemon_restart(tmp_path):
@@ -27,20 +24,11 @@ def test_a_finished_sessions_trend_and_result_survive_a_daemon_restart(tmp_path)
         sid = httpx.post(f"{first.base}/loops/TIC-101/tune", headers=first.headers, timeout=30).json()["session"]
         first.wait_until(lambda: not httpx.get(f"{first.base}/loops/TIC-101", headers=first.headers,
                                                timeout=30).json()["tbsy"], 120, "the tuning to end")
-    with Daemon(path, TOKEN) as second, sync_playwright() as p:
+    with Daemon(path, TOKEN) as second:
         record = httpx.get(f"{second.base}/sessions/{sid}", headers=second.headers, timeout=30).json()
         assert record["outcome"] == "success" and len(record["trace"]["t"]) > 100, record["message"]
         assert httpx.get(f"{second.base}/loops/TIC-101", headers=second.headers, timeout=30).json()["session"] is None
-        browser = p.chromium.launch(executable_path=chromium_path(), args=CHROMIUM_ARGS)
-        errors: list[str] = []
-        try:
-            page = browser.new_page(viewport={"width": 1400, "height": 900})
-            page.set_default_timeout(TIMEOUT_MS)
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(f"http://127.0.0.1:{second.port}/")
-            page.fill("#token", TOKEN)
-            page.click("#login button[type=submit]")
-            page.wait_for_selector("#loops tr[data-loop=TIC-101]")
+        with logged_in_page(f"http://127.0.0.1:{second.port}/", TOKEN) as page:
             page.goto(f"http://127.0.0.1:{second.port}/#/loop/TIC-101")
             # The experiment, from its first stored sample, with the relay's output; then the new monitor readings.
             page.wait_for_selector("#trend[data-experiment-start]:not([data-experiment-start=''])")
@@ -53,6 +41,3 @@ def test_a_finished_sessions_trend_and_result_survive_a_daemon_restart(tmp_path)
             page.wait_for_selector(f"#result a[href='#/session/{sid}']")
             page.wait_for_selector("#result #nyquist [data-role=point]")
             assert page.locator("#result #gains tr[data-gain=pk]").count() == 1
-        finally:
-            browser.close()
-    assert not errors, errors
