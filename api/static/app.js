@@ -360,6 +360,9 @@ function loopView(id) {
   };
 
   const head = h("section", { class: "loop-head" });
+  // Built once and moved into each new head: a click on a tab is never lost to an update that would replace the
+  // tab between the mouse's press and release (no click event then).
+  const tabs = loopTabs(id, "live");
   const status = h("section", { class: "card status", id: "status" });
   const actions = h("section", { class: "card actions", id: "actions" });
   const trendSvg = svgNode("trend", "trend of PV, SP and MV");
@@ -428,7 +431,7 @@ function loopView(id) {
       h("div", { class: "readouts" },
         readout("Mode", modeBadge(loop.mode)), readout("PV", pvText(loop.pv, u), "pv"),
         readout("SP", pvText(loop.sp, u), "sp"), readout("MV", mvText(loop.mv, u), "mv")),
-      loopTabs(loop.id, "live"));
+      tabs);
     const st = statusOf(loop);
     status.className = `card status st-${st.cls}`;
     fill(status, h("h2", {}, "Tuning state"),
