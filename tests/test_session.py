@@ -197,3 +197,66 @@ def test_cancellation_restores_before_propagating():
     plc = asyncio.run(scenario())
     assert plc.mode is Mode.AUTO
     assert not math.isnan(plc.pv)
+
+
+def test_cancellation_and_a_bug_leave_the_device_not_busy():
+    """Cancelled (Ctrl-C, shutdown) or failed with an unexpected exception: handed back and TBSY off on the device,
+    TE on with ite ABORTED — a TBSY left set would refuse every later TUNE as another tuner's."""
+
+    def broken(status) -> None:
+        if status.progress > 0.0:
+            raise RuntimeError("a bug in a status callback")
+
+    async def scenario(cancel: bool):
+        process = parse_process(PLANT)
+        ts = default_sample_time(process) * 100 / SAMPLES_PER_PERIOD
+        plc = SimulatedPlc(process, ts=ts / 5)
+        halt = asyncio.Event()
+        plant = asyncio.create_task(run(plc, SPEED, halt))
+        task = asyncio.create_task(tune_link(SimLink(plc), RelayConfig(amp=5.0), ts, speed=SPEED,
+                                             on_status=None if cancel else broken))
+        await until(lambda: plc.mode is Mode.MAN or task.done(), 20.0, "the experiment to take the loop over")
+        if cancel:
+            task.cancel()
+        with pytest.raises(asyncio.CancelledError if cancel else RuntimeError):
+            await task
+        halt.set()
+        await plant
+        return plc
+
+    for cancel in (True, False):
+        plc = asyncio.run(scenario(cancel))
+        assert plc.mode is Mode.AUTO, cancel
+        assert (plc.flags.tbsy, plc.flags.te, plc.flags.ite) == (False, True, float(Code.ABORTED)), cancel
+
+
+def test_a_slow_loop_keeps_the_heartbeat_and_a_tbrk_acts_at_once():
+    """A sample time longer than the watchdog: the heartbeat goes on between samples (the watchdog never falls
+    back during a healthy experiment), and a TBRK between two samples ends the session without waiting for the
+    next one."""
+
+    async def scenario():
+        plc = SimulatedPlc(parse_process("exp(-20*s)/(40*s+1)"), ts=0.5)
+        halt = asyncio.Event()
+        plant = asyncio.create_task(run(plc, 1.0, halt))
+        stop = asyncio.Event()
+        # 20 wall seconds per sample, watchdog 5 s: without heartbeats between samples it would fall back.
+        task = asyncio.create_task(tune_link(SimLink(plc), RelayConfig(amp=5.0), 20.0, speed=1.0, stop=stop,
+                                             handback=HandBack(window=30.0, watchdog=5.0)))
+        await until(lambda: plc.mode is Mode.MAN, 20.0, "the experiment to take the loop over")
+        beats = plc.heartbeat
+        await until(lambda: plc.heartbeat >= beats + 12, 60.0, "heartbeats between samples, for over 5 s")
+        fallbacks, mode = plc.fallbacks, plc.mode
+        stop.set()
+        asked = asyncio.get_running_loop().time()
+        result = await task
+        took = asyncio.get_running_loop().time() - asked
+        halt.set()
+        await plant
+        return result, plc, fallbacks, mode, took
+
+    result, plc, fallbacks, mode, took = asyncio.run(scenario())
+    assert fallbacks == 0 and mode is Mode.MAN  # still the session's: the watchdog never fell back
+    assert result.code is Code.ABORTED and plc.mode is Mode.AUTO and result.trace.t.size == 1
+    # The TBRK came about 6 s after the only sample: waiting for the next one would take another 14 s.
+    assert took < 10.0, took

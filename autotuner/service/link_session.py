@@ -21,6 +21,7 @@ times back to plant seconds.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import multiprocessing
 import os
 import threading
@@ -51,21 +52,34 @@ _pool: ProcessPoolExecutor | None = None
 _design_cpu = 0.0
 
 
-async def deadlines(period: float) -> AsyncIterator[float]:
+async def deadlines(period: float, stop: asyncio.Event | None = None,
+                    beat: float | None = None) -> AsyncIterator[float | None]:
     """Sleep until each sample is due, every ``period`` wall seconds from now; yields the due time.
 
     Due times are ``start + k·period``: a late sample does not delay the next
-    ones (no drift); several overdue samples are taken back to back.
+    ones (no drift); several overdue samples are taken back to back. With
+    ``stop``, a wait ends as soon as it is set (yielding None: TBRK acts at
+    once, not a sample later); with ``beat``, no wait lasts longer than
+    ``beat`` seconds (yielding None between samples: the handshake and the
+    device watchdog's heartbeat go on however long the sample time).
     """
     start = time.monotonic()
     k = 0
     while True:
         due = start + k * period
-        delay = due - time.monotonic()
-        if delay > 0.0:
-            await asyncio.sleep(delay)
-        yield due
-        k += 1
+        now = time.monotonic()
+        wake = due if beat is None else min(due, now + beat)
+        if wake > now:
+            if stop is None:
+                await asyncio.sleep(wake - now)
+            else:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), wake - now)
+        if time.monotonic() >= due and not (stop is not None and stop.is_set()):
+            yield due
+            k += 1
+        else:
+            yield None
 
 
 @dataclass
@@ -154,14 +168,14 @@ async def hand_back(link: Link, saved: LoopState, handback: HandBack) -> str:
     trying, with growing pauses, for ``handback.window`` seconds (and not
     past ``handback.cap``).
     """
-    deadline = min(time.monotonic() + handback.window, handback.cap)
+    deadline = time.monotonic() + handback.window
     pause = 0.1
     while True:
         try:
             await hand_back_once(link, saved, handback.track_timeout)
             return ""
-        except (LinkError, NotTracking) as exc:
-            if time.monotonic() + pause > deadline:
+        except (LinkError, NotTracking) as exc:  # the cap is read each time: a shutdown may set it meanwhile
+            if time.monotonic() + pause > min(deadline, handback.cap):
                 return not_restored(saved, str(exc))
             await asyncio.sleep(pause)
             pause = min(2.0 * pause, 2.0)
@@ -174,6 +188,13 @@ async def _publish(link: Link, flags: TuneFlags, heartbeat: int | None = None) -
             await link.write_heartbeat(heartbeat)
     except LinkError:
         pass  # the handshake is informative; the experiment's own I/O reports link faults
+
+
+def _ended(restore_error: str, code: Code, ok: bool = False) -> TuneFlags:
+    """The handshake bits at a session's end: TBSY off, TE unless it designed gains, ite its code (20 when the
+    loop is not handed back)."""
+    return TuneFlags(tbsy=False, te=bool(restore_error) or not ok,
+                     ite=float(Code.LOOP_NOT_RESTORED if restore_error else code))
 
 
 async def tune_link(
@@ -228,10 +249,22 @@ async def tune_link(
         await link.write_mode(Mode.MAN)
         start = time.monotonic()
         flags_due = start
-        async for _ in deadlines(ts / speed):
+
+        async def handshake(status: Status) -> None:  # TBSY, ite and the heartbeat every FLAGS_PERIOD
+            nonlocal flags_due, beats
+            if time.monotonic() >= flags_due:
+                flags_due = time.monotonic() + FLAGS_PERIOD
+                beats += 1  # the heartbeat only feeds an armed watchdog: no extra request otherwise
+                await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite),
+                               beats if handback.watchdog > 0.0 else None)
+
+        async for due in deadlines(ts / speed, stop, FLAGS_PERIOD):
             if stop is not None and stop.is_set():
                 experiment.abort()
                 break
+            if due is None:  # between samples: only the handshake and the heartbeat may be due
+                await handshake(experiment.status())
+                continue
             before = time.monotonic()
             pv = await link.read_pv()
             after = time.monotonic()
@@ -249,19 +282,16 @@ async def tune_link(
             status = experiment.status()
             if on_status is not None:
                 on_status(status)
-            if time.monotonic() >= flags_due:
-                flags_due += FLAGS_PERIOD
-                beats += 1  # the heartbeat only feeds an armed watchdog: no extra request otherwise
-                await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite),
-                               beats if handback.watchdog > 0.0 else None)
+            await handshake(status)
     except LinkError as exc:
         experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
-    except asyncio.CancelledError:
+    except (asyncio.CancelledError, Exception):  # cancelled, or a bug: handed back, and TBSY must not stay set
         experiment.abort()
         handed_back = True
         restore_error = await hand_back(link, saved, handback)
         if on_handed_back is not None:
             on_handed_back(restore_error)
+        await _publish(link, _ended(restore_error, Code.ABORTED))
         raise
     finally:
         if not handed_back:
@@ -275,8 +305,7 @@ async def tune_link(
         except LinkError as exc:
             result = TuneResult(Code.LINK_FAULT, f"gains not written: {exc}", controller,
                                 result.identification, result.design, result.trace)
-    ite = Code.LOOP_NOT_RESTORED if restore_error else result.code
-    await _publish(link, TuneFlags(tbsy=False, te=not result.ok, ite=float(ite)))
+    await _publish(link, _ended(restore_error, result.code, result.ok))
     if on_status is not None:
         on_status(experiment.status())
     return result
