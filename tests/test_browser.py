@@ -346,6 +346,10 @@ def test_every_value_shows_the_loops_engineering_units(page, daemon):
     assert "SP " in page.inner_text("main") and " °C · MV " in page.inner_text("main")
     labels = page.eval_on_selector_all("#trace .axis-label", "els => els.map(e => e.textContent)")
     assert "PV (°C)" in labels and "MV (%)" in labels
+    page.goto(daemon.url + "#/loop/TIC-101/history")
+    row = page.locator(f"#history tr[data-session='{sid}']")
+    row.wait_for()
+    assert "°C/%" in row.text_content() and "%/°C" in row.text_content()  # |F| PV/MV; the gains' K MV/PV
     # FIC-301's PV axis covers its display range 0–100 although the PV stays near 50.
     page.goto(daemon.url + "#/loop/FIC-301")
     page.wait_for_selector("#trend[data-samples]")

@@ -878,7 +878,8 @@ function historyView(id) {
             : s.state === "not_restored" ? h("span", { class: "badge notrestored" }, "loop not restored") : outcomeBadge(s.outcome, s.code),
             h("div", { class: "small muted" }, s.message || (s.state === "interrupted" ? "interrupted" : ""))),
           h("td", { class: "mono small" }, s.request?.controller || "—"),
-          h("td", { class: "mono small" }, p ? `${fmt(p.omega, 3)} rad/s · ${fmt(p.gain, 3)} ∠${fmt(p.phase_deg, 3)}°` : "—"),
+          h("td", { class: "mono small" }, p ? `${fmt(p.omega, 3)} rad/s · ${fmt(p.gain, 3)}${u.pv || u.mv ? ` ${derived("PV/MV", u)}` : ""}`
+            + ` ∠${fmt(p.phase_deg, 3)}°` : "—"),
           h("td", {}, gainsBrief(s.gains_before, u)),
           h("td", {}, gainsBrief(g || null, u)),
           h("td", {}, s.applied_at ? h("span", { class: "badge ok" }, `applied${s.applied_by ? ` by ${s.applied_by}` : ""}`)
