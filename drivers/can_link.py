@@ -250,10 +250,12 @@ class CanLink:
 
     @classmethod
     def from_url(cls, url: str, dbc: str | Path | None = None, **kwargs: Any) -> "CanLink":
-        """``can://INTERFACE/CHANNEL[?bitrate=N&timeout=S&stale_after=S]``.
+        """``can://INTERFACE/CHANNEL[?bitrate=N&timeout=S&stale_after=S&port=N&hop_limit=N]``.
 
         CHANNEL is everything after the first slash (``can://slcan//dev/ttyACM0``
-        gives channel ``/dev/ttyACM0``). Raises ValueError for anything else.
+        gives channel ``/dev/ttyACM0``). ``port`` and ``hop_limit`` are python-can's
+        ``udp_multicast`` options (``hop_limit=0``: the frames never leave the host).
+        Raises ValueError for anything else.
         """
         parts = urlsplit(url)
         if parts.scheme != "can":
@@ -266,12 +268,12 @@ class CanLink:
         options: dict[str, Any] = {}
         for key, value in parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False):
             try:
-                if key == "bitrate":
+                if key in ("bitrate", "port", "hop_limit"):
                     options[key] = int(value)
                 elif key in ("timeout", "stale_after"):
                     options[key] = float(value)
                 else:
-                    raise ValueError(f"unknown option {key!r} (bitrate, timeout, stale_after)")
+                    raise ValueError(f"unknown option {key!r} (bitrate, timeout, stale_after, port, hop_limit)")
             except ValueError as exc:
                 raise ValueError(f"bad CAN link URL {url!r}: {exc}") from exc
         options.update(kwargs)
