@@ -225,3 +225,24 @@ def test_a_device_that_does_not_take_the_saved_mv_is_not_restored_and_retried_un
     assert plc.mode is Mode.AUTO and plc.hv == pytest.approx(50.0, abs=1.0)
     record = m.history.get("s1")
     assert record["state"] == "interrupted" and "loop restored to AUTO with MV 50" in record["message"]
+
+
+def test_a_tune_while_an_apply_reads_the_history_is_refused(tmp_path):
+    """The apply holds the loop from its first step: a TUNE that arrives while it reads which gains to write
+    (a history read in another thread) is refused, never an experiment with gains written in its middle."""
+    from test_apply import record_session
+
+    path = str(tmp_path / "history.db")
+    record_session(path, "s1", "TIC1")
+
+    async def body(m: LoopManager):
+        apply = asyncio.create_task(m.apply("TIC1", None, "alice"))
+        await asyncio.sleep(0)  # the apply runs up to its first wait: the history read
+        with pytest.raises(Refused) as refused:
+            m.tune("TIC1", TuneRequest(), user="bob")
+        out = await apply
+        return refused.value.code, out, m.loops["TIC1"].plc.gains
+
+    code, out, gains = asyncio.run(running(manager(loop("TIC1"), history=History(path)), body))
+    assert code == "busy" and out["session"] == "s1"
+    assert gains == Gains.from_json(out["gains"])

@@ -6,6 +6,7 @@ link (its map file removed after the config was loaded) ends the session like an
 from __future__ import annotations
 
 import asyncio
+import gc
 import signal
 import time
 from pathlib import Path
@@ -67,6 +68,8 @@ def test_an_exception_while_opening_the_link_leaves_the_loop_idle_and_the_sessio
 
     async def scenario() -> None:
         m = LoopManager(config, History(":memory:"))
+        errors: list[dict] = []  # a session task that ended with an exception of its own end (none may)
+        asyncio.get_running_loop().set_exception_handler(lambda _, context: errors.append(context))
         await m.start()
         try:
             for _ in range(2):
@@ -76,6 +79,8 @@ def test_an_exception_while_opening_the_link_leaves_the_loop_idle_and_the_sessio
                 assert status["te"] is True and status["ite"] == Code.LINK_FAULT
                 assert "cannot read the map" in status["message"]
                 assert m.history.get(sid)["state"] == "finished"
+            gc.collect()  # an unretrieved task exception is reported when the task is collected
+            assert errors == []
         finally:
             await m.stop()
 

@@ -668,20 +668,9 @@ class LoopManager:
         loop = self.get(loop_id)
         if loop.busy or loop.applying:
             raise Refused("busy", f"loop {loop_id!r} is tuning or being written")
-        record = await asyncio.to_thread(self.history.latest, loop_id) if sid is None else \
-            await asyncio.to_thread(self.history.get, sid)
-        if record is None and sid is None:
-            raise Refused("nothing_to_apply", f"loop {loop_id!r} has no finished session")
-        if record is None or record["loop"] != loop_id:
-            raise Refused("not_found", f"no session {sid!r} of loop {loop_id!r}")
-        sid = record["id"]
-        if record["outcome"] != "success":
-            raise Refused("nothing_to_apply", f"session {sid} did not succeed: {record['message']}")
-        gains = None if record["result"] is None else usable_gains(record["result"].gains)
-        if gains is None:
-            raise Refused("nothing_to_apply", f"session {sid} has no usable gains")
-        loop.applying = True
+        loop.applying = True  # before the first await: a TUNE or another apply meanwhile is refused
         try:
+            sid, gains = await self._designed_gains(loop_id, sid)
             why = await self._durable(self.history.intend, sid, user, gains)
             if why:
                 raise Refused("history_unavailable", f"gains not written to loop {loop_id!r}: the intent to "
@@ -699,6 +688,23 @@ class LoopManager:
         log.info("loop %s: gains of session %s applied by %s", loop_id, sid, user)
         self._publish(loop, "state", loop.as_json())
         return {"loop": loop_id, "session": sid, "gains": after.as_json()}
+
+    async def _designed_gains(self, loop_id: str, sid: str | None) -> tuple[str, Gains]:
+        """The session (None: the loop's newest finished one) whose gains an apply writes, and those gains; read
+        after the history's writes before (a session just ended is recorded first). Refused if there are none."""
+        record = await self._record(self.history.latest, loop_id) if sid is None else \
+            await self._record(self.history.get, sid)
+        if record is None and sid is None:
+            raise Refused("nothing_to_apply", f"loop {loop_id!r} has no finished session")
+        if record is None or record["loop"] != loop_id:
+            raise Refused("not_found", f"no session {sid!r} of loop {loop_id!r}")
+        sid = record["id"]
+        if record["outcome"] != "success":
+            raise Refused("nothing_to_apply", f"session {sid} did not succeed: {record['message']}")
+        gains = None if record["result"] is None else usable_gains(record["result"].gains)
+        if gains is None:
+            raise Refused("nothing_to_apply", f"session {sid} has no usable gains")
+        return sid, gains
 
     async def wait(self, loop_id: str) -> None:
         """Until the running session of ``loop_id`` (if any) has ended and the history's pending writes are done."""
@@ -783,6 +789,7 @@ class LoopManager:
                 raise LinkError(f"the intent to write them must be recorded first; {why}")
 
         intended: Gains | None = None
+        tap: _Tap | None = None
         try:
             link = loop.connect()
             tap = loop.tap = _Tap(link, intend)
@@ -828,7 +835,7 @@ class LoopManager:
                 if loop.saved is not None and pending is None:  # what the session left: its mode, the gains
                     loop.mode, loop.gains = Mode(loop.saved.mode), gains_after
                     loop.sp = loop.saved.sp
-                if math.isfinite(tap.pv):  # the last values of the session, not the monitor's from before it
+                if tap is not None and math.isfinite(tap.pv):  # the session's last values, not the monitor's
                     loop.pv = tap.pv
                     loop.mv = tap.mv if math.isfinite(tap.mv) else loop.mv
             finally:  # whatever failed above, the loop is idle again (TUNE accepted, TBRK refused)
