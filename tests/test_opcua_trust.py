@@ -163,3 +163,14 @@ def test_trusted_clients_must_be_a_folder_and_excludes_the_none_policy(tmp_path)
     path.write_text(f'{{"opcua": {{"security": ["Basic256Sha256_Sign"], "trusted_clients": "trusted"}}, '
                     f'"loops": {loop}}}')
     assert load_config(path).opcua.trusted_clients == tmp_path / "trusted"
+
+
+def test_the_none_policy_needs_an_encrypting_policy_for_the_passwords(tmp_path):
+    path = tmp_path / "daemon.yaml"
+    loop = '[{"id": "L", "sim": {"plant": "1/(s+1)"}, "ts": 0.1}]'
+    for security in ('["None"]', '["None", "Basic256Sha256_Sign"]'):
+        path.write_text(f'{{"opcua": {{"security": {security}}}, "loops": {loop}}}')
+        with pytest.raises(ConfigError, match="passwords on the None endpoint would travel in clear"):
+            load_config(path)
+    path.write_text(f'{{"opcua": {{"security": ["None", "Basic256Sha256_SignAndEncrypt"]}}, "loops": {loop}}}')
+    assert load_config(path).opcua.security == ["None", "Basic256Sha256_SignAndEncrypt"]

@@ -258,6 +258,9 @@ class OpcUaConfig(Strict):
     def _pair(self) -> OpcUaConfig:
         if (self.certificate is None) != (self.private_key is None):
             raise ValueError("give both 'certificate' and 'private_key', or neither (then they are generated)")
+        if "None" in self.security and "Basic256Sha256_SignAndEncrypt" not in self.security:
+            raise ValueError("'security' offers None without Basic256Sha256_SignAndEncrypt: the passwords on the "
+                             "None endpoint would travel in clear (they are encrypted with that policy)")
         if self.trusted_clients is not None and "None" in self.security:
             raise ValueError("'trusted_clients' needs 'security' without None: a client on the None policy has no "
                              "certificate to check")
