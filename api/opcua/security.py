@@ -241,6 +241,10 @@ async def ensure_certificate(folder: Path, app_uri: str) -> tuple[Path, Path]:
     owner only."""
     folder.mkdir(parents=True, exist_ok=True)
     cert, key = folder / "opcua-server-cert.der", folder / "opcua-server-key.pem"
+    if not key.is_file():  # made here, created owner-only: asyncua's own would be readable by others at first
+        pem = cert_gen.dump_private_key_as_pem(cert_gen.generate_private_key())
+        with os.fdopen(os.open(key, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), "wb") as out:
+            out.write(pem)
     await cert_gen.setup_self_signed_certificate(
         key, cert, app_uri, socket.gethostname(), [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
         {"organizationName": "relaytune", "commonName": "autotuner OPC UA server"})
