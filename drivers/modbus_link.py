@@ -432,14 +432,14 @@ class ModbusLink:
         return self.map["hv"].resolution(mv) + self.map["mv"].resolution(mv)
 
     async def write_watchdog(self, watchdog: Watchdog) -> None:
-        """``wd_mv`` and ``wd_mode`` (when arming), then ``wd_time``, in one request with the default map;
-        nothing if the map has no ``wd_time``."""
+        """``wd_mv`` and ``wd_mode`` (when arming), then ``wd_time``: two requests, so the timeout is never armed
+        with the fallback of before, whatever the map's addresses; nothing if the map has no ``wd_time``."""
         if "wd_time" not in self.map:
             return
-        values = {"wd_time": float(watchdog.timeout)}
         if watchdog.timeout > 0.0:
-            values |= {"wd_mv": float(watchdog.mv), "wd_mode": float(int(Mode(watchdog.mode)))}
-        await self._write({s: v for s, v in values.items() if s in self.map})
+            fallback = {"wd_mv": float(watchdog.mv), "wd_mode": float(int(Mode(watchdog.mode)))}
+            await self._write({s: v for s, v in fallback.items() if s in self.map})
+        await self._write({"wd_time": float(watchdog.timeout)})
 
     async def write_heartbeat(self, counter: int) -> None:
         """``heartbeat`` = ``counter`` mod 65536 (nothing if the map has none)."""
