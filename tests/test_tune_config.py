@@ -85,6 +85,28 @@ def test_without_apply_the_configured_loop_keeps_its_gains(tmp_path):
     assert plc.gains == before and out["gains"]["pk"] != pytest.approx(before.k)
 
 
+def test_the_configured_hand_back_arms_the_device_watchdog_as_the_daemon_does(tmp_path):
+    plc = SimulatedPlc(parse_process(PLANT), ts=TS / PLANT_TICKS_PER_SAMPLE)
+    armed: list[float] = []
+    tick = plc.tick
+
+    def recorded() -> None:  # the watchdog timeout the PLC holds at each of its ticks
+        tick()
+        armed.append(plc.watchdog.timeout)
+
+    plc.tick = recorded
+    with modbus_plant(plc, SPEED) as url:
+        config = write_config(tmp_path, {"link": url})
+        data = yaml.safe_load(open(config))
+        data["handback"] = {"watchdog": 3.0}
+        with open(config, "w") as out:
+            yaml.safe_dump(data, out)
+        code, out = run_json("--config", config, "--loop", "TIC-1")
+    assert code == 0, out["message"]
+    assert max(armed) == pytest.approx(3.0 * SPEED)  # wall seconds × speed: the device's seconds
+    assert armed[-1] == 0.0 and plc.fallbacks == 0 and plc.mode is Mode.AUTO  # disarmed at the hand-back
+
+
 @pytest.mark.parametrize(("args", "message"), [
     (["--loop", "NOPE"], "no loop 'NOPE' in the config (loops: TIC-1)"),
     (["--loop", "TIC-1", "--plant", "1/(s+1)"], "drop --plant"),

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from autotuner.engine.plant.process import Process
     from autotuner.engine.plant.simulation import PlantSim
     from autotuner.engine.result import TuneResult
-    from autotuner.service.config import LoopConfig, TuneRequest
+    from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
 
 
 def _config(amp: float, hysteresis: float | None, phase: float, time_limit: float,
@@ -256,12 +256,12 @@ def tune_command(
     if config_file is not None:
         from autotuner.service.configured_loop import tune_configured
 
-        loop = _configured_loop(ctx, config_file, loop_id)
+        daemon_config, loop = _configured_loop(ctx, config_file, loop_id)
         request = _explicit_request(ctx, controller.value, amp, hysteresis, phase, ms, apply)
         sample_time = loop.ts
 
         def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
-            return tune_configured(loop, request, on_status)
+            return tune_configured(loop, request, on_status, daemon_config.handback.session())
     elif link is not None:
         from autotuner.service.link_session import tune_link
         from autotuner.service.remote_tuning import LINK_TIME_LIMIT, field_config, open_link, tune_opened
@@ -324,8 +324,8 @@ def _given(ctx: typer.Context, name: str) -> bool:
     return source is not None and source.name != "DEFAULT"
 
 
-def _configured_loop(ctx: typer.Context, path: Path, loop_id: str) -> LoopConfig:
-    """The loop ``loop_id`` of the daemon config ``path``; bad input (exit 2) for a bad file, id or option mix."""
+def _configured_loop(ctx: typer.Context, path: Path, loop_id: str) -> tuple[DaemonConfig, LoopConfig]:
+    """The daemon config ``path`` and its loop ``loop_id``; bad input (exit 2) for a bad file, id or option mix."""
     from autotuner.service.config import ConfigError, load_config
     from autotuner.service.configured_loop import find_loop
 
@@ -334,7 +334,8 @@ def _configured_loop(ctx: typer.Context, path: Path, loop_id: str) -> LoopConfig
         options = ", ".join("--" + name.replace("_file", "").replace("_", "-") for name in clash)
         bad_input(f"--config/--loop take the loop's own settings; drop {options}")
     try:
-        return find_loop(load_config(path), loop_id)
+        config = load_config(path)
+        return config, find_loop(config, loop_id)
     except (ConfigError, ValueError) as exc:
         bad_input(str(exc))
 

@@ -13,12 +13,15 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from autotuner.engine.plant.expression import parse_process
+
+if TYPE_CHECKING:  # the session's module is loaded only when a session's hand-back is made
+    from autotuner.service.link_session import HandBack
 
 
 class ConfigError(ValueError):
@@ -290,6 +293,12 @@ class HandBackConfig(Strict):
     track_timeout: PositiveFloat = 5.0
     shutdown: PositiveFloat = 20.0
     watchdog: Annotated[float, Field(ge=0.0, le=3600.0)] = 10.0
+
+    def session(self) -> HandBack:
+        """The hand-back of one session under this config (its watchdog time in wall seconds)."""
+        from autotuner.service.link_session import HandBack
+
+        return HandBack(window=self.window, track_timeout=self.track_timeout, watchdog=self.watchdog)
 
     @model_validator(mode="after")
     def _ordered(self) -> HandBackConfig:

@@ -17,7 +17,7 @@ from drivers.simplc import run
 from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
 from autotuner.service.daemon import connector, relay_config, settings_of, simulated_plc
 from autotuner.engine.experiment.relay import Status
-from autotuner.service.link_session import tune_link
+from autotuner.service.link_session import HandBack, tune_link
 from autotuner.service.remote_tuning import tune_opened
 from autotuner.engine.result import TuneResult
 
@@ -32,9 +32,12 @@ def find_loop(config: DaemonConfig, loop_id: str) -> LoopConfig:
 
 
 async def tune_configured(
-    loop: LoopConfig, request: TuneRequest, on_status: Callable[[Status], None] | None = None
+    loop: LoopConfig, request: TuneRequest, on_status: Callable[[Status], None] | None = None,
+    handback: HandBack | None = None,
 ) -> TuneResult:
-    """Tune ``loop`` once with ``request`` over the loop's defaults (a simulated loop's plant runs meanwhile)."""
+    """Tune ``loop`` once with ``request`` over the loop's defaults (a simulated loop's plant runs meanwhile),
+    handed back as ``handback`` says (the config's ``handback`` section: its watchdog armed as the daemon arms
+    it; None: the defaults)."""
     settings = settings_of(loop, request)
     if settings.amp > loop.max_amp:
         raise ValueError(f"amp {settings.amp:g} is above loop {loop.id!r}'s largest relay amplitude "
@@ -45,7 +48,7 @@ async def tune_configured(
     try:
         return await tune_opened(connector(loop, plc)(), settings.controller, lambda link: tune_link(
             link, relay_config(loop, settings), loop.ts, settings.controller, settings.ms, settings.apply, loop.speed,
-            on_status=on_status))
+            on_status=on_status, handback=handback))
     finally:
         halt.set()
         if plant is not None:

@@ -394,8 +394,7 @@ class LoopManager:
 
     def _handback(self) -> HandBack:
         """The hand-back of a new session (its watchdog time is wall seconds; the session scales it)."""
-        c = self.handback_config
-        return HandBack(window=c.window, track_timeout=c.track_timeout, watchdog=c.watchdog)
+        return self.handback_config.session()
 
     @staticmethod
     def _loop(config: LoopConfig) -> Loop:
