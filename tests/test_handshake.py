@@ -347,7 +347,7 @@ def test_a_tune_bit_already_set_when_the_daemon_starts_is_no_edge():
                 await hmi.set(TUNE, False)
                 await asyncio.sleep(3 * POLL)
                 await hmi.set(TUNE, True)  # a real edge
-                await until(lambda: m.loops["TIC-1"].busy, 2.0, "the session")
+                await until(lambda: m.loops["TIC-1"].busy, 30.0, "the session")
                 m.abort("TIC-1")
                 await m.wait("TIC-1")
             hmi.client.close()
@@ -368,22 +368,22 @@ def test_handshake_link_errors_are_logged_and_retried_without_blocking_other_loo
             dead = loop("DEAD", "modbus://127.0.0.1:1/1")  # nothing listens: connection refused
             async with daemon(loop("TIC-1", plant.url), dead, sim) as m:
                 m.tune("SIM", TuneRequest(), user="u")
-                await until(lambda: all(m.loops[i].handshake_error for i in ("TIC-1", "DEAD")), 5.0,
+                await until(lambda: all(m.loops[i].monitor_error for i in ("TIC-1", "DEAD")), 30.0,
                             "both handshake links to fail")
-                errors = (m.loops["TIC-1"].handshake_error, m.loops["DEAD"].handshake_error)
+                errors = (m.loops["TIC-1"].monitor_error, m.loops["DEAD"].monitor_error)
                 sim_running = m.loops["SIM"].busy and m.loops["SIM"].status is not None
                 m.abort("SIM")
                 plant.server.fail_with_exception(False)
-                await until(lambda: m.loops["TIC-1"].handshake_error is None, 5.0, "the link back")
+                await until(lambda: m.loops["TIC-1"].monitor_error is None, 30.0, "the link back")
                 await asyncio.sleep(3 * POLL)
                 hmi = Hmi(port)
                 await hmi.client.connect()
                 await hmi.set(TUNE, True)
-                await until(lambda: m.loops["TIC-1"].busy, 2.0, "the session")
+                await until(lambda: m.loops["TIC-1"].busy, 30.0, "the session")
                 m.abort("TIC-1")
                 await m.wait("TIC-1")
                 hmi.client.close()
-                dead_still = m.loops["DEAD"].handshake_error
+                dead_still = m.loops["DEAD"].monitor_error
             return errors, sim_running, dead_still
 
     errors, sim_running, dead_still = asyncio.run(body())

@@ -304,11 +304,6 @@ class Loop:
         """TBSY: a session is running."""
         return self.task is not None
 
-    @property
-    def handshake_error(self) -> str | None:
-        """Why the handshake's bits cannot be read (its link is the watch task's), None when fine."""
-        return self.monitor_error if self.config.handshake else None
-
     def live(self) -> dict[str, Any]:
         """Mode (MAN, AUTO or None), PV, SP and MV now: the session's while it runs, else the monitor's."""
         mode, pv, sp, mv = self.mode, self.pv, self.sp, self.mv
