@@ -260,3 +260,29 @@ def test_a_slow_loop_keeps_the_heartbeat_and_a_tbrk_acts_at_once():
     assert result.code is Code.ABORTED and plc.mode is Mode.AUTO and result.trace.t.size == 1
     # The TBRK came about 6 s after the only sample: waiting for the next one would take another 14 s.
     assert took < 10.0, took
+
+
+def test_an_experiment_refused_before_it_starts_never_touches_the_loop():
+    """MV limits the relay cannot straddle from the loop's MV: refused with MV_RANGE, and nothing is written to
+    the loop (no manual MV, no MAN switched back and forth); the device shows TE with the code."""
+
+    async def scenario():
+        process = parse_process(PLANT)
+        plc = SimulatedPlc(process, ts=default_sample_time(process) / 5)
+        link = SimLink(plc)
+        writes: list[str] = []
+        for name in ("write_mv", "write_mode", "write_watchdog"):
+            def recorder(original, name=name):
+                async def write(*args):
+                    writes.append(name)
+                    await original(*args)
+                return write
+            setattr(link, name, recorder(getattr(link, name)))
+        result = await tune_link(link, RelayConfig(amp=5.0, mv_limits=(60.0, 100.0)), plc.ts * 5, speed=SPEED,
+                                 handback=HandBack(watchdog=2.0))
+        return result, plc, writes
+
+    result, plc, writes = asyncio.run(scenario())
+    assert result.code is Code.MV_RANGE and "do not straddle" in result.message
+    assert writes == [] and plc.mode is Mode.AUTO
+    assert (plc.flags.tbsy, plc.flags.te, plc.flags.ite) == (False, True, float(Code.MV_RANGE))

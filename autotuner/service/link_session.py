@@ -235,6 +235,9 @@ async def tune_link(
         return TuneResult.failed(Code.HISTORY_UNAVAILABLE, f"{MESSAGES[Code.HISTORY_UNAVAILABLE]}: {why}", controller)
     if stop is not None and stop.is_set():
         return TuneResult.failed(Code.ABORTED, f"{MESSAGES[Code.ABORTED]} before the loop was touched", controller)
+    if experiment.done:  # refused before it starts (the relay cannot move the MV): the loop is not touched
+        await _publish(link, _ended("", experiment.code))
+        return TuneResult.failed(experiment.code, experiment.message, controller)
     times: list[float] = []
     pvs: list[float] = []
     mvs: list[float] = []
