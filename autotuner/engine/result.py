@@ -57,8 +57,10 @@ class TuneResult:
     code: Code = described("outcome, the value ite shows once the tuning has ended")
     message: str = described("what happened, for people ('ok', or why not)")
     controller: str = described("controller type designed: PI or PID")
-    identification: Identification | None = described("what the experiment identified (point, static gain, length); None if nothing")
-    design: Design | None = described("gains with the model they were designed on, Ms there and notes; None if none")
+    identification: Identification | None = described(
+        "what the experiment identified (point, static gain, length); None if nothing")
+    design: Design | None = described(
+        "gains with the model they were designed on, Ms there and notes; None if none")
     trace: Trace = described("the experiment's samples")
 
     @classmethod
