@@ -134,6 +134,17 @@ def has_watchdog(db: cantools.database.can.Database) -> bool:
     return True
 
 
+def watchdog_limit(db: cantools.database.can.Database) -> float | None:
+    """The longest watchdog timeout the DBC's ``WdTime`` carries, device seconds (None: no watchdog frames)."""
+    if not has_watchdog(db):
+        return None
+    signal = db.get_message_by_name(CMD_WATCHDOG).get_signal_by_name("WdTime")
+    if signal.maximum is not None:
+        return float(signal.maximum)
+    raw = 2 ** (signal.length - 1) - 1 if signal.is_signed else 2 ** signal.length - 1
+    return raw * signal.scale + signal.offset
+
+
 def signal_step(db: cantools.database.can.Database, message: str, signal: str, value: float) -> float:
     """The coding step of a DBC signal near the engineering ``value`` (float: its spacing; integer: its scale)."""
     sig = db.get_message_by_name(message).get_signal_by_name(signal)

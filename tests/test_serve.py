@@ -114,6 +114,8 @@ def test_a_good_config_resolves_paths_next_to_the_file(tmp_path):
     (("    map: maps/tic.yaml", "    dbc: my.dbc"), "loops[0].dbc", "a DBC is for a CAN link"),
     (("link: modbus://127.0.0.1:5020/1\n    map: maps/tic.yaml", "link: can://virtual/x\n    dbc: no.dbc"),
      "loops[0].dbc", "cannot load DBC"),
+    (("link: modbus://127.0.0.1:5020/1\n    map: maps/tic.yaml", "link: can://virtual/x\n    speed: 1000"),
+     "loops[0].speed", "is more than the DBC's WdTime can carry (6553.5 s)"),
     (("    ts: 0.1\n", ""), "loops[1].ts", "Field required"),
     (("decimals: 1", "decimals: 7"), "loops[0].units.decimals", "less than or equal to 6"),
     (("decimals: 1", "decimals: 1.5"), "loops[0].units.decimals", "valid integer"),

@@ -403,6 +403,21 @@ def link_problem(loop: LoopConfig) -> tuple[str, str] | None:
     return None
 
 
+def watchdog_problem(loop: LoopConfig, handback: HandBackConfig) -> tuple[str, str] | None:
+    """Why the device watchdog cannot be armed on ``loop`` as configured (its CAN DBC cannot carry
+    ``handback.watchdog`` × ``speed`` device seconds): (the field, the reason), or None."""
+    if loop.link is None or not loop.link.startswith("can://") or handback.watchdog == 0.0:
+        return None
+    from drivers.can_link import load_dbc, watchdog_limit
+
+    limit = watchdog_limit(load_dbc(loop.dbc))
+    timeout = handback.watchdog * loop.speed
+    if limit is None or timeout <= limit:
+        return None
+    return "speed", (f"handback.watchdog {handback.watchdog:g} s × speed {loop.speed:g} = {timeout:g} device seconds "
+                     f"is more than the DBC's WdTime can carry ({limit:g} s): lower the watchdog or the speed")
+
+
 def parse_config(data: Any, source: str) -> DaemonConfig:
     """Validate already-parsed YAML ``data``; errors name ``source`` and the path inside it."""
     try:
@@ -463,7 +478,7 @@ def load_config(path: Path) -> DaemonConfig:
     loops = [loop.model_copy(update={"map": resolve(loop.map) or loop.map, "dbc": resolve(loop.dbc) or loop.dbc})
              for loop in config.loops]
     for i, loop in enumerate(loops):
-        problem = link_problem(loop)
+        problem = link_problem(loop) or watchdog_problem(loop, config.handback)
         if problem is not None:
             raise ConfigError(f"{path}: loops[{i}].{problem[0]}: {problem[1]}")
     plain_file = config.history != ":memory:" and "://" not in config.history
