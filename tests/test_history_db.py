@@ -113,7 +113,7 @@ def test_sessions_round_trip_newest_first_and_survive_reopening(database):
 def test_a_crash_left_session_is_closed_and_its_loop_restored_from_either_database(database):
     crashed = History(database)
     crashed.begin("s1", "A", "alice", {"controller": "PI", "amp": 5.0})
-    crashed.saved("s1", SAVED)
+    crashed.saved("s1", SAVED, (47.0, 55.0))  # with the relay's levels, as the daemon records them
     crashed.close()
 
     m = manager(loop("A"), history=History(database))
