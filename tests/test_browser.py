@@ -313,6 +313,8 @@ def test_operator_tunes_from_the_page_applies_the_gains_and_finds_the_session_in
     row.click()
     page.wait_for_selector("#trace path[data-series=PV]")
     assert int(page.get_attribute("#trace path[data-series=PV]", "data-points")) > 50
+    # A demo experiment (a few hundred samples) is kept whole, and the title says so.
+    assert page.locator("section.card:has(#trace) h2").inner_text() == "Trace (every sample)"
     assert "AUTOTUNER_TOKEN" in page.inner_text("main")
     page.wait_for_selector("#result #nyquist [data-role=point]")
 

@@ -914,7 +914,8 @@ function sessionView(sid) {
   const head = h("section", { class: "loop-head" });
   const traceSvg = svgNode("trend", "trace of the session");
   traceSvg.id = "trace";
-  const traceCard = h("section", { class: "card wide" }, h("h2", {}, "Trace (downsampled)"), traceSvg);
+  const traceTitle = h("h2", {}, "Trace");
+  const traceCard = h("section", { class: "card wide" }, traceTitle, traceSvg);
   const info = h("section", { class: "card wide" });
   fill(main(), head, info, traceCard, box);
   let closed = false;
@@ -939,6 +940,9 @@ function sessionView(sid) {
         h("dt", {}, "experiment"), h("dd", { class: "mono small" }, exp ? `${fmt(exp.duration)} s · ${exp.periods ?? "—"} periods · ${exp.samples} samples` : "—")));
       const tr = s.trace;
       if (tr && tr.t.length) {
+        // The history keeps a whole experiment up to its limit, evenly thinned past it: say which.
+        const all = !exp || tr.t.length >= exp.samples;
+        fill(traceTitle, all ? "Trace (every sample)" : `Trace (${tr.t.length} of ${exp.samples} samples, evenly thinned)`);
         fitted(traceSvg, (w) => timeChart(traceSvg, { width: w, panels: [
           { height: 170, label: axis("PV", u.pv), yAtLeast: u.pv_range,
             series: [{ name: "PV", cls: "s-pv", x: tr.t, y: tr.pv }, ...(tr.sp ? [{ name: "SP", cls: "s-sp", x: tr.t, y: tr.sp, step: true }] : [])] },
