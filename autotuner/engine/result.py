@@ -14,8 +14,6 @@ lag; gains in the standard (ISA) form with times in seconds; ``duration``
 plant seconds.
 """
 
-from __future__ import annotations
-
 import cmath
 import math
 from dataclasses import asdict, dataclass
@@ -64,7 +62,7 @@ class TuneResult:
     trace: Trace = described("the experiment's samples")
 
     @classmethod
-    def failed(cls, code: Code, message: str, controller: str) -> TuneResult:
+    def failed(cls, code: Code, message: str, controller: str) -> "TuneResult":
         """A tuning that ended before anything was identified (no point, no gains, no samples)."""
         return cls(code, message, controller, None, None, Trace(np.zeros(0), np.zeros(0), np.zeros(0)))
 
@@ -73,7 +71,7 @@ class TuneResult:
         """True when gains were computed (``te`` false): code OK, or a warning that says what was missed."""
         return not is_failure(self.code) and self.design is not None
 
-    def record(self) -> ResultRecord:
+    def record(self) -> "ResultRecord":
         """The result's record (the result object of design.md)."""
         return ResultRecord.of(self)
 
@@ -91,7 +89,7 @@ class PointRecord:
     phase_deg: float = _f("∠F(jω₀), degrees (negative: lag)", -135.1)
 
     @classmethod
-    def of(cls, point: Point) -> PointRecord:
+    def of(cls, point: Point) -> "PointRecord":
         """The record of an identified point."""
         return cls(float(point.omega), float(point.gain), float(point.phase_deg))
 
@@ -113,7 +111,7 @@ class GainsRecord:
     pc: float = _f("set-point weight c of the derivative part, dimensionless (0–1)", 0.0)
 
     @classmethod
-    def of(cls, gains: Gains) -> GainsRecord:
+    def of(cls, gains: Gains) -> "GainsRecord":
         """The record of gains (``pti`` null without integral action)."""
         return cls(**gains.as_json())
 
@@ -136,7 +134,7 @@ class DesignRecord:
     notes: tuple[str, ...] = _f("one sentence per target missed or action given up (empty: everything met)", [])
 
     @classmethod
-    def of(cls, des: Design) -> DesignRecord:
+    def of(cls, des: Design) -> "DesignRecord":
         """The record of a design."""
         return cls(str(des.model), float(des.model_ms), float(des.ms_target), float(des.noise_gain),
                    tuple(des.notes))
@@ -171,7 +169,7 @@ class ResultRecord:
                                       "with series_reason when it does not exist); null: no gains")
 
     @classmethod
-    def of(cls, result: TuneResult) -> ResultRecord:
+    def of(cls, result: TuneResult) -> "ResultRecord":
         """The record of a tuning's result."""
         ident, des, t = result.identification, result.design, result.trace.t
         return cls(
@@ -194,7 +192,7 @@ class ResultRecord:
         return out
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> ResultRecord:
+    def from_json(cls, d: dict[str, Any]) -> "ResultRecord":
         """The record of a result's JSON (keys added since a row was stored are null). Raises ValueError
         naming what is missing or wrong."""
         try:
