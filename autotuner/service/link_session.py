@@ -241,8 +241,7 @@ async def tune_link(
     times: list[float] = []
     pvs: list[float] = []
     mvs: list[float] = []
-    restore_error = ""
-    handed_back = False
+    failed = False
     beats = 0
     try:
         await _publish(link, TuneFlags(tbsy=True, te=False, ite=0.0))
@@ -288,19 +287,16 @@ async def tune_link(
             await handshake(status)
     except LinkError as exc:
         experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
-    except (asyncio.CancelledError, Exception):  # cancelled, or a bug: handed back, and TBSY must not stay set
+    except (asyncio.CancelledError, Exception):  # cancelled, or a bug: handed back below, TBSY must not stay set
         experiment.abort()
-        handed_back = True
+        failed = True
+        raise
+    finally:
         restore_error = await hand_back(link, saved, handback)
         if on_handed_back is not None:
             on_handed_back(restore_error)
-        await _publish(link, _ended(restore_error, Code.ABORTED))
-        raise
-    finally:
-        if not handed_back:
-            restore_error = await hand_back(link, saved, handback)
-            if on_handed_back is not None:
-                on_handed_back(restore_error)
+        if failed:  # no result follows to end the handshake with
+            await _publish(link, _ended(restore_error, Code.ABORTED))
     result = await _designed(experiment, controller, ms, _trace(times, pvs, mvs), restore_error)
     if result.ok and apply:
         try:
