@@ -253,8 +253,9 @@ class CanLink:
         self._error: Exception | None = None
         self._pv_interval: float | None = None
         self._counter: int | None = None
-        #: Health counters: frames received / undecodable, error frames, lost AT_Status frames (counter gaps).
-        self.stats = {"frames": 0, "bad_frames": 0, "error_frames": 0, "lost_status": 0}
+        #: Health counters: frames received / undecodable, error frames, lost AT_Status frames (counter gaps),
+        #: command frames sent.
+        self.stats = {"frames": 0, "bad_frames": 0, "error_frames": 0, "lost_status": 0, "sent": 0}
 
     def __repr__(self) -> str:
         return f"CanLink(can://{self.interface}/{self.channel})"
@@ -387,12 +388,14 @@ class CanLink:
             except (can.CanError, OSError, ValueError):
                 break
             pending.pop(0)
+            self.stats["sent"] += 1
         if not pending:
             return
 
         def send_rest() -> None:
             for m in pending:
                 bus.send(m, timeout=self.timeout)
+                self.stats["sent"] += 1
 
         try:
             await asyncio.wait_for(asyncio.to_thread(send_rest), self.timeout + 0.5)
