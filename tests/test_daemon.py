@@ -7,13 +7,15 @@ import asyncio
 import pytest
 
 from autotuner.service.config import DaemonConfig, TuneRequest
-from autotuner.service.daemon import LoopManager, Refused
+from autotuner.service.daemon import LoopManager, Pending, Refused, _Tap, found
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
 from autotuner.service.history import TRACE_POINTS, History
 from autotuner.engine.outcome import Code
 from autotuner.engine.simulated_tuning import default_sample_time
-from drivers.link import LoopState, Mode
+from drivers.link import LinkError, LoopState, Mode
+from drivers.simlink import SimLink
+from drivers.simplc import SimulatedPlc
 from helpers import until
 
 PLANT = "exp(-s)/(2*s+1)"
@@ -246,3 +248,37 @@ def test_a_tune_while_an_apply_reads_the_history_is_refused(tmp_path):
     code, out, gains = asyncio.run(running(manager(loop("TIC1"), history=History(path)), body))
     assert code == "busy" and out["session"] == "s1"
     assert gains == Gains.from_json(out["gains"])
+
+
+def test_an_mv_outside_the_sessions_range_on_record_is_recorded_before_it_is_written():
+    async def main():
+        plc = SimulatedPlc(parse_process(PLANT))
+        seen: list[tuple[float, float]] = []
+
+        async def widen(mv: float) -> None:  # what the daemon records durably; the device must not have it yet
+            seen.append((mv, plc.hv))
+            if mv > 90.0:
+                raise LinkError("the history is locked")
+            tap.mv_range = (tap.mv_range[0], mv)
+
+        tap = _Tap(SimLink(plc), before_mv=widen)
+        await tap.write_mv(70.0)  # no range yet (the session has not saved the loop): nothing to record
+        tap.mv_range = (47.0, 55.0)
+        await tap.write_mv(51.3)  # a switch sample between the levels
+        assert seen == [] and plc.hv == 51.3
+        await tap.write_mv(60.0)
+        assert seen == [(60.0, 51.3)] and plc.hv == 60.0 and tap.mv_range == (47.0, 60.0)
+        with pytest.raises(LinkError, match="locked"):
+            await tap.write_mv(95.0)
+        assert plc.hv == 60.0  # not recorded: not written
+    asyncio.run(main())
+
+
+@pytest.mark.parametrize("mode, mv, how", [
+    (Mode.MAN, 47.0, "left"), (Mode.MAN, 51.3, "left"), (Mode.MAN, 55.0 + 1e-6, "left"), (Mode.MAN, 55.1, "changed"),
+    (Mode.MAN, 20.0, "changed"), (Mode.AUTO, 51.3, "back"),
+])
+def test_recovery_takes_man_within_the_sessions_mv_range_as_its_own(mode, mv, how):
+    saved = LoopState(mode=Mode.AUTO, mv=50.0, sp=50.0, gains=Gains(k=1.0, ti=1.0))
+    pending = Pending("s", saved, (47.0, 55.0), Code.ABORTED, "interrupted", "")
+    assert found(LoopState(mode=mode, mv=mv, sp=50.0, gains=saved.gains), pending, 1e-5) == how

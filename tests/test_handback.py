@@ -370,3 +370,44 @@ def test_an_operators_intervention_between_a_sigkill_and_the_restart_is_kept_and
         for now in readings(plc, 1.0):  # the daemon keeps its hands off: the loop stays as the operator set it
             assert now["mode"] == "MAN" and now["mv"] == 20.0 and now["hv"] == 20.0, now
         assert "an operator's intervention" in d.output()
+
+
+def test_a_sigkill_at_a_switch_sample_between_the_levels_is_the_daemons_own_mv_and_the_restart_hands_back(
+        tmp_path, plc):
+    """At each switch the relay writes one MV between its levels (the sample that keeps the cycle periodic). A crash
+    there leaves the loop at neither a level nor the saved MV; the restart took that for an operator's intervention
+    and left the loop in MAN. The session's MV range (hull of the levels and the saved MV) is recorded before the
+    loop is touched, so the restart knows the MV for its own and hands the loop back."""
+    levels = (SAVED_MV - 0.6 * AMP, SAVED_MV + AMP)  # 47 and 55
+
+    def between(now: dict[str, Any]) -> bool:  # MAN, the PLC running with an MV strictly between, at no level
+        return (now["mode"] == "MAN" and now["mv"] == now["hv"] and levels[0] < now["hv"] < levels[1]
+                and min(abs(now["hv"] - x) for x in (*levels, SAVED_MV)) > 0.05)
+
+    with daemon(tmp_path, plc) as d:
+        sid = d.tune()
+        at_relay_level(plc)
+
+        def caught() -> dict[str, Any] | None:  # freeze the daemon on a switch sample (its next one would overwrite it)
+            if not between(plc.read()):
+                return None
+            d.proc.send_signal(signal.SIGSTOP)
+            # the PLC's actual MV takes the manual one at its next tick; the frozen daemon writes nothing meanwhile
+            now = wait_for(lambda: (r := plc.read())["mv"] == r["hv"] and r, WAIT, "the PLC to take the MV")
+            if between(now):
+                return now
+            d.proc.send_signal(signal.SIGCONT)
+            return None
+
+        left = wait_for(caught, WAIT, "a switch sample between the relay's levels")
+        d.proc.kill()  # SIGKILL while stopped
+        d.proc.wait()
+        assert json.loads(history_row(d.history, sid)["saved"])["mv_range"] == [levels[0], levels[1]]
+    assert plc.read()["hv"] == left["hv"]
+    with daemon(tmp_path, plc) as d:
+        auto, before = first_auto(plc)
+        assert abs(auto["mv"] - SAVED_MV) < FIRST_AUTO_TOL, (auto, before[-3:])
+        row = wait_for(lambda: (r := history_row(d.history, sid))["state"] != "running" and r, WAIT, "recovery")
+        assert row["state"] == "interrupted" and "loop restored to AUTO with MV 50" in row["result"]["message"], row
+        assert row["result"]["ite"] == int(Code.ABORTED)
+        assert "an operator's intervention" not in d.output()

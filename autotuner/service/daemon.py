@@ -20,8 +20,10 @@ be written), logged at ERROR — and tried again with back-off for as long as
 the daemon runs, and after a restart. On :meth:`LoopManager.start`, a session
 still recorded as running (the daemon died during it) is recovered the same
 way. Each try first reads the loop and compares it with what the session left:
-MAN at one of the recorded relay levels or at the saved MV (within the link's
-resolution) is untouched and is handed back; already in its saved mode is
+MAN at an MV within the range the session may write (recorded durably before
+the session writes an MV outside it: the relay's levels and the saved MV, so
+also a switch sample between the levels; within the link's resolution) is
+untouched and is handed back; already in its saved mode is
 taken as handed back (by the device's watchdog, or by hand); anything else is
 an operator's intervention, never overwritten: recorded (code
 :attr:`Code.OPERATOR_INTERVENTION`) and left as found.
@@ -193,15 +195,21 @@ class _Tap:
 
     A gains write first awaits ``before_gains`` (the history's intent; a
     LinkError there means the gains are not written) and remembers the gains
-    in ``intended``.
+    in ``intended``. Once ``mv_range`` is set (the session's MV range on
+    record, MV units), an MV outside it first awaits ``before_mv(mv)``, which
+    records the widened range durably (a LinkError there: not written): a
+    restart after a crash then knows every MV the session may have left.
     """
 
-    def __init__(self, link: Link, before_gains: Callable[[Gains], Awaitable[None]] | None = None) -> None:
+    def __init__(self, link: Link, before_gains: Callable[[Gains], Awaitable[None]] | None = None,
+                 before_mv: Callable[[float], Awaitable[None]] | None = None) -> None:
         self._link = link
         self.pv = math.nan
         self.mv = math.nan
         self.before_gains = before_gains
         self.intended: Gains | None = None
+        self.before_mv = before_mv
+        self.mv_range: tuple[float, float] | None = None
 
     @property
     def pv_age(self) -> float | None:
@@ -212,6 +220,9 @@ class _Tap:
         return self.pv
 
     async def write_mv(self, mv: float) -> None:
+        r = self.mv_range
+        if r is not None and self.before_mv is not None and not r[0] <= mv <= r[1]:
+            await self.before_mv(mv)
         await self._link.write_mv(mv)
         self.mv = mv
 
@@ -225,9 +236,14 @@ class _Tap:
         return getattr(self._link, name)
 
 
+def mv_hull(*mvs: float) -> tuple[float, float]:
+    """The smallest range (low, high), MV units, holding every one of ``mvs``."""
+    return min(mvs), max(mvs)
+
+
 @dataclass
 class Pending:
-    """A loop not handed back yet: session ``sid`` saved ``saved`` and held the MV at ``levels``.
+    """A loop not handed back yet: session ``sid`` saved ``saved`` and wrote MVs within ``mv_range`` only.
 
     ``code`` and ``final``: the result code and history state the session gets
     once the loop is back. ``since``: UTC, ISO 8601. ``attempts``: tries that
@@ -236,7 +252,7 @@ class Pending:
 
     sid: str
     saved: LoopState
-    levels: tuple[float, ...]
+    mv_range: tuple[float, float]
     code: Code
     final: str
     error: str
@@ -252,12 +268,13 @@ class Pending:
 def found(state: LoopState, pending: Pending, tolerance: float) -> str:
     """How the loop is now, against what the interrupted session left (``tolerance``: the link's MV resolution).
 
-    ``left``: MAN at one of the relay levels or at the saved MV (untouched:
-    hand it back); ``back``: in its saved mode (AUTO, or MAN at the saved MV):
-    handed back already; ``changed``: anything else (an operator's intervention).
+    ``left``: MAN at an MV within the range the session may have written (the
+    relay's levels, a switch sample between them, the saved MV: untouched, hand
+    it back); ``back``: in its saved mode (AUTO, or MAN at the saved MV): handed
+    back already; ``changed``: anything else (an operator's intervention).
     """
-    near = [pending.saved.mv, *pending.levels]
-    if state.mode is Mode.MAN and any(abs(state.mv - mv) <= tolerance for mv in near):
+    low, high = pending.mv_range
+    if state.mode is Mode.MAN and low - tolerance <= state.mv <= high + tolerance:
         return "left"
     if state.mode is Mode(pending.saved.mode) is Mode.AUTO:
         return "back"
@@ -754,19 +771,34 @@ class LoopManager:
                 self._publish(loop, "state", loop.as_json())
 
         levels: tuple[float, ...] = ()
+        mv_range: tuple[float, float] | None = None
         restore_error = ""
         pending: Pending | None = None
 
         async def on_saved(saved: LoopState, relay_levels: tuple[float, float]) -> str:
             """Durably, before the session touches the loop (after the begin, in the history's thread)."""
-            nonlocal levels
-            why = await self._durable(self.history.saved, sid, saved, relay_levels)
+            nonlocal levels, mv_range
+            hull = mv_hull(saved.mv, *relay_levels)  # a switch sample lies between the levels
+            why = await self._durable(self.history.saved, sid, saved, relay_levels, hull)
             if why:
                 log.error("loop %s: session %s ends without touching the loop: its saved state is not recorded (%s)",
                           loop.config.id, sid, why)
                 return why
-            loop.saved, levels = saved, relay_levels
+            loop.saved, levels, mv_range = saved, relay_levels, hull
+            if tap is not None:
+                tap.mv_range = hull
             return ""
+
+        async def widen(mv: float) -> None:  # before an MV outside the range on record: the new range, durably
+            nonlocal mv_range
+            assert loop.saved is not None and mv_range is not None
+            hull = mv_hull(*mv_range, mv)
+            why = await self._durable(self.history.saved, sid, loop.saved, levels, hull)
+            if why:
+                raise LinkError(f"MV {mv:g} not written: the session's MV range must be recorded first; {why}")
+            mv_range = hull
+            if tap is not None:
+                tap.mv_range = hull
 
         def on_handed_back(error: str) -> None:
             nonlocal restore_error
@@ -786,7 +818,7 @@ class LoopManager:
         tap: _Tap | None = None
         try:
             link = loop.connect()
-            tap = loop.tap = _Tap(link, intend)
+            tap = loop.tap = _Tap(link, intend, widen)
             await link.open()
             result = await tune_link(tap, config, loop.config.ts, settings.controller, settings.ms, settings.apply,
                                      speed, loop.stop, on_status, loop.handback, on_saved, on_handed_back)
@@ -813,7 +845,8 @@ class LoopManager:
                 loop.result = result.record()
                 applied = intended is not None and gains_after is not None and same_gains(gains_after, intended)
                 if restore_error and loop.saved is not None:  # shown with the idle loop, not while still busy
-                    pending = Pending(sid, loop.saved, levels, result.code, state, restore_error)
+                    pending = Pending(sid, loop.saved, mv_range or mv_hull(loop.saved.mv, *levels), result.code,
+                                      state, restore_error)
                     log.error("loop %s: LOOP NOT RESTORED at the end of session %s (%s); retrying",
                               loop.config.id, sid, restore_error)
                 end = (self.history.finish, sid, loop.result, gains_after, downsample(result.trace),
@@ -1003,7 +1036,9 @@ class LoopManager:
         if loop is None or saved is None:
             return None
         loop.session, loop.result = record["id"], result
-        loop.pending = Pending(record["id"], state_of(saved), tuple(saved.get("relay_levels", ())), code, final,
+        # The MVs the session may have written: its recorded range (older records: the relay levels and saved MV).
+        mv_range = mv_hull(saved["mv"], *saved.get("relay_levels", ()), *saved.get("mv_range", ()))
+        loop.pending = Pending(record["id"], state_of(saved), mv_range, code, final,
                                "not tried since the daemon started", attempts=0)
         return loop
 
@@ -1044,8 +1079,9 @@ class LoopManager:
                     log.warning("loop %s: %s (session %s)", loop_id, message, p.sid)
                 else:
                     code = Code.OPERATOR_INTERVENTION
-                    message = (f"left as found: mode {state.mode.name}, MV {state.mv:g}, not the relay's or the "
-                               f"saved {Mode(saved.mode).name} at MV {saved.mv:g} (an operator's intervention): "
+                    message = (f"left as found: mode {state.mode.name}, MV {state.mv:g}, not MAN within the "
+                               f"session's MV range {p.mv_range[0]:g}-{p.mv_range[1]:g} or the saved "
+                               f"{Mode(saved.mode).name} at MV {saved.mv:g} (an operator's intervention): "
                                "not restored")
                     log.warning("loop %s: %s (session %s)", loop_id, message, p.sid)
             await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(code)))

@@ -244,11 +244,16 @@ class History:
 
         self._retried(f"session {sid}: begin", write)
 
-    def saved(self, sid: str, saved: LoopState, relay_levels: tuple[float, ...] = ()) -> None:
-        """Record the loop's state before session ``sid`` touches it (what a restart after a crash restores), and
-        the MV levels the experiment will hold it at (``relay_levels``: how a restart tells the loop as the session
-        left it from one an operator changed)."""
-        self._write(sid, saved=json.dumps({**state_json(saved), "relay_levels": [float(x) for x in relay_levels]}))
+    def saved(self, sid: str, saved: LoopState, relay_levels: tuple[float, ...] = (),
+              mv_range: tuple[float, float] | None = None) -> None:
+        """Record the loop's state before session ``sid`` touches it (what a restart after a crash restores), the
+        MV levels the experiment will hold it at (``relay_levels``) and the range (low, high) of every MV the
+        session may write (``mv_range``, MV units; recorded again, wider, before an MV outside it is written):
+        how a restart tells the loop as the session left it from one an operator changed."""
+        record = {**state_json(saved), "relay_levels": [float(x) for x in relay_levels]}
+        if mv_range is not None:
+            record["mv_range"] = [float(mv_range[0]), float(mv_range[1])]
+        self._write(sid, saved=json.dumps(record))
 
     def finish(self, sid: str, result: ResultRecord, gains_after: Gains | None,
                trace: dict[str, list[float]] | None, state: str = "finished", applied_by: str | None = None) -> None:
