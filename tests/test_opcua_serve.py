@@ -6,6 +6,7 @@ import asyncio
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -27,29 +28,80 @@ async def _tbsy(url: str, user: str, password: str) -> bool:
         return await client.get_node(ua.NodeId("TIC-101.TBSY", idx)).read_value()
 
 
-def test_demo_accepts_operator_with_the_token_and_the_viewer_and_stops_on_sigterm():
-    port, opcua_port = free_port(), free_port()
+def _opcua_process(daemon: int) -> int:
+    """The pid of the daemon's OPC UA server process (a child of the daemon running ``api.opcua.server``)."""
+    for task in os.listdir(f"/proc/{daemon}/task"):
+        for child in open(f"/proc/{daemon}/task/{task}/children").read().split():
+            if "api.opcua.server" in open(f"/proc/{child}/cmdline").read():
+                return int(child)
+    raise AssertionError(f"no OPC UA server process under the daemon {daemon}")
+
+
+def _gone(pid: int) -> bool:
+    """Whether process ``pid`` has ended (a zombie not reaped yet counts as ended)."""
+    try:
+        return open(f"/proc/{pid}/stat").read().rpartition(")")[2].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+        return True
+
+
+def _serve_demo(port: int, opcua_port: int) -> tuple[subprocess.Popen[str], str]:
+    """``autotuner serve --opcua-port`` (the demo) with known passwords, once its OPC UA server answers."""
     env = {**os.environ, "AUTOTUNER_TOKEN": "demo-operator", "AUTOTUNER_VIEWER_PASSWORD": "demo-viewer"}
     proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--port", str(port), "--opcua-port",
                              str(opcua_port)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    url = f"opc.tcp://127.0.0.1:{opcua_port}/autotuner/"
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            assert asyncio.run(_tbsy(url, "viewer", "demo-viewer")) is False
+            return proc, url
+        except (OSError, TimeoutError, ua.UaError):
+            assert time.monotonic() < deadline and proc.poll() is None, "the OPC UA server did not come up"
+            time.sleep(0.2)
+
+
+def test_the_opcua_server_process_ends_with_a_daemon_killed_by_sigkill_and_frees_its_port():
+    port, opcua_port = free_port(), free_port()
+    proc, _ = _serve_demo(port, opcua_port)
+    try:
+        server = _opcua_process(proc.pid)
+        assert not _port_free(opcua_port)
+        proc.kill()  # no shutdown at all: the server sees its end of the socket pair close
+        proc.wait(10)
+        deadline = time.monotonic() + 30
+        while not (_gone(server) and _port_free(opcua_port)):
+            assert time.monotonic() < deadline, "the OPC UA server process outlived the daemon, holding its port"
+            time.sleep(0.1)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_demo_accepts_operator_with_the_token_and_the_viewer_and_stops_on_sigterm():
+    port, opcua_port = free_port(), free_port()
+    proc, url = _serve_demo(port, opcua_port)
     try:
         line = proc.stdout.readline()
-        url = f"opc.tcp://127.0.0.1:{opcua_port}/autotuner/"
         assert line.startswith(f"autotuner OPC UA at {url}") and "operator" in line and "viewer" in line, line
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                assert asyncio.run(_tbsy(url, "viewer", "demo-viewer")) is False
-                break
-            except (OSError, TimeoutError, ua.UaError):
-                assert time.monotonic() < deadline and proc.poll() is None, "the OPC UA server did not come up"
-                time.sleep(0.2)
         assert asyncio.run(_tbsy(url, "operator", "demo-operator")) is False
         with pytest.raises(ua.UaStatusCodeError):
             asyncio.run(_tbsy(url, "operator", "demo-viewer"))
+        server = _opcua_process(proc.pid)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(40) in (0, -signal.SIGTERM)
         assert "Application shutdown complete" in proc.stderr.read()
+        assert _gone(server) and _port_free(opcua_port)  # the daemon stopped its OPC UA process before exiting
     finally:
         if proc.poll() is None:
             proc.kill()

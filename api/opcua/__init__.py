@@ -17,7 +17,7 @@ from autotuner.service.daemon import LoopManager
 from .passwords import hash_password
 
 if TYPE_CHECKING:
-    from .server import OpcUaServer
+    from .bridge import OpcUaProcess
 
 # The user whose password is $AUTOTUNER_TOKEN (the OPC UA twin of the REST API's environment token).
 ENV_USER = "operator"
@@ -41,22 +41,23 @@ def require() -> None:
         raise RuntimeError(INSTALL_HINT) from None
 
 
-async def start_opcua(manager: LoopManager, config: DaemonConfig, env_token: str | None, host: str) -> OpcUaServer:
-    """Start the OPC UA server of ``config.opcua`` over ``manager``'s loops (an :class:`api.opcua.server.OpcUaServer`).
+async def start_opcua(manager: LoopManager, config: DaemonConfig, env_token: str | None, host: str) -> OpcUaProcess:
+    """Start the OPC UA server of ``config.opcua`` over ``manager``'s loops, in a process of its own
+    (:class:`api.opcua.bridge.OpcUaProcess`).
 
     Its users: the config's, plus ``operator`` (role operator) with the
     password ``env_token`` ($AUTOTUNER_TOKEN) unless the config has a user of
     that name. A generated certificate goes beside the history.
     """
     require()
+    from .bridge import OpcUaProcess
     from .security import state_dir
-    from .server import OpcUaServer
 
     assert config.opcua is not None
     users = list(config.opcua.users)
     if env_token and all(user.name != ENV_USER for user in users):
         users.append(OpcUaUser(name=ENV_USER, role="operator", password_hash=hash_password(env_token)))
-    server = OpcUaServer(manager, config.opcua, users, host, state_dir(config.history))
+    server = OpcUaProcess(manager, config.opcua, users, host, state_dir(config.history))
     await server.start()
     return server
 

@@ -1,16 +1,22 @@
-"""The OPC UA server beside the REST API: the same :class:`~autotuner.service.daemon.LoopManager`, its own thread.
+"""The OPC UA server beside the REST API, in a process of its own: ``python -m api.opcua.server FD``.
 
-The server (asyncua) runs in a thread of its own with its own event loop,
-so OPC UA clients, their subscriptions and the encryption never run on the
-daemon's event loop, where the sessions sample. It touches the manager only
-through that loop (``run_coroutine_threadsafe``):
+The daemon (:mod:`api.opcua.bridge`) starts this process with one end of a
+socket pair (file descriptor ``FD``, :mod:`api.opcua.wire`), so OPC UA
+clients, their subscriptions, the encryption and the encoding of every data
+change never take the daemon's CPU time or its GIL, where the sessions
+sample. Over that channel:
 
-- every loop's status is fetched every ``monitor_period`` wall seconds
-  (one request per distinct period for all its loops) and written to the
-  address space (:mod:`api.opcua.address_space`), the changed values only;
-- the methods call :meth:`LoopManager.tune`, ``abort`` and ``apply`` there,
-  so a TUNE over OPC UA and one over REST see the same busy state, exclusion
-  groups and history.
+- the daemon sends the loops' compact statuses at the monitor's rate (the
+  changed loops only); they are written to the address space
+  (:mod:`api.opcua.address_space`), the changed values only;
+- the methods are validated and checked for the role here and run by the
+  daemon on its :class:`~autotuner.service.daemon.LoopManager` (the one
+  behind REST), so a TUNE over OPC UA and one over REST see the same busy
+  state, exclusion groups and history;
+- the log records go to the daemon's log.
+
+The process ends when the daemon says stop, when its end of the socket pair
+closes (the daemon died, even by SIGKILL) or when it is orphaned.
 
 Methods of each loop (operator role; a viewer's call is refused with
 ``BadUserAccessDenied`` by :class:`~api.opcua.security.RoleRuleset`):
@@ -31,36 +37,35 @@ outputs: "" and the REST error's ``code: message``.
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
-import contextlib
+import itertools
 import logging
 import math
 import os
-import tempfile
+import signal
+import socket
+import sys
 import threading
+import traceback
 from collections.abc import Awaitable, Callable
-from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 from asyncua import Node, Server, ua
 from pydantic import ValidationError
 
 from api.errors import validation_message
-from autotuner.service.config import OpcUaConfig, OpcUaUser, TuneRequest
-from autotuner.service.daemon import LoopManager, Refused
+from autotuner.service.config import TuneRequest
 
-from . import endpoint_url
 from .address_space import FOLDER, NAMESPACE, LoopNodes, event_type, node_id
 from .security import (CALLER, NEEDS_OPERATOR, QuietRefusals, RoleRuleset, TrustedClients, Users, ensure_certificate,
                        may_call)
+from .wire import Channel, Init
 
 log = logging.getLogger("autotuner.api.opcua")
-T = TypeVar("T")
 
 # The server's application URI.
 APP_URI = "urn:relaytune:autotuner:server"
-# How long start waits for the server to listen, and stop for its thread to end, wall seconds.
-START_WAIT, STOP_WAIT = 60.0, 20.0
+# How often the process checks that the daemon that started it is still its parent, wall seconds.
+ORPHAN_CHECK = 0.5
 POLICIES = {"None": ua.SecurityPolicyType.NoSecurity, "Basic256Sha256_Sign": ua.SecurityPolicyType.Basic256Sha256_Sign,
             "Basic256Sha256_SignAndEncrypt": ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt}
 TUNE_ARGS = (("controller", ua.VariantType.String, "PI or PID; empty: the loop's default"),
@@ -113,116 +118,54 @@ def tune_request(args: list[Any]) -> TuneRequest:
 
 
 class OpcUaServer:
-    """The OPC UA server of ``manager``'s loops, run in its own thread; :meth:`start` and :meth:`stop` from the
-    daemon's event loop.
+    """The OPC UA server of the daemon's loops (``init``), fed and served by the daemon over ``channel``."""
 
-    ``users``: who may log in (the config's, plus the demo's or
-    $AUTOTUNER_TOKEN's operator); ``cert_dir``: where a generated certificate
-    is kept when ``config`` names none (None: a temporary folder removed at stop).
-    """
-
-    def __init__(self, manager: LoopManager, config: OpcUaConfig, users: list[OpcUaUser], host: str,
-                 cert_dir: Path | None) -> None:
-        self._scratch = tempfile.TemporaryDirectory(prefix="autotuner-opcua-") if cert_dir is None else None
-        self.cert_dir = Path(self._scratch.name) if self._scratch is not None else cert_dir
-        self.manager, self.config, self.users = manager, config, users
-        self.url = endpoint_url(config.host or host, config.port)
-        self._daemon: asyncio.AbstractEventLoop | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._halt: asyncio.Event | None = None
-        self._thread: threading.Thread | None = None
+    def __init__(self, init: Init, channel: Channel) -> None:
+        self.init, self.config, self.channel = init, init.config, channel
         self._nodes: dict[str, LoopNodes] = {}
+        self._calls: dict[int, asyncio.Future[tuple[Any, ...]]] = {}
+        self._ids = itertools.count()
 
-    # -- life cycle, from the daemon's event loop --------------------------------------------------------------
-
-    async def start(self) -> str:
-        """Start the thread and wait until the server listens; its endpoint URL. The server's error (a port in
-        use, an unreadable certificate) is raised here."""
-        self._daemon = asyncio.get_running_loop()
-        ready: concurrent.futures.Future[None] = concurrent.futures.Future()
-        self._thread = threading.Thread(target=self._run, args=(ready,), name="opcua", daemon=True)
-        self._thread.start()
-        try:
-            await asyncio.wait_for(asyncio.wrap_future(ready), START_WAIT)
-        except BaseException:
-            await self.stop()
-            raise
-        log.info("OPC UA server at %s", self.url)
-        return self.url
-
-    async def stop(self) -> None:
-        """Stop the server (clients are disconnected) and wait for its thread."""
-        loop, halt, thread = self._loop, self._halt, self._thread
-        if loop is not None and halt is not None and not loop.is_closed():
-            with contextlib.suppress(RuntimeError):  # its loop closed meanwhile
-                loop.call_soon_threadsafe(halt.set)
-        if thread is not None:
-            await asyncio.to_thread(thread.join, STOP_WAIT)
-        self._thread = None
-        if self._scratch is not None:
-            self._scratch.cleanup()
-
-    def cpu_time(self) -> float | None:
-        """CPU seconds (user + system) the server's thread has used so far; None where /proc is missing."""
-        thread = self._thread
-        try:
-            stat = Path(f"/proc/self/task/{thread.native_id}/stat").read_text()  # type: ignore[union-attr]
-        except (AttributeError, OSError):
-            return None
-        utime, stime = stat.rpartition(")")[2].split()[11:13]  # fields 14 and 15 of proc(5)
-        return (int(utime) + int(stime)) / os.sysconf("SC_CLK_TCK")
-
-    # -- the server's thread ----------------------------------------------------------------------------------
-
-    def _run(self, ready: concurrent.futures.Future[None]) -> None:
-        try:
-            asyncio.run(self._serve(ready))
-        except BaseException as exc:  # start failed: the daemon's start() raises it
-            if not ready.done():
-                ready.set_exception(exc)
-            else:
-                log.exception("OPC UA server failed")
-
-    async def _serve(self, ready: concurrent.futures.Future[None]) -> None:
-        self._loop, self._halt = asyncio.get_running_loop(), asyncio.Event()
+    async def run(self) -> None:
+        """Build and start the server, say ready (or failed), then serve until the daemon says stop or is gone."""
         quiet = QuietRefusals()
         for name in QuietRefusals.LOGGERS:
             logging.getLogger(name).addFilter(quiet)
         try:
-            await self._run_server(ready)
+            server = await self._build()
+            await server.start()
+        except Exception as exc:
+            log.debug("OPC UA server start failed", exc_info=True)
+            self.channel.send("failed", f"{type(exc).__name__}: {exc}")
+            return
+        try:
+            self.channel.send("ready")
+            orphan = asyncio.create_task(_orphaned(os.getppid()))
+            listen = asyncio.create_task(self._listen())
+            await asyncio.wait([orphan, listen], return_when=asyncio.FIRST_COMPLETED)
+            orphan.cancel()
+            listen.cancel()
+            for call in self._calls.values():
+                call.cancel()
         finally:
-            for name in QuietRefusals.LOGGERS:
-                logging.getLogger(name).removeFilter(quiet)
-
-    async def _run_server(self, ready: concurrent.futures.Future[None]) -> None:
-        assert self._halt is not None
-        server = await self._build()
-        async with server:
-            pollers = [asyncio.create_task(self._poll(ids, period)) for period, ids in self._periods().items()]
-            ready.set_result(None)
-            try:
-                await self._halt.wait()
-            finally:
-                for task in pollers:
-                    task.cancel()
-                await asyncio.gather(*pollers, return_exceptions=True)
+            await server.stop()
 
     async def _build(self) -> Server:
         trusted = None
         if self.config.trusted_clients is not None:
             trusted = TrustedClients(self.config.trusted_clients)
             await trusted.load()
-        server = Server(user_manager=Users(self.users, trusted))
+        server = Server(user_manager=Users(self.init.users, trusted))
         await server.init()
         if trusted is not None:
             server.set_certificate_validator(trusted)
-        server.set_endpoint(self.url)
+        server.set_endpoint(self.init.url)
         server.set_server_name("relaytune autotuner")
         await server.set_application_uri(APP_URI)
         if self.config.certificate is not None:
             cert, key = self.config.certificate, self.config.private_key
         else:
-            cert, key = await ensure_certificate(self.cert_dir, APP_URI)
+            cert, key = await ensure_certificate(self.init.cert_dir, APP_URI)
         await server.load_certificate(str(cert))
         await server.load_private_key(str(key))
         server.set_security_policy([POLICIES[p] for p in self.config.security], permission_ruleset=RoleRuleset())
@@ -235,9 +178,8 @@ class OpcUaServer:
             "LoopNotRestored": await event_type(server, idx, "LoopNotRestoredEventType",
                                                 "a loop could not be put back after a session: check it by hand"),
         }
-        for status in await self._statuses(list(self.manager.loops)):
+        for status, period in self.init.loops:
             loop_id = status["id"]
-            period = self.manager.loops[loop_id].config.monitor_period
             nodes = self._nodes[loop_id] = await LoopNodes.create(server, folder, idx, status, period, event_types)
             await self._methods(nodes.obj, idx, loop_id)
         return server
@@ -259,81 +201,113 @@ class OpcUaServer:
             await obj.add_method(node_id(idx, loop_id, name), ua.QualifiedName(name, idx),
                                  method(name, action, len(inputs)), inputs, outputs)
 
+    # -- the daemon's messages --------------------------------------------------------------------------------
+
+    async def _listen(self) -> None:
+        """The daemon's messages until it says stop or its end closes: statuses into the address space, replies
+        to the waiting calls."""
+        while (message := await self.channel.receive()) is not None:
+            kind = message[0]
+            if kind == "status":
+                for status in message[1]:
+                    try:
+                        await self._nodes[status["id"]].update(status)
+                    except Exception:  # a bug must not end the publishing of every loop
+                        log.exception("OPC UA: publishing the status of loop %s failed", status.get("id"))
+            elif kind == "reply":
+                call = self._calls.pop(message[1], None)
+                if call is not None and not call.done():
+                    call.set_result(message[2])
+            elif kind == "stop":
+                return
+
     # -- methods ----------------------------------------------------------------------------------------------
 
     async def _call(self, loop_id: str, method: str, action: str, args: list[Any], inputs: int
                     ) -> ua.CallMethodResult:
-        """Run ``action`` (tune, abort, apply) on the daemon's loop for the calling operator; the result of
-        ``method`` (its name, for the log), which has ``inputs`` input arguments."""
+        """Run ``action`` (tune, abort, apply) in the daemon for the calling operator; the result of ``method``
+        (its name, for the log), which has ``inputs`` input arguments."""
         user = CALLER.get()
         if not may_call(user):  # the ruleset refuses viewers already; a second check costs nothing
             return _result(ua.StatusCodes.BadUserAccessDenied, "", NEEDS_OPERATOR, inputs)
         who = f"opcua:{user.name}"
         what = f"loop {loop_id}: {method} over OPC UA by {who}"
+        body = None
         try:
             if action == "tune":
-                request = tune_request(args)
-                sid = await self._on_daemon_async(lambda: self.manager.request_tune(loop_id, request, who))
-                message = "tuning"
-            elif action == "abort":
-                sid = await self._on_daemon(lambda: self.manager.abort(loop_id))
-                message = "aborting: the loop is being restored"
-            else:
-                applied = await self._on_daemon_async(lambda: self.manager.apply(loop_id, None, who))
-                sid, message = applied["session"], "applied: " + ", ".join(
-                    f"{k}={v:.6g}" for k, v in applied["gains"].items() if v is not None)
+                body = tune_request(args).model_dump(exclude_none=True)
         except ValidationError as exc:
             bad = next((i for i, a in enumerate(TUNE_ARGS) if exc.errors() and exc.errors()[0]["loc"][:1] == (a[0],)),
                        None)
             return _refused(what, "invalid", validation_message(exc.errors()), inputs, bad)
         except ValueError as exc:
             return _refused(what, "invalid", str(exc), inputs)
-        except Refused as exc:
-            return _refused(what, exc.code, exc.message, inputs)
+        call_id = next(self._ids)
+        reply = self._calls[call_id] = asyncio.get_running_loop().create_future()
+        self.channel.send("call", call_id, loop_id, action, body, who)
+        outcome = await reply
+        if outcome[0] == "refused":
+            return _refused(what, outcome[1], outcome[2], inputs)
+        if outcome[0] != "ok":
+            raise RuntimeError(f"{what} failed in the daemon: {outcome[1]}")  # asyncua answers BadInternalError
+        _, sid, message, status = outcome
         log.info("%s (session %s)", what, sid)
-        await self._refresh([loop_id])  # TBSY rises now, not at the next poll
+        await self._nodes[loop_id].update(status)  # TBSY rises now, not at the next period
         return _result(ua.StatusCodes.Good, sid, message, inputs)
 
-    # -- the bridge to the daemon's event loop ---------------------------------------------------------------
 
-    async def _on_daemon(self, fn: Callable[[], T]) -> T:
-        """``fn()`` run on the daemon's event loop (where the manager lives), awaited from this thread's."""
+async def _orphaned(parent: int) -> None:
+    """Return once the process is no longer the child of ``parent`` (the daemon died, its child was adopted)."""
+    while os.getppid() == parent:
+        await asyncio.sleep(ORPHAN_CHECK)
 
-        async def run() -> T:
-            return fn()
 
-        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(run(), self._daemon))
+class Forward(logging.Handler):
+    """Sends every record to the daemon's log over ``channel`` (the traceback, if any, in the message)."""
 
-    async def _on_daemon_async(self, fn: Callable[[], Awaitable[T]]) -> T:
-        """The coroutine ``fn()`` run on the daemon's event loop, awaited from this thread's."""
+    def __init__(self, channel: Channel) -> None:
+        super().__init__()
+        self.channel = channel
+        self._loop = asyncio.get_running_loop()
 
-        async def run() -> T:
-            return await fn()
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            message = record.getMessage()
+            if record.exc_info:
+                message += "\n" + "".join(traceback.format_exception(*record.exc_info)).rstrip()
+            item = ("log", record.name, record.levelno, message)
+            if threading.get_ident() == self._loop._thread_id:  # type: ignore[attr-defined]
+                self.channel.send(*item)
+            else:  # asyncua logs from its executor's threads too; the transport is the event loop's only
+                self._loop.call_soon_threadsafe(self.channel.send, *item)
+        except Exception:  # the channel is gone: nobody to tell
+            self.handleError(record)
 
-        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(run(), self._daemon))
 
-    async def _statuses(self, ids: list[str]) -> list[dict[str, Any]]:
-        return await self._on_daemon(lambda: [self.manager.loops[i].as_json() for i in ids])
+async def serve(fd: int) -> None:
+    """The process' work: the daemon's init over the socket ``fd``, then the server until told to stop."""
+    channel = await Channel.open(socket.socket(fileno=fd))
+    message = await channel.receive()
+    if message is None or message[0] != "init":
+        return
+    init: Init = message[1]
+    root = logging.getLogger()
+    root.handlers[:] = [Forward(channel)]
+    for name, level in init.levels.items():
+        logging.getLogger(name or None).setLevel(level)
+    try:
+        await OpcUaServer(init, channel).run()
+    finally:
+        await channel.close()
 
-    def _periods(self) -> dict[float, list[str]]:
-        """The loops by monitor period (one poller each)."""
-        periods: dict[float, list[str]] = {}
-        for loop_id, loop in self.manager.loops.items():
-            periods.setdefault(loop.config.monitor_period, []).append(loop_id)
-        return periods
 
-    async def _refresh(self, ids: list[str]) -> None:
-        for status in await self._statuses(ids):
-            await self._nodes[status["id"]].update(status)
+def main(argv: list[str]) -> int:
+    """``python -m api.opcua.server FD``: the daemon's OPC UA server over the socket ``FD``."""
+    # Ctrl-C in a terminal signals the whole process group: the daemon stops this process itself, after its loops.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    asyncio.run(serve(int(argv[1])))
+    return 0
 
-    async def _poll(self, ids: list[str], period: float) -> None:
-        """Every ``period`` wall seconds: the statuses of ``ids`` into the address space, until cancelled."""
-        while True:
-            try:
-                await self._refresh(ids)
-            except (RuntimeError, concurrent.futures.CancelledError):
-                return  # the daemon's event loop is closing
-            except Exception:  # a bug must not end the publishing of every loop
-                log.exception("OPC UA: publishing the loops' status failed")
-            await asyncio.sleep(period)
 
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))

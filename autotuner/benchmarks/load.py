@@ -18,12 +18,12 @@ included) — what the experiment sees as jitter. CPU is the daemon's CPU
 time (user + system: its process and the worker processes of the design) over
 the wall time, in percent of one core; the plant process's is reported beside it.
 
-With ``opcua`` the daemon also runs its OPC UA server (:mod:`api.opcua`, its
-own thread) and a client in another child process — a SCADA — subscribes to
-every variable of every loop at the monitor's rate for the whole run; the
-number of data changes it received is reported (``opcua_changes``), and the
-CPU of the server's thread (``cpu_opcua``, % of a core). The daemon's CPU
-includes it.
+With ``opcua`` the daemon also runs its OPC UA server (:mod:`api.opcua`, a
+process of its own fed by the daemon) and a client in another child process
+— a SCADA — subscribes to every variable of every loop at the monitor's rate
+for the whole run; the number of data changes it received is reported
+(``opcua_changes``), and the CPU of the server's process (``cpu_opcua``, % of
+a core), which the daemon's CPU does not include.
 """
 
 from __future__ import annotations
