@@ -46,7 +46,10 @@ def _gone(pid: int) -> bool:
 
 
 def _port_free(port: int) -> bool:
+    """Whether nothing listens on ``port`` any more: a new server could bind it (as asyncua does, with
+    SO_REUSEADDR: the closed connections' TIME_WAIT does not count)."""
     with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind(("127.0.0.1", port))
         except OSError:

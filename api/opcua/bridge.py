@@ -70,7 +70,8 @@ class OpcUaProcess:
         self.url = endpoint_url(config.host or host, config.port)
         self.process: subprocess.Popen[bytes] | None = None
         self._channel: Channel | None = None
-        self._tasks: set[asyncio.Task[Any]] = set()
+        self._tasks: set[asyncio.Task[Any]] = set()  # the listener and the publishers
+        self._calls: set[asyncio.Task[Any]] = set()  # the method calls under way
         self._sent: dict[str, dict[str, Any]] = {}
 
     # -- life cycle ---------------------------------------------------------------------------------------------
@@ -124,6 +125,8 @@ class OpcUaProcess:
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        # Calls under way finish (a TUNE cut between its checks and its start would be neither refused nor run).
+        await asyncio.gather(*self._calls, return_exceptions=True)
         channel, self._channel = self._channel, None
         if channel is not None:
             channel.send("stop")
@@ -151,10 +154,11 @@ class OpcUaProcess:
     def _exit_code(self) -> int | None:
         return None if self.process is None else self.process.poll()
 
-    def _spawn(self, coro: Any) -> None:
+    def _spawn(self, coro: Any, tasks: set[asyncio.Task[Any]] | None = None) -> None:
+        tasks = self._tasks if tasks is None else tasks
         task = asyncio.create_task(coro)
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        tasks.add(task)
+        task.add_done_callback(tasks.discard)
 
     def _periods(self) -> dict[float, list[str]]:
         """The loops by monitor period (one publisher each)."""
@@ -184,7 +188,7 @@ class OpcUaProcess:
         assert self._channel is not None
         while (message := await self._channel.receive()) is not None:
             if message[0] == "call":
-                self._spawn(self._call(*message[1:]))
+                self._spawn(self._call(*message[1:]), self._calls)
             elif message[0] == "log":
                 _log(*message[1:])
         if self._channel is not None:  # not stopping: it died
