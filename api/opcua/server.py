@@ -215,9 +215,12 @@ class OpcUaServer:
                     except Exception:  # a bug must not end the publishing of every loop
                         log.exception("OPC UA: publishing the status of loop %s failed", status.get("id"))
             elif kind == "reply":
+                outcome = message[2]
+                if outcome[0] == "ok":  # here, in the order of the statuses: TBSY rises now, not at the next period
+                    await self._nodes[outcome[3]["id"]].update(outcome[3])
                 call = self._calls.pop(message[1], None)
                 if call is not None and not call.done():
-                    call.set_result(message[2])
+                    call.set_result(outcome)
             elif kind == "stop":
                 return
 
@@ -250,9 +253,8 @@ class OpcUaServer:
             return _refused(what, outcome[1], outcome[2], inputs)
         if outcome[0] != "ok":
             raise RuntimeError(f"{what} failed in the daemon: {outcome[1]}")  # asyncua answers BadInternalError
-        _, sid, message, status = outcome
+        _, sid, message, _ = outcome
         log.info("%s (session %s)", what, sid)
-        await self._nodes[loop_id].update(status)  # TBSY rises now, not at the next period
         return _result(ua.StatusCodes.Good, sid, message, inputs)
 
 
