@@ -68,7 +68,8 @@ def check_contract(doc: dict, controller: str = "PI") -> None:
     assert isinstance(doc["static_gain"], float)
     assert set(doc["gains"]) == {"pk", "pti", "ptd", "pnd", "pb", "pc"}
     assert all(isinstance(v, float) for v in doc["gains"].values())
-    assert set(doc["experiment"]) == {"duration", "periods", "samples"}
+    assert set(doc["experiment"]) == {"duration", "periods", "samples", "phase_target_deg", "phase_moved"}
+    assert doc["experiment"]["phase_target_deg"] == 135.0 and doc["experiment"]["phase_moved"] is False
     assert isinstance(doc["experiment"]["duration"], float) and doc["experiment"]["duration"] > 0
     assert isinstance(doc["experiment"]["periods"], (int, float)) and doc["experiment"]["periods"] > 0
     assert isinstance(doc["experiment"]["samples"], int) and doc["experiment"]["samples"] > 0

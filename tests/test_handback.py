@@ -24,6 +24,7 @@ import httpx
 import pytest
 from pymodbus.client import ModbusTcpClient
 
+from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment
 from autotuner.engine.outcome import Code
 from drivers.modbus_map import DEFAULT_MAP
 from helpers import free_port
@@ -264,7 +265,9 @@ def test_the_hand_back_is_bumpless_on_the_device(tmp_path, plc):
         relay = [*trace, *(r["pv"] for r in during), *(r["pv"] for r in before), auto["pv"]]
         band = (min(relay), max(relay))
         assert band[0] - 0.5 <= min(pvs) and max(pvs) <= band[1] + 0.5, (band, min(pvs), max(pvs))
-        assert json.loads(row["saved"])["relay_levels"] == [47.0, 55.0]
+        # Every level the relay can hold: full amp (a rescue), an unstable process's bias 0.1, the bias 0.2, the
+        # weak first half period (0.4·AMP), the high level.
+        assert json.loads(row["saved"])["relay_levels"] == [45.0, 46.0, 47.0, 48.0, 55.0]
 
 
 def test_sigterm_with_an_event_stream_open_hands_back_first_and_exits_0(tmp_path, plc):
@@ -387,10 +390,11 @@ def test_a_sigkill_at_a_switch_sample_between_the_levels_is_the_daemons_own_mv_a
     there leaves the loop at neither a level nor the saved MV; the restart took that for an operator's intervention
     and left the loop in MAN. The session's MV range (hull of the levels and the saved MV) is recorded before the
     loop is touched, so the restart knows the MV for its own and hands the loop back."""
-    levels = (SAVED_MV - 0.6 * AMP, SAVED_MV + AMP)  # 47 and 55
+    # Every level the relay can hold (45, 46, 47, 48 and 55: docs/experiment.md); it swings between 47 and 55 here.
+    levels = RelayExperiment(RelayConfig(amp=AMP), mv0=SAVED_MV).levels
 
     def between(now: dict[str, Any]) -> bool:  # MAN, the PLC running with an MV strictly between, at no level
-        return (now["mode"] == "MAN" and now["mv"] == now["hv"] and levels[0] < now["hv"] < levels[1]
+        return (now["mode"] == "MAN" and now["mv"] == now["hv"] and levels[0] < now["hv"] < levels[-1]
                 and min(abs(now["hv"] - x) for x in (*levels, SAVED_MV)) > 0.05)
 
     with daemon(tmp_path, plc) as d:
@@ -411,7 +415,7 @@ def test_a_sigkill_at_a_switch_sample_between_the_levels_is_the_daemons_own_mv_a
         left = wait_for(caught, WAIT, "a switch sample between the relay's levels")
         d.proc.kill()  # SIGKILL while stopped
         d.proc.wait()
-        assert json.loads(history_row(d.history, sid)["saved"])["mv_range"] == [levels[0], levels[1]]
+        assert json.loads(history_row(d.history, sid)["saved"])["mv_range"] == [levels[0], levels[-1]]
     assert plc.read()["hv"] == left["hv"]
     with daemon(tmp_path, plc) as d:
         auto, before = first_auto(plc)

@@ -171,6 +171,9 @@ def _result_table(result: TuneResult, ts: float, plant: Process | None = None) -
         return table
     p = ident.point
     table.add_row("point", f"ω = {p.omega:.4g} rad/s, |F| = {p.gain:.4g}, phase = {p.phase_deg:.2f}°")
+    if ident.phase_moved:
+        table.add_row("phase target", f"{ident.phase_target_deg:.1f}° of lag (moved from the requested one: out of "
+                      "reach of this unstable process)")
     table.add_row("static gain", "integrating (∞)" if math.isinf(ident.static_gain) else f"{ident.static_gain:.4g}")
     table.add_row("experiment", f"{ident.duration:.4g} s, {ident.periods:.1f} periods, {ident.samples} samples "
                   f"(ts = {ts:.4g} s, hysteresis = {ident.hysteresis:.3g})")

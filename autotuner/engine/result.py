@@ -147,6 +147,11 @@ class ExperimentRecord:
     duration: float = _f("from the first sample to the end, plant seconds", 96.0)
     periods: float | None = _f("the duration in oscillation periods (null: nothing identified)", 6.5)
     samples: int = _f("samples taken", 384)
+    phase_target_deg: float | None = _o("the process phase lag the experiment aimed at, degrees: the requested one, "
+                                        "or a reachable one when the requested phase was out of reach of an "
+                                        "unstable process (null: nothing identified)")
+    phase_moved: bool | None = _o("true when the phase target was moved from the requested one (null: nothing "
+                                  "identified)")
 
 
 @dataclass(frozen=True)
@@ -179,7 +184,9 @@ class ResultRecord:
             static_gain=None if ident is None or math.isinf(ident.static_gain) else float(ident.static_gain),
             gains=None if des is None else GainsRecord.of(des.gains),
             experiment=ExperimentRecord(float(t[-1] - t[0]) if len(t) else 0.0,
-                                        None if ident is None else round(ident.periods, 2), len(t)),
+                                        None if ident is None else round(ident.periods, 2), len(t),
+                                        None if ident is None else float(ident.phase_target_deg),
+                                        None if ident is None else bool(ident.phase_moved)),
             design=None if des is None else DesignRecord.of(des),
             forms=None if des is None else forms_json(des.gains),
         )

@@ -792,7 +792,7 @@ class LoopManager:
         restore_error = ""
         pending: Pending | None = None
 
-        async def on_saved(saved: LoopState, relay_levels: tuple[float, float]) -> str:
+        async def on_saved(saved: LoopState, relay_levels: tuple[float, ...]) -> str:
             """Durably, before the session touches the loop (after the begin, in the history's thread)."""
             nonlocal levels, mv_range
             hull = mv_hull(saved.mv, *relay_levels)  # a switch sample lies between the levels

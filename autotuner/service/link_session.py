@@ -208,7 +208,7 @@ async def tune_link(
     stop: asyncio.Event | None = None,
     on_status: Callable[[Status], None] | None = None,
     handback: HandBack | None = None,
-    on_saved: Callable[[LoopState, tuple[float, float]], Awaitable[str]] | None = None,
+    on_saved: Callable[[LoopState, tuple[float, ...]], Awaitable[str]] | None = None,
     on_handed_back: Callable[[str], None] | None = None,
 ) -> TuneResult:
     """Run the experiment on the loop behind ``link`` every ``ts`` plant seconds and design ``controller``.

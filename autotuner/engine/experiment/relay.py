@@ -189,6 +189,30 @@ _SAMPLES_PER_PERIOD = 100.0
 _NOISY = 0.002
 _MAX_LOG_STEP = math.log(2.0)
 _RELAXATION = 0.75
+# Open-loop unstable processes (a negative mean ratio, or a PV that ran away from a weak relay
+# level): the relay's bias drops to this, so that the weaker level (amp·(1 − 2·bias)) keeps the
+# authority to bring the PV back after the overshoot the dead time gives (e^{D/T} − 1 at D/T = 0.5
+# is 0.65 × amp: more than the 0.6 of bias 0.2).
+_UNSTABLE_BIAS = 0.1
+# The phase target of an unstable process moves this share of the way from the least lag its
+# model reaches to 180° (where the plain relay oscillates): a target near the least lag sits where
+# the phase curve is flat and the cycle slides onto the low-frequency branch and runs away.
+_UNSTABLE_MARGIN = 0.4
+# Highest phase target (the RelayConfig's upper bound).
+_MAX_TARGET_DEG = 170.0
+# The relay's low level in its first half period, as a share of amp (see RelayExperiment.__init__):
+# an unstable process with D/T ≥ ln(1 + 0.4) ≈ 0.34 overshoots beyond it and is recognised in the
+# first period, while a rescue to the full amp still holds it (up to D/T ≈ 0.55).
+_FIRST_LOW = 0.4
+# An open-loop unstable process is recognised from the mean ratios of the first this many estimates (the
+# first one still carries the start's transient); one whose ratio turns negative later is a load step or
+# noise, which the load fit and the stopping rule deal with.
+_HINT_ESTIMATES = 3
+# A first switch within this many samples of the relay's start tells nothing of the process's reaction time
+# (see RelayExperiment._reaction).
+_REACT_SAMPLES = 3
+# Windows of the runaway test (_check_runaway), as a share of the process's reaction time.
+_RUNAWAY_WINDOW = 0.15
 
 
 class RelayExperiment:
@@ -201,7 +225,12 @@ class RelayExperiment:
         self.mv0 = mv0
         lo, hi = config.mv_limits
         self._mv_high = min(mv0 + config.amp, hi)
-        self._mv_low = max(mv0 - config.amp * (1.0 - 2.0 * config.bias), lo)
+        # The first half period below the centre is held at a weak level (_FIRST_LOW): no estimate uses
+        # the first period, and an open-loop unstable process then overshoots beyond the level's
+        # authority at once, while the PV is still near the set point, so that _check_runaway
+        # recognises it before a phase filter's lag can make it run away beyond the full amp.
+        self._mv_low = max(mv0 - config.amp * min(_FIRST_LOW, 1.0 - 2.0 * config.bias), lo)
+        self._first_low = True
         # The relay's centre follows a fitted load (within ±amp of mv0), and
         # its bias changes sign once after a load step, so that the static
         # gain has a known excitation after the step as well.
@@ -245,6 +274,16 @@ class RelayExperiment:
         self._slope = 1.0
         self._relay_start = 0
         self._peak_error = 0.0
+        # The phase the filter aims at: the requested one, or a reachable one (unstable processes).
+        self._target_deg = config.phase_deg
+        self._bias = config.bias
+        self._unstable = False
+        # Seconds from the relay's start to its first switch: how long the process takes to answer.
+        self._react = 0.0
+        self._full_level = False
+        self._turn = 0.0  # seconds from the first switch to the PV's first turn (see _reaction)
+        self._rescued_at = 0
+        self._aimed = False  # an unstable process's target has been set from an estimate
         if self._mv_high <= mv0 or self._mv_low >= mv0:
             self._finish(
                 Code.MV_RANGE,
@@ -255,9 +294,23 @@ class RelayExperiment:
     # -- public interface -------------------------------------------------
 
     @property
-    def levels(self) -> tuple[float, float]:
-        """The relay's two MV levels (low, high), MV units: where the experiment holds the MV between switches."""
-        return (self._mv_low, self._mv_high)
+    def levels(self) -> tuple[float, ...]:
+        """Every MV level the relay can hold between switches, ascending, MV units (within the MV limits).
+
+        With its centre at ``mv0``: the high level ``mv0 + amp`` and the low
+        ones — the first half period's weak level (``_FIRST_LOW``), the biased
+        one ``mv0 − amp·(1 − 2·bias)``, an unstable process's (bias
+        ``_UNSTABLE_BIAS``) and the full ``amp`` of a rescue (``_check_runaway``).
+        A crash recovery reads an MV at any of them as the experiment's, not an
+        operator's. A relay that follows a load (``follow_loads``) shifts its
+        centre within ±amp and may flip its bias; those levels are not listed.
+        """
+        lo, hi = self.config.mv_limits
+        amp = self.config.amp
+        shares = {1.0, 1.0 - 2.0 * self.config.bias, min(_FIRST_LOW, 1.0 - 2.0 * self.config.bias),
+                  1.0 - 2.0 * min(self.config.bias, _UNSTABLE_BIAS)}
+        low = {max(self.mv0 - amp * share, lo) for share in shares}
+        return tuple(sorted(low | {min(self.mv0 + amp, hi)}))
 
     @property
     def done(self) -> bool:
@@ -364,6 +417,8 @@ class RelayExperiment:
             self._on_period()
         if not self.done:
             self._check_oscillation(k)
+        if not self.done and self._check_runaway(k):
+            return self._relay_mv()
         if self.done:
             return self.mv0
         if self._switches[-1:] != [k]:
@@ -381,6 +436,13 @@ class RelayExperiment:
         self._crossing = self._t[k - 1] + frac * dt
         self._relay = relay
         self._switches.append(k)
+        if len(self._switches) == 1:
+            # At least a sample: a process without dead time answers within one (noise-free, no hysteresis).
+            self._react = self._crossing - self._t[self._relay_start]
+        if self._full_level:
+            # A rescued half period (_check_runaway) ends: the weaker bias from now on.
+            self._full_level = False
+            self._set_levels()
         if relay > 0:
             self._rising.append(k)
             self._crossings.append(self._crossing)
@@ -396,20 +458,164 @@ class RelayExperiment:
     def _set_levels(self) -> None:
         """Relay levels from the centre and the sign of the bias, within the MV limits."""
         lo, hi = self.config.mv_limits
-        amp, short = self.config.amp, self.config.amp * (1.0 - 2.0 * self.config.bias)
+        amp, short = self.config.amp, self.config.amp * (1.0 - 2.0 * self._bias)
         up, down = (amp, short) if self._bias_sign > 0 else (short, amp)
         self._mv_high = min(self._center + up, hi)
         self._mv_low = max(self._center - down, lo)
 
+    def _check_runaway(self, k: int) -> bool:
+        """Keep an open-loop unstable process bounded: True when the relay's level was just strengthened.
+
+        A PV that keeps moving away from the set point, faster and faster, long
+        after the relay turned against it (three half reaction times after the
+        time the process took to answer the relay's first step) is an unstable
+        process the level cannot hold: the weaker level of the biased relay
+        has less authority than the overshoot the dead time gave. The level
+        goes to the full amp at once, the bias drops to ``_UNSTABLE_BIAS`` and
+        the filter's lag is removed (the requested phase may be out of reach).
+        If the PV runs away from a level at full amp, no relay holds the
+        process: the experiment ends with UNSTABLE_DEAD_TIME_TOO_LONG.
+        """
+        react = self._reaction(k)
+        if not self._switches or react <= 0.0:
+            return False
+        t, y = self._t, self._y
+        # Since the last switch, or since the level was strengthened (its effect takes as long to arrive).
+        last = max(self._switches[-1], self._rescued_at)
+        m = max(int(round(_RUNAWAY_WINDOW * react / self._dt)), 2)  # samples per window
+        # The dead time after the switch has passed, and three windows since (the PV accelerates
+        # away during the dead time whatever the process).
+        if t[k] - t[last] < react + 3 * m * self._dt:
+            return False
+        # Equal windows of samples (a sampled ramp compared over unequal ones looks curved).
+        marks = [k - 3 * m, k - 2 * m, k - m, k]
+        away = [self._relay * self._sign * (self._sp - y[i]) for i in marks]
+        steps = np.diff(away)
+        floor = 3.0 * self._noise
+        if not (steps[0] > floor and steps[1] > steps[0] + floor and steps[2] > steps[1] + floor):
+            return False
+        if len(self._switches) >= 3 and away[-1] <= self._peak_away():
+            return False  # within the swing the cycle already had
+        level = self._mv_high if self._relay > 0 else self._mv_low
+        amp = self.config.amp
+        if abs(level - self._center) >= amp * (1.0 - 1e-9) or self._full_level:
+            self._runaway_at_full_amp(amp)
+            return False
+        lo, hi = self.config.mv_limits
+        if self._relay > 0:
+            self._mv_high = min(self._center + amp, hi)
+        else:
+            self._mv_low = max(self._center - amp, lo)
+        self._full_level = True
+        self._rescued_at = k
+        self._enter_unstable()
+        self._set_filter(0.0, self._omega or 1.0)
+        self._last = None
+        return True
+
+    def _reaction(self, k: int) -> float:
+        """Seconds the process takes to answer the relay: the runaway test's time scale (0 while unknown).
+
+        The time from the relay's start to its first switch. A process without
+        dead time crosses a zero hysteresis (no noise) at its first sample, and
+        a high-order lag then still accelerates long after: for such a process
+        (a first switch within ``_REACT_SAMPLES`` samples) it is the time from
+        the first switch until the PV turned back towards the set point.
+        """
+        if self._react > _REACT_SAMPLES * self._dt:
+            return self._react
+        if not self._turn and self._switches:
+            first = self._switches[0]
+            if len(self._switches) >= 2:
+                self._turn = self._t[self._switches[1]] - self._t[first]
+            elif k - 1 > first:
+                # After the first switch the relay pushes the PV back: it turns when its distance from the set
+                # point stops growing.
+                away = [self._relay * self._sign * (self._sp - self._y[i]) for i in (k - 1, k)]
+                if away[1] < away[0]:
+                    self._turn = self._t[k - 1] - self._t[first]
+        return self._turn
+
+    def _runaway_at_full_amp(self, amp: float) -> None:
+        """End the experiment: the PV runs away from a level at full amp (no relay holds this process).
+
+        A lag beyond 180° measured on the way (an unstable pole's lag is below
+        180° at any frequency where its dead time lets a relay oscillate) means
+        more than one unstable pole: NOT_STABILISABLE, as the design says of
+        such a process. Otherwise the dead time is too long for a relay to hold
+        the process (about 0.7 × its unstable time constant or more), so too
+        long for a PI/PID as well: UNSTABLE_DEAD_TIME_TOO_LONG.
+        """
+        what = (f"the PV runs away from the set point faster and faster while the relay pushes back with its full "
+                f"amplitude ({amp:g})")
+        lags = [self._lag(p.value) for p, _ in self._estimates]
+        if lags and max(lags) > math.pi:
+            self._finish(
+                Code.NOT_STABILISABLE,
+                f"{MESSAGES[Code.NOT_STABILISABLE]}: {what}, and the process lagged {math.degrees(max(lags)):.0f}° "
+                "(more than 180°) at the relay's frequency — an open-loop unstable process with more than one "
+                "unstable pole: no relay holds it and no PI stabilises it, so no relay experiment tunes it",
+            )
+            return
+        self._finish(
+            Code.UNSTABLE_DEAD_TIME_TOO_LONG,
+            f"{MESSAGES[Code.UNSTABLE_DEAD_TIME_TOO_LONG]}: {what} — an open-loop unstable process whose dead time "
+            "is too long for a relay to hold it (about 0.7 × its unstable time constant or more), so too long for "
+            "a PI/PID as well",
+        )
+
+    def _peak_away(self) -> float:
+        """Largest deviation of the PV from the set point over the last whole period before the current half (PV units)."""
+        start, end = self._switches[-3], self._switches[-1]
+        return float(max(abs(v - self._sp) for v in self._y[start:end]))
+
+    def _enter_unstable(self) -> None:
+        """An open-loop unstable process: the weaker bias, levels changed (estimates from now on)."""
+        self._unstable = True
+        if self._bias > _UNSTABLE_BIAS:
+            self._bias = min(self._bias, _UNSTABLE_BIAS)
+            if not self._full_level:
+                self._set_levels()
+            self._changed_at = self._t[-1]
+
+    def _move_target(self, point: Point, x: float) -> None:
+        """Aim at a phase an unstable process reaches, from the model the latest estimate fixes.
+
+        The lag ``π − atan(ωT) + ωD`` of the model (``_unstable_model``) is least,
+        ``π − atan(s) + s·D/T``, at ``ωT = s = sqrt(T/D − 1)``. The target moves
+        ``_UNSTABLE_MARGIN`` of the way from there to 180° (never below the
+        requested phase, never above 170°, never back down).
+        """
+        model = self._unstable_model(point, x)
+        if model is None:
+            return
+        ratio = model[1]
+        if ratio >= 1.0:
+            least = math.pi
+        elif ratio > 0.0:
+            s = math.sqrt(1.0 / ratio - 1.0)
+            least = math.pi - math.atan(s) + s * ratio
+        else:
+            least = math.pi / 2.0
+        self._aimed = True
+        wanted = math.degrees(least + _UNSTABLE_MARGIN * (math.pi - least))
+        self._target_deg = min(max(self._target_deg, wanted), _MAX_TARGET_DEG)
+
     def _on_period(self) -> None:
         t = self._t
+        if self._first_low:
+            self._first_low = False
+            if not self._full_level:
+                self._set_levels()
         if len(self._rising) == 1:
             # First rising switch: only half a period is known. Start the filter
             # at the describing-function guess.
             half = t[self._rising[0]] - t[self._switches[-2]]
             omega = math.pi / half
             ratio = min(1.0, self._eps / self._peak_error) if self._peak_error > 0 else 0.0
-            self._set_filter(math.pi - math.radians(self.config.phase_deg) - math.asin(ratio), omega)
+            # A PV that already ran away once (unstable): no lag until an estimate says what is reachable.
+            theta = 0.0 if self._unstable else math.pi - math.radians(self._target_deg) - math.asin(ratio)
+            self._set_filter(theta, omega)
             return
         # The MV of this sample is not recorded yet; the windows need the MVs
         # held before this sample only.
@@ -436,9 +642,23 @@ class RelayExperiment:
         ta, tb = self._crossings[-2], self._crossings[-1]
         omega = 2.0 * math.pi / (tb - ta)
         lag = self._lag(self._estimate(tt, uu, yy, ta, tb, omega, hann=False))
-        if ta >= self._changed_at:
+        # An open-loop unstable process shows a negative mean ratio from its first estimates on (or ran
+        # away from a level already); one that turns negative later is a load step or noise, which the
+        # load fit and the stopping rule deal with.
+        negative = self._negative_ratio()
+        recognised = self._unstable or (len(self._estimates) <= _HINT_ESTIMATES and self._unstable_hint())
+        if negative and recognised and self._fit is None:
+            # An open-loop unstable process: a weaker bias, and a phase it reaches.
+            self._enter_unstable()
+            self._move_target(*self._estimates[-1])
+        elif self._estimates and not negative:
+            self._unstable = False  # a rescued level (_check_runaway) on a process the estimates call stable
+        # (A change of the levels made just now, at the end of the period, leaves the period clean.)
+        clean = ta >= self._changed_at or self._changed_at >= self._t[-1]
+        if clean and not (self._unstable and not self._aimed):
             # A period that saw the relay's levels change is a transient: the
-            # filter is not corrected from it.
+            # filter is not corrected from it (nor, on an unstable process, before
+            # an estimate has said which phase it reaches).
             self._adapt(omega, lag)
         if len(self._rising) >= 3:
             self._judge(tt, uu, detrended)
@@ -484,7 +704,7 @@ class RelayExperiment:
         fitter = self._fitter(tt, uu, yy)
         if fitter is None:
             return False
-        fit = fitter.fit()
+        fit = fitter.fit(unstable=self._unstable)
         if not self._significant(fit):
             self._candidate = None
             return False
@@ -535,7 +755,7 @@ class RelayExperiment:
         fitter = self._fitter(tt, uu, yy)
         if fitter is None:
             return
-        fit = fitter.fit()
+        fit = fitter.fit(unstable=self._unstable)
         if not self._agree(self._fit, fit):
             # Keep following what was accepted until two new fits agree on something else.
             previous, self._candidate = self._candidate, fit
@@ -578,11 +798,52 @@ class RelayExperiment:
             self._set_levels()
 
     def _unstable_hint(self) -> bool:
-        """True when the simple mean ratio says the static gain is negative (an open-loop unstable process)."""
+        """True when the estimates say the process is open-loop unstable.
+
+        The simple mean ratio of the latest two estimates is negative, and the
+        unstable model that the latest estimate fixes has its point on the
+        rising branch of its phase curve, where a relay cycle sits. An
+        integrating or stable process with a load at the process input from the
+        start shows a negative mean ratio too (the relay's mean MV balances the
+        load, not the PV's mean), but the model it implies puts the point on
+        the falling branch: that is no unstable process.
+        """
+        if not self._negative_ratio():
+            return False
+        point, x = self._estimates[-1]
+        return x < 0.0 and self._on_rising_branch(point, x)
+
+    def _negative_ratio(self) -> bool:
+        """True when the mean ratio |F|/K0 of the latest two estimates is below −static_tol."""
         if not self._estimates:
             return False
         inverse = sum(i for _, i in self._estimates[-2:]) / len(self._estimates[-2:])
         return inverse < -self.config.static_tol
+
+    def _unstable_model(self, point: Point, x: float) -> tuple[float, float] | None:
+        """(ω·T, D/T) of ``K·e^{−Ds}/(Ts − 1)`` through ``point`` with ``|F|/K0 = x < 0``, or None if none fits.
+
+        ``K = |F|/|x|``, ``ωT = sqrt(1/x² − 1)``, ``ωD = lag − π + atan(ωT)``
+        (methods.md §6, unstable_design).
+        """
+        if not -1.0 < x < 0.0:
+            return None
+        wt = math.sqrt(1.0 / (x * x) - 1.0)
+        wd = self._lag(point.value) - math.pi + math.atan(wt)
+        return wt, max(wd, 0.0) / wt
+
+    def _on_rising_branch(self, point: Point, x: float) -> bool:
+        """True when the point lies where the unstable model's lag rises with ω (``ωT > sqrt(T/D − 1)``).
+
+        The lag ``π − atan(ωT) + ωD`` falls from 180° at ω = 0 to its least at
+        ``ωT = sqrt(T/D − 1)`` and rises after it; a relay cycle needs the
+        rising branch (on the falling one it slides away to ω → 0).
+        """
+        model = self._unstable_model(point, x)
+        if model is None:
+            return False
+        wt, ratio = model
+        return 0.0 < ratio and (ratio >= 1.0 or wt * wt > 1.0 / ratio - 1.0)
 
     @staticmethod
     def _drift(tt: np.ndarray, yy: np.ndarray, bounds: list[float]) -> np.ndarray:
@@ -628,7 +889,7 @@ class RelayExperiment:
         # With noise, all estimates since the last disturbance may be averaged but the first two
         # (the filter's first corrections).
         longest = len(usable) - 2 if noisy else 2 + (periods - _MIN_PERIODS) // 2
-        verdict = judge(usable, self.config.phase_deg, self._tolerances(), longest, noisy,
+        verdict = judge(usable, self._target_deg, self._tolerances(), longest, noisy,
                         None if self._fit is None else self._fit.x_std)
         if verdict is None:
             return
@@ -673,7 +934,8 @@ class RelayExperiment:
             samples=len(self._t),
             hysteresis=self._eps,
             noise_std=self._noise,
-            phase_target_deg=self.config.phase_deg,
+            phase_target_deg=self._target_deg,
+            phase_moved=self._target_deg != self.config.phase_deg,
             static_gain_std=static_std,
             disturbance=fit is not None,
             periods_discarded=discarded,
@@ -704,7 +966,7 @@ class RelayExperiment:
         period just measured (it absorbs hysteresis and sampling delays),
         gives the filter phase needed there.
         """
-        target = math.radians(self.config.phase_deg)
+        target = math.radians(self._target_deg)
         offset = math.pi - lag - self._filter.phase(omega)
         if self._last is not None:
             w_prev, lag_prev = self._last
@@ -788,7 +1050,8 @@ class RelayExperiment:
             lag = -self._estimates[-1][0].phase_deg
             text += (
                 f": the process lags {lag:.1f}° where {self.config.phase_deg:g}° was requested"
-                " (out of reach of this process?)"
+                + (f" and {self._target_deg:.1f}° aimed at (an unstable process: the requested phase is out of "
+                   "its reach)" if self._target_deg != self.config.phase_deg else " (out of reach of this process?)")
             )
         self._finish(Code.NOT_CONVERGED, text)
 

@@ -80,7 +80,10 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
             static_ok = inverse_std <= tol.static_tol
         else:
             static_ok = inverse_spread / math.sqrt(k) <= 0.5 * tol.static_tol
-        if spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
+        # Under noise two or three estimates can agree by chance (they share periods of data): the
+        # settled rule then needs as many as the averaged one.
+        settled = not noisy or k >= NOISY_MIN
+        if settled and spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
             return Verdict(mean, inverse, k)
         if noisy and k >= NOISY_MIN:
             independent = k / 2.0
