@@ -37,7 +37,7 @@ from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
 from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
 from autotuner.engine.experiment.point import Point
-from autotuner.engine.experiment.stopping import Tolerances, amp_factor, judge
+from autotuner.engine.experiment.stopping import NOISY_MIN, Tolerances, amp_factor, judge
 from autotuner.engine.experiment.phase_filter import PhaseFilter
 
 
@@ -187,6 +187,9 @@ _LIMIT_SHARE = 200.0
 _SAMPLES_PER_PERIOD = 100.0
 # Noise (σ) above this fraction of |F|·amp makes single estimates scatter beyond gain_tol.
 _NOISY = 0.002
+# Noise (σ) above this fraction of |F|·amp lets two or three estimates agree by chance while each is off by
+# more than half a per cent (at 5 %: stopped at 6 periods with point errors of 0.8-1.04 %).
+_CHANCE_NOISE = 0.02
 _MAX_LOG_STEP = math.log(2.0)
 _RELAXATION = 0.75
 # Open-loop unstable processes (a negative mean ratio, or a PV that ran away from a weak relay
@@ -889,8 +892,11 @@ class RelayExperiment:
         # With noise, all estimates since the last disturbance may be averaged but the first two
         # (the filter's first corrections).
         longest = len(usable) - 2 if noisy else 2 + (periods - _MIN_PERIODS) // 2
+        # Under strong noise two or three estimates can agree by chance (they share periods of data): the
+        # settled rule then needs as many as the averaged one (stopping.py).
+        strong = self._noise > _CHANCE_NOISE * self._estimates[-1][0].gain * self.config.amp
         verdict = judge(usable, self._target_deg, self._tolerances(), longest, noisy,
-                        None if self._fit is None else self._fit.x_std)
+                        None if self._fit is None else self._fit.x_std, NOISY_MIN if strong else 2)
         if verdict is None:
             return
         # Before accepting a quiet result, make sure the record holds no

@@ -3,7 +3,8 @@
 Each whole period gives one estimate of ``F(jω)`` over the last two periods
 and one of ``|F|/K0``. Two ways to be done:
 
-* **settled** (a quiet plant): the latest ``k ≥ 2`` estimates agree — the
+* **settled** (a quiet plant): the latest ``k ≥ 2`` estimates (``settled_min``:
+  more under strong noise, where a few agree by chance) agree — the
   standard error of their mean is within half of ``gain_tol`` (relative) and
   ``static_tol`` — and the phase is within ``phase_tol_deg`` of the target.
   The shortest such run from the end is taken, so a transient a few periods
@@ -61,12 +62,14 @@ def _stats(recent: list[tuple[Point, float]]) -> tuple[Point, float, float, floa
 
 
 def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances, longest: int,
-          noisy: bool, inverse_std: float | None = None) -> Verdict | None:
+          noisy: bool, inverse_std: float | None = None, settled_min: int = 2) -> Verdict | None:
     """The accepted mean of the latest estimates, or None to go on.
 
     ``longest`` bounds how many of the latest are averaged; ``noisy`` enables
     the averaged rule; ``inverse_std`` (from a load fit) replaces the spread
-    of |F|/K0 by the fit's own standard error.
+    of |F|/K0 by the fit's own standard error; ``settled_min`` is the fewest
+    estimates the settled rule accepts (strong noise: two or three that share
+    periods of data agree by chance).
     """
     for k in range(2, min(len(estimates), longest) + 1):
         recent = estimates[-k:]
@@ -80,10 +83,7 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
             static_ok = inverse_std <= tol.static_tol
         else:
             static_ok = inverse_spread / math.sqrt(k) <= 0.5 * tol.static_tol
-        # Under noise two or three estimates can agree by chance (they share periods of data): the
-        # settled rule then needs as many as the averaged one.
-        settled = not noisy or k >= NOISY_MIN
-        if settled and spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
+        if k >= settled_min and spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
             return Verdict(mean, inverse, k)
         if noisy and k >= NOISY_MIN:
             independent = k / 2.0
