@@ -1,5 +1,5 @@
-"""CAN between real processes: the daemon (`autotuner serve --config`) and a simulated CAN node (serve_can in a
-process of its own) on python-can's udp_multicast interface (hop limit 0: the frames never leave this host), the
+"""CAN between real processes: the daemon (`autotuner serve --config`) and a simulated CAN node (`autotuner sim
+--can GROUP --interface udp_multicast --can-port P --hop-limit 0`, a process of its own) on python-can's udp_multicast interface (hop limit 0: the frames never leave this host), the
 node read by a CanLink of this test process. python-can's `virtual` bus is in-process only, so it cannot carry
 this fault: SIGKILL of the daemon with the relay at a level, and the node's watchdog hands the loop back."""
 
@@ -32,22 +32,6 @@ try:
 except ImportError:
     pytest.fail("tests/test_can_process.py needs msgpack (python-can's udp_multicast): pip install -e '.[test]'",
                 pytrace=False)
-
-NODE = """
-import asyncio, sys
-from autotuner.engine.plant.expression import parse_process
-from drivers.can_node import serve_can
-from drivers.simplc import SimulatedPlc, run
-
-async def main(group, port, ts, speed):
-    plc = SimulatedPlc(parse_process("exp(-s)/(2*s+1)"), ts=ts)
-    node = await serve_can(plc, "udp_multicast", group, period=ts / speed, port=port, hop_limit=0)
-    print("serving", flush=True)
-    await run(plc, speed, asyncio.Event())
-
-asyncio.run(main(sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), float(sys.argv[4])))
-"""
-
 
 class Reader:
     """A CanLink of this process on the node's bus, in a thread with its own event loop: the device as read by a
@@ -82,12 +66,15 @@ def processes(tmp: Path) -> Iterator[tuple[subprocess.Popen, Reader, Path, Path]
     url = f"can://udp_multicast/{group}?port={port}&hop_limit=0"
     node_log = tmp / "node.log"
     with open(node_log, "w") as out:
-        node = subprocess.Popen([sys.executable, "-c", NODE, group, str(port), str(PLC_TS), str(SPEED)],
+        node = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "sim", "--plant", "exp(-s)/(2*s+1)",
+                                 "--ts", str(PLC_TS), "--speed", str(SPEED), "--can", group,
+                                 "--interface", "udp_multicast", "--can-port", str(port), "--hop-limit", "0"],
                                 stdout=out, stderr=subprocess.STDOUT)
     reader = None
     try:
         wait_for(lambda: "serving" in node_log.read_text() or node.poll() is not None, START, "the CAN node")
         assert node.poll() is None, node_log.read_text()
+        assert f"serving {url}" in node_log.read_text()  # the URL a link to it takes, options included
         reader = Reader(url)
         config = tmp / "daemon.yaml"
         config.write_text(json.dumps({"history": str(tmp / "history.sqlite"), "handback": {
@@ -142,3 +129,11 @@ def test_sigkill_of_the_daemon_over_can_between_processes_and_the_node_watchdog_
     # test_handback's watchdog test).
     assert abs(back["mv"] - SAVED_MV) < 2 * 0.1 * AMP, back
     assert now["tbsy"] is False and now["te"] is True and now["ite"] == float(Code.WATCHDOG_FALLBACK), now
+
+
+def test_sim_takes_the_udp_multicast_options_only_with_that_interface():
+    for extra in (["--modbus", "127.0.0.1:0"], ["--can", "can0"], ["--can", "239.1.2.3", "--interface", "virtual"]):
+        done = subprocess.run([sys.executable, "-m", "autotuner.cli", "sim", *extra, "--hop-limit", "0", "--duration",
+                               "0.1"], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2, (extra, done.stdout, done.stderr)
+        assert "--can-port and --hop-limit are options of --can with --interface udp_multicast" in done.stderr

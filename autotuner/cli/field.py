@@ -27,8 +27,12 @@ def sim_command(
     modbus: Annotated[str | None, typer.Option(help="Serve over Modbus TCP at HOST:PORT (default map, docs/modbus.md).")]
     = None,
     can: Annotated[str | None, typer.Option(help="Serve over CAN on this channel (default DBC, docs/can.md).")] = None,
-    interface: Annotated[str, typer.Option(help="python-can interface for --can (socketcan, pcan, virtual, ...).")]
-    = "socketcan",
+    interface: Annotated[str, typer.Option(help="python-can interface for --can (socketcan, pcan, virtual, "
+                                           "udp_multicast, ...).")] = "socketcan",
+    can_port: Annotated[int | None, typer.Option(min=1, max=65535, help="UDP port of --interface udp_multicast "
+                                                 "(default: python-can's).")] = None,
+    hop_limit: Annotated[int | None, typer.Option(min=0, max=255, help="Multicast hop limit of --interface "
+                                                  "udp_multicast (0: the frames never leave this host).")] = None,
     speed: Annotated[float, typer.Option(min=0.01, max=1000.0, help="Plant seconds per wall second.")] = 1.0,
     ts: Annotated[float | None, typer.Option(help="Plant sample time, s. Default: ~500 per period at 135°.")] = None,
     noise: Annotated[float, typer.Option(help="Standard deviation of measurement noise, PV units.")] = 0.0,
@@ -44,6 +48,9 @@ def sim_command(
 
     if modbus is None and can is None:
         bad_input("give --modbus HOST:PORT and/or --can CHANNEL")
+    can_options = {k: v for k, v in (("port", can_port), ("hop_limit", hop_limit)) if v is not None}
+    if can_options and (can is None or interface != "udp_multicast"):
+        bad_input("--can-port and --hop-limit are options of --can with --interface udp_multicast")
     process = parse_plant(plant)
     address = None if modbus is None else _host_port(modbus)
     try:
@@ -60,7 +67,7 @@ def sim_command(
                 loop.add_signal_handler(sig, stop.set)
         if duration is not None:
             loop.call_later(duration, stop.set)
-        async with serving(plc, speed, address, None if can is None else (interface, can)) as servers:
+        async with serving(plc, speed, address, None if can is None else (interface, can), can_options) as servers:
             for url, _ in servers:
                 print(f"serving {url}", flush=True)
             print(f"plant {plant}, ts {plc.ts:.4g} s, {speed:g}× real time; Ctrl-C stops", flush=True)

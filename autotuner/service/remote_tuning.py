@@ -96,9 +96,12 @@ async def tune_opened(link: Link, controller: str, session: Callable[[Link], Awa
 @contextlib.asynccontextmanager
 async def serving(
     plc: SimulatedPlc, speed: float, modbus: tuple[str, int] | None = None, can: tuple[str, str] | None = None,
+    can_options: dict[str, int] | None = None,
 ) -> AsyncIterator[list[tuple[str, Any]]]:
     """Run ``plc`` (``speed`` × real time) behind a Modbus TCP server at ``modbus`` (HOST, PORT; port 0: any free
-    one) and/or a CAN node on ``can`` (INTERFACE, CHANNEL); yields the URL of a link to each and its server.
+    one) and/or a CAN node on ``can`` (INTERFACE, CHANNEL; ``can_options``: python-can bus options a CAN link URL
+    carries too, e.g. ``port`` and ``hop_limit`` of ``udp_multicast``); yields the URL of a link to each (with
+    those options) and its server.
 
     The one way to serve a simulated PLC: ``autotuner sim``, ``tune --via``, the jitter benchmark and the tests.
     """
@@ -114,8 +117,10 @@ async def serving(
         if can is not None:
             from drivers.can_node import serve_can
 
-            server = await serve_can(plc, can[0], can[1], period=plc.ts / speed)
-            servers.append((f"can://{can[0]}/{can[1]}", server))
+            options = can_options or {}
+            server = await serve_can(plc, can[0], can[1], period=plc.ts / speed, **options)
+            query = "&".join(f"{k}={v}" for k, v in options.items())
+            servers.append((f"can://{can[0]}/{can[1]}" + (f"?{query}" if query else ""), server))
         yield servers
     finally:
         for _, server in servers:
