@@ -12,6 +12,7 @@ import pytest
 from scipy.optimize import brentq
 
 from autotuner.engine.design.point_design import INTEGRATING_RATIO, design, fit_model
+from autotuner.engine.outcome import Code
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.experiment.relay import Point
 from autotuner.engine.design.robustness import Plant, closed_loop_stable, migo
@@ -219,7 +220,7 @@ def test_pi_design_on_delay_dominant_point_is_migo_on_the_process(row_id):
     assert ki == pytest.approx(ref.ki, rel=0.01)
 
 
-@pytest.mark.parametrize("row_id", ["P1-001", "P1-008", "P1-016", "P6-076"])
+@pytest.mark.parametrize("row_id", ["P1-004", "P1-008", "P1-016", "P6-076"])
 def test_pid_design_has_at_least_pi_integral_gain_and_meets_ms(row_id):
     _, process, point, static = _case(row_id)
     pi = _design(row_id, "PI")
@@ -233,6 +234,21 @@ def test_pid_design_has_at_least_pi_integral_gain_and_meets_ms(row_id):
     assert ms_bound <= 1.4 * 1.05 * 1.005
     assert ms >= 1.4 * 0.99 or ms_bound >= 1.4 * 1.05 * 0.99
     assert closed_loop_stable(loop, wd, process.integrator_count + 1)
+
+
+@pytest.mark.parametrize("row_id", ["P1-001", "P2-022"])
+def test_pid_for_a_near_pure_dead_time_survives_a_static_gain_a_little_high(row_id):
+    """|F|/K0 near 1 cannot tell a tiny lag from none: 0.2 % on K0 (within what the experiment resolves)
+    once made a PID with Ms 1.63-1.65 on the true process; the dead-time model in the family keeps it at
+    1.4, and the derivative it gives up is said (te false, DERIVATIVE_DROPPED)."""
+    _, process, point, static = _case(row_id)
+    pid = design(point, static * 1.002, "PID")
+    g = pid.gains
+    ms, loop, wd = _ms_on(process, g.k, g.ti, g.td, g.nd, point.omega)
+    assert ms <= 1.4 * 1.01
+    assert closed_loop_stable(loop, wd, process.integrator_count + 1)
+    if g.td == 0.0:
+        assert pid.warning is Code.DERIVATIVE_DROPPED and pid.notes
 
 
 def _with_b(gains, b):

@@ -75,6 +75,11 @@ RESONANCE_RATIO = 1.1
 # largest spread considered (beyond, the estimate is no better than a guess within ±50 %).
 STATIC_SPREAD_MIN = 0.05
 STATIC_SPREAD_MAX = 0.5
+# A static gain within this factor of |F(jω*)| cannot be told from a pure dead time (the experiment
+# resolves |F|/K0 to about static_tol = 0.02): the first-order model's lag, sqrt((K0/r)² − 1)/ω*,
+# is then hostage to the last digits of the estimate, and the dead-time model (no lag, so no
+# high-frequency roll-off for a derivative to rely on) joins the family.
+DEAD_TIME_RATIO = 1.03
 # Relative slack on the Ms checks (the grid and the optimiser's tolerance).
 _MS_SLACK = 1e-3
 
@@ -176,11 +181,14 @@ def model_family(point: Point, static_gain: float, static_gain_std: float = math
     With a finite standard error of the static gain above :data:`STATIC_SPREAD_MIN` of it (a
     disturbed or noisy experiment), the first-order models through the point with the static gain
     ``2σ`` lower and higher join the family, so a static gain the experiment got wrong within its
-    own error cannot cost the robustness.
+    own error cannot cost the robustness. A static gain within :data:`DEAD_TIME_RATIO` of
+    ``|F(jω*)|`` adds the dead-time model.
     """
     model = fit_model(point, static_gain)
     bound = fit_lag_bound(point, static_gain)
     family = [(model, 1.0)] + ([] if bound is None else [(bound, BOUND_MARGIN)])
+    if point.gain < static_gain < DEAD_TIME_RATIO * point.gain:
+        family.append((fit_model(point, point.gain), 1.0))
     if math.isfinite(static_gain) and math.isfinite(static_gain_std):
         spread = min(2.0 * static_gain_std / static_gain, STATIC_SPREAD_MAX)
         if spread > STATIC_SPREAD_MIN:
