@@ -502,6 +502,25 @@ def legible(page, selector: str) -> None:
     assert size >= 10, f"{selector}: tick labels {size:.1f} px"
 
 
+def test_an_open_history_shows_a_session_that_ends_meanwhile(browser, daemon):
+    """The history view refreshes while open: a session started and ended after it rendered shows up, finished."""
+    daemon.wait_idle("TIC-101")
+    context = browser.new_context()
+    page = context.new_page()
+    page.set_default_timeout(TIMEOUT_MS)
+    try:
+        login(page, daemon, OPERATOR, "operator")
+        page.goto(daemon.url + "#/loop/TIC-101/history")
+        page.wait_for_selector(".card-head h2")
+        response = daemon.post("/loops/TIC-101/tune", {"apply": False})
+        assert response.status_code == 202, response.text
+        sid = response.json()["session"]
+        daemon.wait_idle("TIC-101")
+        page.wait_for_selector(f"#history tr[data-session='{sid}'] .badge:not(.tuning)")
+    finally:
+        context.close()
+
+
 @pytest.mark.parametrize("width,height", [(390, 844), (820, 1180), (1920, 1080)])
 def test_every_screen_size_tune_result_apply(browser, daemon, width, height):
     context = browser.new_context(viewport={"width": width, "height": height})

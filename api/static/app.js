@@ -856,17 +856,23 @@ function gainsTable(oldG, newG, units) {
 
 // -- history of a loop
 
+const HISTORY_REFRESH_MS = 5000;
+
 function historyView(id) {
   const box = h("section", { class: "card wide" });
   fill(main(), h("section", { class: "loop-head" },
     h("div", { class: "title" }, h("a", { href: "#/", class: "muted small" }, "← all loops"), h("h1", {}, id, " ", h("span", { class: "desc" }, "history"))),
     loopTabs(id, "history")), box);
   let closed = false;
-  (async () => {
+  let shown = null;
+  // Refreshed while open: a session that ends (or a read that failed) shows up without a reload.
+  const load = async () => {
     try {
       const sessions = await get(`/loops/${esc(id)}/history?limit=200`);
       const u = await loopUnits(id);
-      if (closed) return;
+      const key = JSON.stringify(sessions);
+      if (closed || key === shown) return;
+      shown = key;
       const tbody = h("tbody");
       for (const s of sessions) {
         const p = s.result?.point;
@@ -891,10 +897,13 @@ function historyView(id) {
             h("th", {}, "Identified point"), h("th", {}, "Gains before"), h("th", {}, "Gains designed"), h("th", {}, "Applied"))),
           tbody)) : h("p", { class: "muted" }, "No sessions yet."));
     } catch (err) {
+      shown = null;
       notify(err, box);
     }
-  })();
-  return () => { closed = true; };
+  };
+  load();
+  const timer = setInterval(load, HISTORY_REFRESH_MS);
+  return () => { closed = true; clearInterval(timer); };
 }
 
 // -- one session in full
