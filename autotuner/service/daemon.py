@@ -236,6 +236,42 @@ class _Tap:
         return getattr(self._link, name)
 
 
+async def fresh_check(config: LoopConfig, connect: Callable[[], Link]) -> None:
+    """Before a TUNE touches the loop: read its PV and handshake bits on a new link (``connect()``), and close it.
+
+    Refused — with the code a device's TUNE is answered with (``ite``) — if the
+    PV is not finite or stale (pv_invalid, 24), the link fails or reports
+    itself disconnected (``Link.health``; link_unhealthy, 25), the PV is
+    outside ``config.limits.pv`` (pv_out_of_limits, 23), or the device already
+    shows TBSY (device_busy, 26: another tuner owns the loop). Nothing is
+    written. The one check of the daemon's TUNE and of ``tune --config``.
+    """
+    loop_id = config.id
+    link: Link | None = None
+    try:
+        link = connect()
+        await link.open()
+        pv = await link.read_pv()
+        flags = await link.read_flags()
+        health = link.health()
+    except BadValue as exc:
+        raise Refused("pv_invalid", f"loop {loop_id!r} not tuned: {exc}", Code.REFUSED_BAD_PV) from None
+    except LinkError as exc:
+        raise Refused("link_unhealthy", f"loop {loop_id!r} not tuned: {exc}", Code.REFUSED_LINK) from None
+    finally:
+        if link is not None:
+            await link.close()
+    if not health.get("connected", True):
+        raise Refused("link_unhealthy", f"loop {loop_id!r} not tuned: its link reports {health}", Code.REFUSED_LINK)
+    low, high = config.limits.pv
+    if not low <= pv <= high:
+        raise Refused("pv_out_of_limits", f"loop {loop_id!r} not tuned: PV {pv:g} is outside its limits "
+                      f"[{low:g}, {high:g}]", Code.REFUSED_PV_LIMITS)
+    if flags.tbsy:
+        raise Refused("device_busy", f"loop {loop_id!r} not tuned: the device already shows TBSY (another "
+                      "tuner owns the loop)", Code.REFUSED_DEVICE_BUSY)
+
+
 def mv_hull(*mvs: float) -> tuple[float, float]:
     """The smallest range (low, high), MV units, holding every one of ``mvs``."""
     return min(mvs), max(mvs)
@@ -605,33 +641,10 @@ class LoopManager:
         return self.tune(loop_id, request, user)
 
     async def _fresh_check(self, loop: Loop) -> None:
-        """Read the loop's PV and bits on a new link; Refused (with the device's code) if it must not be tuned."""
-        loop_id = loop.config.id
+        """:func:`fresh_check` of the loop, unless the daemon is stopping."""
         if self._stopping:
             raise Refused("stopping", "the daemon is stopping")
-        link: Link | None = None
-        try:
-            link = loop.connect()
-            await link.open()
-            pv = await link.read_pv()
-            flags = await link.read_flags()
-            health = link.health()
-        except BadValue as exc:
-            raise Refused("pv_invalid", f"loop {loop_id!r} not tuned: {exc}", Code.REFUSED_BAD_PV) from None
-        except LinkError as exc:
-            raise Refused("link_unhealthy", f"loop {loop_id!r} not tuned: {exc}", Code.REFUSED_LINK) from None
-        finally:
-            if link is not None:
-                await link.close()
-        if not health.get("connected", True):
-            raise Refused("link_unhealthy", f"loop {loop_id!r} not tuned: its link reports {health}", Code.REFUSED_LINK)
-        low, high = loop.config.limits.pv
-        if not low <= pv <= high:
-            raise Refused("pv_out_of_limits", f"loop {loop_id!r} not tuned: PV {pv:g} is outside its limits "
-                          f"[{low:g}, {high:g}]", Code.REFUSED_PV_LIMITS)
-        if flags.tbsy:
-            raise Refused("device_busy", f"loop {loop_id!r} not tuned: the device already shows TBSY (another "
-                          "tuner owns the loop)", Code.REFUSED_DEVICE_BUSY)
+        await fresh_check(loop.config, loop.connect)
 
     def _admit(self, loop: Loop, request: TuneRequest) -> Settings:
         """The settings of a TUNE of ``loop``; Refused if the loop or its group is busy or a setting is out of bounds."""
