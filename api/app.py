@@ -38,7 +38,7 @@ from .events import LIVE_PERIOD, overview, stream
 from .gate import RequestGate
 from .models import (Accepted, Analysis, Applied, ApplyRequest, CodeOut, Health, LoopStatus, Session,
                      SessionSummary, Whoami)
-from .opcua import start_opcua
+from .opcua import StartError, start_opcua
 
 PREFIX = "/api/v1"
 # The operator page (issue 7): static files using only the public API below.
@@ -294,6 +294,28 @@ class _Page(Mount):
         return super().matches(scope)
 
 
+class StartupErrors:
+    """ASGI middleware: a start that failed for a known reason (:class:`api.opcua.StartError`, e.g. the OPC UA port
+    in use) is reported to the server by its one-line message, not by Starlette's traceback of it (uvicorn logs
+    that message, then exits 3, as when the REST port is in use)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "lifespan":
+            await self.app(scope, receive, send)
+            return
+
+        async def send_reason(message: Message) -> None:
+            reason = getattr(scope["app"].state, "startup_error", None)
+            if message["type"] == "lifespan.startup.failed" and reason:
+                message = {**message, "message": reason}
+            await send(message)
+
+        await self.app(scope, receive, send_reason)
+
+
 class SecurityHeaders:
     """ASGI middleware adding security headers to every response; the page's also get :data:`PAGE_POLICY`.
 
@@ -342,7 +364,11 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
         opcua = None
         try:
             if config.opcua is not None:
-                opcua = await start_opcua(manager, config, env, host)
+                try:
+                    opcua = await start_opcua(manager, config, env, host)
+                except StartError as exc:
+                    app.state.startup_error = str(exc)
+                    raise
                 app.state.opcua_url = opcua.url
             yield
         finally:
@@ -362,6 +388,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
     # Inside SecurityHeaders (its answers get the headers too), in front of everything that reads a body.
     app.add_middleware(RequestGate, prefix=PREFIX)
     app.add_middleware(SecurityHeaders)
+    app.add_middleware(StartupErrors)
     app.include_router(router)
     docs.install(app, PREFIX)  # Swagger UI and ReDoc from the daemon itself (no CDN)
     app.router.routes.append(_Page("/", StaticFiles(directory=STATIC, html=True), name="page"))

@@ -132,3 +132,39 @@ def test_password_hash_prints_a_hash_the_config_accepts():
     OpcUaUser(name="scada", role="operator", password_hash=digest)
     with pytest.raises(ValueError, match="password_hash"):
         OpcUaUser(name="scada", role="operator", password_hash="s3cret")
+
+
+def test_a_second_daemon_on_a_port_in_use_says_so_in_one_line_and_exits_3():
+    # Another program (another daemon's OPC UA server) listens on the port: a clear line, not a traceback.
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        taken = other.getsockname()[1]
+        env = {**os.environ, "AUTOTUNER_TOKEN": "demo-operator"}
+        done = subprocess.run([sys.executable, "-m", "autotuner.cli", "serve", "--port", str(free_port()),
+                               "--opcua-port", str(taken)], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 3, done.stderr
+    assert (f"the OPC UA server could not start: cannot listen on 127.0.0.1:{taken}: address already in use"
+            in done.stderr), done.stderr
+    assert "--opcua-port" in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_an_unusable_certificate_is_named_at_start_and_a_missing_one_at_load(tmp_path):
+    from autotuner.service.config import ConfigError, load_config
+
+    (tmp_path / "garbage.der").write_bytes(b"not a certificate")
+    (tmp_path / "key.pem").write_bytes(b"not a key either")
+    body = ("history: history.db\nloops:\n  - {id: A-1, sim: {plant: 'exp(-1*s)/(2*s+1)'}, ts: 0.2}\n"
+            f"opcua: {{port: {free_port()}, certificate: CERT, private_key: key.pem}}\n")
+    missing = tmp_path / "missing.yaml"
+    missing.write_text(body.replace("CERT", "nowhere.der"))
+    with pytest.raises(ConfigError, match=r"opcua\.certificate: .*nowhere\.der is not a file"):
+        load_config(missing)
+    garbage = tmp_path / "garbage.yaml"
+    garbage.write_text(body.replace("CERT", "garbage.der"))
+    done = subprocess.run([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(garbage), "--port",
+                           str(free_port())], env={**os.environ, "AUTOTUNER_TOKEN": "x"}, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 3, done.stderr
+    assert f"opcua.certificate: {tmp_path / 'garbage.der'} is not a usable certificate" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr, done.stderr

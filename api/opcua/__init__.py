@@ -28,6 +28,11 @@ PATH = "/autotuner/"
 INSTALL_HINT = "OPC UA needs the opcua extra (asyncua): pip install 'relaytune[opcua]'"
 
 
+class StartError(RuntimeError):
+    """The OPC UA server could not start (its port in use, an unusable certificate, …): a one-line message for the
+    daemon's log, shown instead of a traceback (:class:`api.app.StartupErrors`)."""
+
+
 def endpoint_url(host: str, port: int) -> str:
     """The server's ``opc.tcp://`` endpoint."""
     return f"opc.tcp://{host}:{port}{PATH}"

@@ -39,7 +39,7 @@ from typing import Any
 from autotuner.service.config import OpcUaConfig, OpcUaUser, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
 
-from . import endpoint_url
+from . import StartError, endpoint_url
 from .wire import Channel, Init, snapshot
 
 log = logging.getLogger("autotuner.api.opcua")
@@ -77,8 +77,8 @@ class OpcUaProcess:
     # -- life cycle ---------------------------------------------------------------------------------------------
 
     async def start(self) -> str:
-        """Start the server process and wait until it listens; its endpoint URL. RuntimeError with the server's
-        error (a port in use, an unreadable certificate) if it cannot start."""
+        """Start the server process and wait until it listens; its endpoint URL. :class:`StartError` with the
+        server's error (a port in use, an unreadable certificate) if it cannot start."""
         ours, theirs = socket.socketpair()
         try:
             env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(_SOURCE),
@@ -92,6 +92,9 @@ class OpcUaProcess:
         self._channel = await Channel.open(ours)
         try:
             await asyncio.wait_for(self._handshake(), START_WAIT)
+        except asyncio.TimeoutError:
+            await self.stop()
+            raise StartError(f"the OPC UA server did not listen within {START_WAIT:g} s") from None
         except BaseException:
             await self.stop()
             raise
@@ -111,12 +114,12 @@ class OpcUaProcess:
         while True:
             message = await self._channel.receive()
             if message is None:
-                raise RuntimeError(f"the OPC UA server process ended (exit code {self._exit_code()}) before it "
-                                   "listened")
+                raise StartError(f"the OPC UA server process ended (exit code {self._exit_code()}) before it "
+                                 "listened")
             if message[0] == "log":
                 _log(*message[1:])
             elif message[0] == "failed":
-                raise RuntimeError(f"the OPC UA server could not start: {message[1]}")
+                raise StartError(f"the OPC UA server could not start: {message[1]}")
             elif message[0] == "ready":
                 return
 

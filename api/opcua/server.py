@@ -37,6 +37,7 @@ outputs: "" and the REST error's ``code: message``.
 from __future__ import annotations
 
 import asyncio
+import errno
 import itertools
 import logging
 import math
@@ -48,6 +49,7 @@ import threading
 import traceback
 from collections.abc import Awaitable, Callable
 from typing import Any
+from urllib.parse import urlsplit
 
 from asyncua import Node, Server, ua
 from pydantic import ValidationError
@@ -131,12 +133,16 @@ class OpcUaServer:
         quiet = QuietRefusals()
         for name in QuietRefusals.LOGGERS:
             logging.getLogger(name).addFilter(quiet)
+        # asyncua logs a failed start with a traceback; the daemon logs our one line instead.
+        logging.getLogger("asyncua.server.server").addFilter(_StartFailure())
+        address = urlsplit(self.init.url)
         try:
+            check_listen(address.hostname or "", address.port or 0)  # in ms, not after building the address space
             server = await self._build()
             await server.start()
         except Exception as exc:
             log.debug("OPC UA server start failed", exc_info=True)
-            self.channel.send("failed", f"{type(exc).__name__}: {exc}")
+            self.channel.send("failed", start_error(exc, address.hostname or "", address.port or 0))
             return
         try:
             self.channel.send("ready")
@@ -166,8 +172,13 @@ class OpcUaServer:
             cert, key = self.config.certificate, self.config.private_key
         else:
             cert, key = await ensure_certificate(self.init.cert_dir, APP_URI)
-        await server.load_certificate(str(cert))
-        await server.load_private_key(str(key))
+        for what, path, load in (("certificate", cert, server.load_certificate),
+                                 ("private_key", key, server.load_private_key)):
+            try:
+                await load(str(path))
+            except Exception as exc:  # the field to fix, not only the parser's complaint
+                raise ValueError(f"opcua.{what}: {path} is not a usable {what.replace('_', ' ')} (DER or PEM): "
+                                 f"{type(exc).__name__}: {exc}") from exc
         server.set_security_policy([POLICIES[p] for p in self.config.security], permission_ruleset=RoleRuleset())
         server.set_identity_tokens([ua.UserNameIdentityToken])  # no anonymous sessions
         idx = await server.register_namespace(NAMESPACE)
@@ -256,6 +267,44 @@ class OpcUaServer:
         _, sid, message, _ = outcome
         log.info("%s (session %s)", what, sid)
         return _result(ua.StatusCodes.Good, sid, message, inputs)
+
+
+class ListenError(OSError):
+    """The server cannot listen on its endpoint's address and port (``strerror`` says why)."""
+
+
+def check_listen(host: str, port: int) -> None:
+    """ListenError unless a server can listen on ``host``:``port`` now, on every address the host names (as
+    asyncio binds them, with SO_REUSEADDR: another listener there fails, a closed connection's TIME_WAIT does not)."""
+    try:
+        addresses = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise ListenError(exc.errno, f"{host!r} is not an address of this machine ({exc.strerror})") from None
+    for family, kind, proto, _, sockaddr in addresses:
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind(sockaddr)
+            except OSError as exc:
+                raise ListenError(exc.errno, exc.strerror) from None
+
+
+def start_error(exc: BaseException, host: str, port: int) -> str:
+    """The one-line reason of a failed start: which address cannot be listened on and why (a port in use: what
+    to change), else the exception's type and message."""
+    if isinstance(exc, ListenError) or (isinstance(exc, OSError) and "bind" in str(exc)):
+        why = (exc.strerror or str(exc)).lower()
+        hint = (" (another program listens there, another daemon's OPC UA server perhaps: choose another port "
+                "with opcua.port or --opcua-port)") if exc.errno == errno.EADDRINUSE else ""
+        return f"cannot listen on {host}:{port}: {why}{hint}"
+    return f"{type(exc).__name__}: {exc}"
+
+
+class _StartFailure(logging.Filter):
+    """Drops asyncua's record of a failed start (with its traceback): the daemon logs the reason in one line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).endswith("error starting server")
 
 
 async def _orphaned(parent: int) -> None:

@@ -489,4 +489,8 @@ def load_config(path: Path) -> DaemonConfig:
                                          for key in ("certificate", "private_key", "trusted_clients")})
         if opcua.trusted_clients is not None and not opcua.trusted_clients.is_dir():
             raise ConfigError(f"{path}: opcua.trusted_clients: {opcua.trusted_clients} is not a directory")
+        for key in ("certificate", "private_key"):  # now, not as a failed start of the OPC UA server
+            file = getattr(opcua, key)
+            if file is not None and not file.is_file():
+                raise ConfigError(f"{path}: opcua.{key}: {file} is not a file")
     return config.model_copy(update={"loops": loops, "history": history, "opcua": opcua})
