@@ -310,3 +310,81 @@ def test_basic256sha256_sign_and_encrypt_with_the_generated_certificate(daemon, 
             assert await value(c, "TIC-1", "Mode") in ("AUTO", "MAN")
 
     run(main())
+
+
+def test_apply_over_opcua_writes_the_gains_and_the_loop_shows_them_applied_at_once(daemon):
+    rest, url, _ = daemon
+
+    async def main() -> dict[str, Any]:
+        async with client(url) as c:
+            await until(lambda: _not(value(c, "TIC-2", "TBSY")), 30, "TIC-2 idle")
+            nothing = await call(c, "TIC-2", "Apply")  # no session yet, or the last one failed (the break above)
+            assert nothing.StatusCode.value == ua.StatusCodes.BadInvalidState, nothing
+            assert nothing.OutputArguments[1].Value.startswith("nothing_to_apply: "), nothing
+            started = await call(c, "TIC-2", "Tune", "", NAN, NAN, NAN, NAN, "false")
+            assert started.StatusCode.is_good(), started
+            sid = started.OutputArguments[0].Value
+            await until(lambda: _is(value(c, "TIC-2", "session"), sid), 10, "the session")
+            await until(lambda: _not(value(c, "TIC-2", "TBSY")), 60, "the end of the tuning")
+            assert await value(c, "TIC-2", "TE") is False, await value(c, "TIC-2", "message")
+            await until(lambda: value(c, "TIC-2", "pending_gains"), 10, "the gains pending")
+            pk = await value(c, "TIC-2", "pk")
+            assert await value(c, "TIC-2", "k") != pk  # not written yet (apply false)
+            applied = await call(c, "TIC-2", "Apply")
+            assert applied.StatusCode.is_good(), applied
+            # Read right after the call, no wait: the reply's status is the loop's after the apply.
+            out = {name: await value(c, "TIC-2", name) for name in ("pending_gains", "k", "PIDParameters.P")}
+            return {"sid": sid, "pk": pk, "applied": applied, **out}
+
+    out = run(main())
+    assert out["applied"].OutputArguments[0].Value == out["sid"]
+    assert out["applied"].OutputArguments[1].Value.startswith("applied: pk=")
+    assert out["pending_gains"] is False
+    assert out["k"] == out["PIDParameters.P"] == pytest.approx(out["pk"])
+    record = rest.get(f"{API}/sessions/{out['sid']}", headers={"Authorization": f"Bearer {VIEWER_TOKEN}"}).json()
+    assert record["applied_by"] == "opcua:operator" and record["gains_after"]["pk"] == pytest.approx(out["pk"])
+
+
+def test_a_method_called_with_the_wrong_number_of_arguments_is_refused_and_changes_nothing(daemon):
+    _, url, _ = daemon
+
+    async def main() -> None:
+        async with client(url) as c:
+            await until(lambda: _not(value(c, "TIC-3", "TBSY")), 30, "TIC-3 idle")
+            session = await value(c, "TIC-3", "session")
+            for method in ("AutoTuningOn", "Break", "AutoTuningOff", "Apply"):
+                extra = await call(c, "TIC-3", method, "PID")
+                assert extra.StatusCode.value == ua.StatusCodes.BadTooManyArguments, (method, extra)
+                assert extra.OutputArguments[1].Value == f"invalid: {method} takes 0 arguments, got 1"
+            short = await call(c, "TIC-3", "Tune", "", NAN, NAN, NAN, NAN)
+            assert short.StatusCode.value == ua.StatusCodes.BadArgumentsMissing, short
+            assert short.OutputArguments[1].Value.startswith("invalid: Tune takes 6 arguments (controller, amp, ")
+            assert (await call(c, "TIC-3", "Tune", "", NAN, NAN, NAN, NAN, "", "")).StatusCode.value \
+                == ua.StatusCodes.BadTooManyArguments
+            assert await value(c, "TIC-3", "TBSY") is False and await value(c, "TIC-3", "session") == session
+
+    run(main())
+
+
+def test_values_carry_the_source_and_the_server_timestamp(daemon):
+    _, url, _ = daemon
+
+    async def main() -> list[ua.DataValue]:
+        async with client(url, "viewer", VIEWER_PASSWORD) as c:
+            idx = await c.get_namespace_index(NAMESPACE)
+            read = ua.ReadParameters(NodesToRead=[ua.ReadValueId(NodeId=ua.NodeId(f"TIC-1.{name}", idx),
+                                                                 AttributeId=ua.AttributeIds.Value)
+                                                  for name in ("PV", "TBSY")],
+                                     TimestampsToReturn=ua.TimestampsToReturn.Both)
+            return await c.uaclient.read(read)
+
+    for data in run(main()):
+        assert data.SourceTimestamp is not None and data.ServerTimestamp is not None, data
+
+
+def test_a_compound_unit_inside_a_gains_unit_is_bracketed():
+    from api.opcua.address_space import unit_symbol
+
+    flow = {"pv": "m³/h", "mv": "%"}
+    assert unit_symbol("{mv}/{pv}", flow) == "%/(m³/h)" and unit_symbol("{pv}/{mv}", flow) == "(m³/h)/%"
+    assert unit_symbol("{pv}", flow) == "m³/h" and unit_symbol("{mv}/{pv}", {"pv": "°C", "mv": "%"}) == "%/°C"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import re
 import signal
@@ -10,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+from typing import Any
 
 import pytest
 from asyncua import Client, ua
@@ -17,6 +19,7 @@ from asyncua import Client, ua
 from api.opcua import INSTALL_HINT
 from api.opcua.address_space import NAMESPACE
 from helpers import free_port
+from tests.opcua_client import Changes, call, now, until
 
 
 async def _tbsy(url: str, user: str, password: str) -> bool:
@@ -168,3 +171,58 @@ def test_an_unusable_certificate_is_named_at_start_and_a_missing_one_at_load(tmp
     assert done.returncode == 3, done.stderr
     assert f"opcua.certificate: {tmp_path / 'garbage.der'} is not a usable certificate" in done.stderr, done.stderr
     assert "Traceback" not in done.stderr, done.stderr
+
+
+def test_sigterm_while_tuning_hands_back_and_the_subscribed_client_sees_it_before_the_server_goes(tmp_path):
+    # The monitor publishes once a minute here: what the client sees of the hand-back is what the stop sends.
+    port, opcua_port = free_port(), free_port()
+    config = tmp_path / "daemon.yaml"
+    config.write_text(f"history: history.db\nopcua: {{port: {opcua_port}}}\nloops:\n"
+                      "  - {id: TIC-101, sim: {plant: 'exp(-1*s)/(5*s+1)'}, ts: 0.1, monitor_period: 60,\n"
+                      "     tuning: {amp: 5}, limits: {pv: [0, 100], mv: [0, 100]}}\n")
+    env = {**os.environ, "AUTOTUNER_TOKEN": "demo-operator"}
+    proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(config), "--port",
+                             str(port)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    url = f"opc.tcp://127.0.0.1:{opcua_port}/autotuner/"
+
+    async def main() -> tuple[int, list[bool], list[Any]]:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                c = Client(url, timeout=10)
+                c.set_user("operator")
+                c.set_password("demo-operator")
+                await c.connect()
+                break
+            except (OSError, TimeoutError, ua.UaError):
+                assert time.monotonic() < deadline and proc.poll() is None, "the OPC UA server did not come up"
+                await asyncio.sleep(0.2)
+        server = _opcua_process(proc.pid)
+        changes = Changes()
+        try:
+            idx = await c.get_namespace_index(NAMESPACE)
+            tbsy = c.get_node(ua.NodeId("TIC-101.TBSY", idx))
+            changes.names[tbsy.nodeid] = "TBSY"
+            sub = await c.create_subscription(50, changes)
+            await sub.subscribe_data_change([tbsy])
+            await sub.subscribe_events(c.nodes.server, c.get_node(ua.NodeId("TuningErrorEventType", idx)))
+            assert (await call(c, "TIC-101", "AutoTuningOn")).StatusCode.is_good()
+            await until(lambda: now(changes.values.get("TBSY", [])[-1:] == [True]), 30, "TBSY rising")
+            proc.send_signal(signal.SIGTERM)
+            await until(lambda: now(changes.values["TBSY"][-1] is False and len(changes.events) == 1), 60,
+                        "TBSY falling and the TE event before the server stopped")
+        finally:
+            with contextlib.suppress(Exception):  # the server is gone (or going)
+                await c.disconnect()
+        return server, changes.values["TBSY"], changes.events
+
+    try:
+        server, values, events = asyncio.run(asyncio.wait_for(main(), 180))
+        assert values[-1] is False and (events[0].Loop, events[0].Ite) == ("TIC-101", 1.0), (values, events)
+        assert proc.wait(60) == 0  # every loop handed back
+        assert "Traceback" not in proc.stderr.read()
+        assert _gone(server) and _port_free(opcua_port)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

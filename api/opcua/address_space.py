@@ -23,6 +23,7 @@ are added by the server.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -82,6 +83,9 @@ def unit_symbol(template: str, units: dict[str, Any]) -> str | None:
     names = {key: units.get(key) or "" for key in ("pv", "mv")}
     if any(f"{{{key}}}" in template and not text for key, text in names.items()):
         return None
+    if "/" in template:  # a compound unit in brackets, as the operator page writes it (api/static/units.js):
+        # %/(m³/h), not %/m³/h (which reads (%/m³)/h)
+        names = {key: f"({text})" if re.search(r"[/·\s]", text) else text for key, text in names.items()}
     return template.format(**names)
 
 
@@ -185,8 +189,9 @@ def _data_value(var: Var, status: dict[str, Any]) -> tuple[Any, ua.DataValue]:
         value = "" if var.kind is S else False if var.kind is B else math.nan
     value = float(value) if var.kind is D else value
     key = ("nan" if var.kind is D and math.isnan(value) else value, code)
+    stamp = datetime.now(timezone.utc)  # both: asyncua stamps the server's time only on a client's write
     return key, ua.DataValue(Value=ua.Variant(value, var.kind), StatusCode=ua.StatusCode(code),
-                             SourceTimestamp=datetime.now(timezone.utc))
+                             SourceTimestamp=stamp, ServerTimestamp=stamp)
 
 
 async def _add_variable(parent: Node, idx: int, prefix: tuple[str, ...], var: Var, period: float,

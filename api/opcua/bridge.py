@@ -132,6 +132,9 @@ class OpcUaProcess:
         await asyncio.gather(*self._calls, return_exceptions=True)
         channel, self._channel = self._channel, None
         if channel is not None:
+            # The statuses since the last period first: a stop right after the hand-back of a SIGTERM would
+            # otherwise leave the clients with TBSY still set and no TE event of the sessions it aborted.
+            self._send_changed(channel, list(self.manager.loops))
             channel.send("stop")
             await channel.close()
         process = self.process
@@ -176,15 +179,20 @@ class OpcUaProcess:
         """Every ``period`` wall seconds: the compact statuses of those of ``ids`` that changed, to the server."""
         for _ in itertools.count():
             await asyncio.sleep(period)
-            try:
-                changed = [s for s in (snapshot(self.manager.loops[i].as_json()) for i in ids)
-                           if self._sent.get(s["id"]) != s]
-            except Exception:  # a bug must not end the publishing of every loop
-                log.exception("OPC UA: publishing the loops' status failed")
-                continue
-            if changed and self._channel is not None:
-                self._sent.update((s["id"], s) for s in changed)
-                self._channel.send("status", changed)
+            if self._channel is not None:
+                self._send_changed(self._channel, ids)
+
+    def _send_changed(self, channel: Channel, ids: list[str]) -> None:
+        """The compact statuses of those of ``ids`` that changed since they were last sent, to the server."""
+        try:
+            changed = [s for s in (snapshot(self.manager.loops[i].as_json()) for i in ids)
+                       if self._sent.get(s["id"]) != s]
+        except Exception:  # a bug must not end the publishing of every loop
+            log.exception("OPC UA: publishing the loops' status failed")
+            return
+        if changed:
+            self._sent.update((s["id"], s) for s in changed)
+            channel.send("status", changed)
 
     async def _listen(self) -> None:
         """The server's messages until it ends: method calls (each in a task of its own) and log records."""

@@ -79,7 +79,7 @@ TUNE_ARGS = (("controller", ua.VariantType.String, "PI or PID; empty: the loop's
 OUTPUTS = (("Session", ua.VariantType.String, "the session's id (REST history); empty when refused"),
            ("Message", ua.VariantType.String, "what happened; when refused the REST error's 'code: message'"))
 _STATUS = {"invalid": ua.StatusCodes.BadInvalidArgument, "not_found": ua.StatusCodes.BadNotFound,
-           "link": ua.StatusCodes.BadCommunicationError}
+           "link": ua.StatusCodes.BadCommunicationError, "history_unavailable": ua.StatusCodes.BadResourceUnavailable}
 
 
 def _argument(name: str, kind: ua.VariantType, description: str) -> ua.Argument:
@@ -96,11 +96,14 @@ def _result(code: int, session: str, message: str, inputs: int = 0, bad_input: i
                                                 ua.Variant(message, ua.VariantType.String)])
 
 
-def _refused(what: str, code: str, message: str, inputs: int, bad_input: int | None = None) -> ua.CallMethodResult:
+def _refused(what: str, code: str, message: str, inputs: int, bad_input: int | None = None,
+             status: int | None = None) -> ua.CallMethodResult:
     """The result of a call (``what``: loop, method, user) that the manager or the validation refused with the REST
-    error ``code: message``, logged as the expected outcome it is: INFO (WARNING when the loop's link failed)."""
+    error ``code: message`` (``status``: its status code if not the code's own), logged as the expected outcome it
+    is: INFO (WARNING when the loop's link failed)."""
     log.log(logging.WARNING if code == "link" else logging.INFO, "%s refused: %s: %s", what, code, message)
-    return _result(_STATUS.get(code, ua.StatusCodes.BadInvalidState), "", f"{code}: {message}", inputs, bad_input)
+    status = _STATUS.get(code, ua.StatusCodes.BadInvalidState) if status is None else status
+    return _result(status, "", f"{code}: {message}", inputs, bad_input)
 
 
 def tune_request(args: list[Any]) -> TuneRequest:
@@ -153,6 +156,8 @@ class OpcUaServer:
             listen.cancel()
             for call in self._calls.values():
                 call.cancel()
+            if listen.done() and not listen.cancelled():  # told to stop: the last statuses reach the clients
+                await _publish_now(server)
         finally:
             await server.stop()
 
@@ -201,8 +206,6 @@ class OpcUaServer:
 
         def method(name: str, action: str, inputs: int) -> Callable[..., Awaitable[ua.CallMethodResult]]:
             async def callback(_: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-                if action == "tune" and not inputs:  # AutoTuningOn: Tune with the loop's defaults
-                    args = (None,) * len(TUNE_ARGS)
                 return await self._call(loop_id, name, action, list(args), inputs)
 
             return callback
@@ -246,10 +249,15 @@ class OpcUaServer:
             return _result(ua.StatusCodes.BadUserAccessDenied, "", NEEDS_OPERATOR, inputs)
         who = f"opcua:{user.name}"
         what = f"loop {loop_id}: {method} over OPC UA by {who}"
+        if len(args) != inputs:  # asyncua does not check the count; OPC 10000-4 §5.11.2 has a code for each case
+            names = f" ({', '.join(a[0] for a in TUNE_ARGS)})" if inputs else ""
+            return _refused(what, "invalid", f"{method} takes {inputs} arguments{names}, got {len(args)}", 0,
+                            status=ua.StatusCodes.BadArgumentsMissing if len(args) < inputs else
+                            ua.StatusCodes.BadTooManyArguments)
         body = None
         try:
-            if action == "tune":
-                body = tune_request(args).model_dump(exclude_none=True)
+            if action == "tune":  # AutoTuningOn (no inputs): Tune with the loop's defaults
+                body = tune_request(args if inputs else [None] * len(TUNE_ARGS)).model_dump(exclude_none=True)
         except ValidationError as exc:
             bad = next((i for i, a in enumerate(TUNE_ARGS) if exc.errors() and exc.errors()[0]["loc"][:1] == (a[0],)),
                        None)
@@ -305,6 +313,16 @@ class _StartFailure(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not str(record.msg).endswith("error starting server")
+
+
+async def _publish_now(server: Server) -> None:
+    """Send every subscription's queued data changes and events now, not at its next publishing interval (which
+    the stop would not wait for): to each that has a publish request of its client at hand, as clients keep one."""
+    for subscription in list(server.iserver.subscription_service.subscriptions.values()):
+        try:
+            await subscription.publish_results()
+        except Exception:  # a client gone meanwhile: the others still get theirs
+            log.debug("OPC UA: the last publish of a subscription failed", exc_info=True)
 
 
 async def _orphaned(parent: int) -> None:

@@ -607,8 +607,10 @@ class LoopManager:
             return f"the history could not record it ({type(exc).__name__}: {exc})"
         return ""
 
-    def _refresh_latest(self, loop: Loop) -> None:
-        """Read the loop's newest session in the history's thread (after the writes before), then publish."""
+    def _refresh_latest(self, loop: Loop) -> asyncio.Future[Any]:
+        """Read the loop's newest session in the history's thread (after the writes before), then publish; the
+        read's future, which a caller may await (:meth:`_waited`): ``loop.latest`` is set by then (the callback
+        setting it was added first)."""
         future = self._record(self.history.latest, loop.config.id)
 
         def done(f: asyncio.Future[Any]) -> None:
@@ -617,6 +619,7 @@ class LoopManager:
                 self._publish(loop, "state", loop.as_json())
 
         future.add_done_callback(done)
+        return future
 
     def get(self, loop_id: str) -> Loop:
         """The loop ``loop_id``; Refused('not_found') if there is none."""
@@ -725,7 +728,9 @@ class LoopManager:
         if why:
             log.error("loop %s: gains of session %s written, their record delayed: %s", loop_id, sid, why)
         loop.gains = after
-        self._refresh_latest(loop)
+        # Awaited (bounded): whoever reads the loop next — the REST client, the OPC UA reply's status — sees the
+        # session applied (pending_gains false), not the record from before until the next refresh.
+        await self._waited(self._refresh_latest(loop))
         log.info("loop %s: gains of session %s applied by %s", loop_id, sid, user)
         self._publish(loop, "state", loop.as_json())
         return {"loop": loop_id, "session": sid, "gains": after.as_json()}
