@@ -17,9 +17,10 @@ no I/O). Stages:
    enters.
 
 The point ``F(jω)`` is the ratio of the Fourier coefficients of PV and MV over
-the last two whole periods (Hann window; the MV integrated exactly as a held
-signal), and the static gain the ratio of their mean deviations from the
-operating point. The experiment stops when the phase is within tolerance and
+the last whole period (between two rising crossings, so the window holds
+exactly one period of the cycle; the MV integrated exactly as a held signal),
+and the static gain the ratio of their mean deviations from the operating
+point. The experiment stops when the phase is within tolerance and
 consecutive estimates agree (or, when noise makes them scatter, when the
 mean of more of them is settled).
 """
@@ -37,7 +38,7 @@ from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
 from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
 from autotuner.engine.experiment.point import Point
-from autotuner.engine.experiment.stopping import NOISY_MIN, Tolerances, amp_factor, judge
+from autotuner.engine.experiment.stopping import Tolerances, amp_factor, judge
 from autotuner.engine.experiment.phase_filter import PhaseFilter
 
 
@@ -93,10 +94,10 @@ class RelayConfig:
     mv_limits: tuple[float, float] = (-math.inf, math.inf)
     mv_rate: float = math.inf
     time_limit: float = math.inf
-    noise_samples: int = 30
+    noise_samples: int = 20
     max_periods: int = 25
     phase_tol_deg: float = 0.5
-    gain_tol: float = 0.003
+    gain_tol: float = 0.01
     static_tol: float = 0.02
     noise_tol: float = 0.0025
     expected_period: float | None = None
@@ -168,8 +169,11 @@ class Status:
 # (point_design) models such a process as an integrator.
 INTEGRATING_RATIO = 200.0
 # Minimum number of whole periods before convergence is judged: one for the
-# start-up transient, two for the first filter corrections, two per estimate.
-_MIN_PERIODS = 5
+# start-up transient and the first filter correction, one per estimate.
+_MIN_PERIODS = 3
+# The record is searched for a disturbance from this many periods on (earlier,
+# the filter's first corrections move the estimates anyway).
+_CHECK_FROM = 5
 # While not converged, the record is searched for a disturbance every this many periods.
 _CHECK_EVERY = 2
 # A fitted load (MV units, per amp) or free response (per |F|·amp) below this is no disturbance.
@@ -187,10 +191,7 @@ _LIMIT_SHARE = 200.0
 _SAMPLES_PER_PERIOD = 100.0
 # Noise (σ) above this fraction of |F|·amp makes single estimates scatter beyond gain_tol.
 _NOISY = 0.002
-# Noise (σ) above this fraction of |F|·amp lets two or three estimates agree by chance while each is off by
-# more than half a per cent (at 5 %: stopped at 6 periods with point errors of 0.8-1.04 %).
-_CHANCE_NOISE = 0.02
-_MAX_LOG_STEP = math.log(2.0)
+_MAX_LOG_STEP = math.log(3.0)
 _RELAXATION = 0.75
 # Open-loop unstable processes (a negative mean ratio, or a PV that ran away from a weak relay
 # level): the relay's bias drops to this, so that the weaker level (amp·(1 − 2·bias)) keeps the
@@ -675,7 +676,7 @@ class RelayExperiment:
         # only a large jump counts as a sign of a disturbance then.
         early = periods >= 3 and jump > 3.0 * _JUMP
         again = self._candidate is not None
-        if again or early or periods >= _MIN_PERIODS and (jump > _JUMP or (periods - _MIN_PERIODS) % _CHECK_EVERY == 0):
+        if again or early or periods >= _CHECK_FROM and (jump > _JUMP or (periods - _CHECK_FROM) % _CHECK_EVERY == 0):
             self._look_for_disturbance(tt, uu, yy)
 
     # -- disturbances -------------------------------------------------------
@@ -863,15 +864,17 @@ class RelayExperiment:
         return (last - first) / spacing * (tt - 0.5 * (bounds[0] + bounds[-1]))
 
     def _judge(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> None:
-        """Estimate the point over the last two periods and stop if it has converged.
+        """Estimate the point over the last period and stop if it has converged.
 
         ``yy`` has its drift (or the fitted disturbance) removed already.
         """
-        ta, tb = self._crossings[-3], self._crossings[-1]
-        omega = 4.0 * math.pi / (tb - ta)
-        value = self._estimate(tt, uu, yy, ta, tb, omega, hann=True)
-        du = held_coefficient(tt, uu - self.mv0, ta, tb, 0.0).real
-        dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0).real
+        # One whole period, rectangular: a Hann window over a single period
+        # would mix the fundamental with the mean and the second harmonic.
+        ta, tb = self._crossings[-2], self._crossings[-1]
+        omega = 2.0 * math.pi / (tb - ta)
+        value = self._estimate(tt, uu, yy, ta, tb, omega, hann=False)
+        du = held_coefficient(tt, uu - self.mv0, ta, tb, 0.0, hann=False).real
+        dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0, hann=False).real
         # Compare estimates through |F|/K0, which stays bounded as K0 grows.
         inverse_gain = self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
         if self._fit is not None:
@@ -889,14 +892,11 @@ class RelayExperiment:
         # Estimates scatter with noise and sampling jitter; the longer the
         # experiment runs, the more of the latest may be averaged (stopping.py).
         noisy = self._noisy()
-        # With noise, all estimates since the last disturbance may be averaged but the first two
-        # (the filter's first corrections).
-        longest = len(usable) - 2 if noisy else 2 + (periods - _MIN_PERIODS) // 2
-        # Under strong noise two or three estimates can agree by chance (they share periods of data): the
-        # settled rule then needs as many as the averaged one (stopping.py).
-        strong = self._noise > _CHANCE_NOISE * self._estimates[-1][0].gain * self.config.amp
+        # With noise, all estimates since the last disturbance may be averaged but the first
+        # (the period right after the filter's first correction).
+        longest = len(usable) - 1 if noisy else 2 + (periods - _MIN_PERIODS) // 2
         verdict = judge(usable, self._target_deg, self._tolerances(), longest, noisy,
-                        None if self._fit is None else self._fit.x_std, NOISY_MIN if strong else 2)
+                        None if self._fit is None else self._fit.x_std)
         if verdict is None:
             return
         # Before accepting a quiet result, make sure the record holds no

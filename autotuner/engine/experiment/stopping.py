@@ -1,19 +1,21 @@
 """The stopping rule: when the estimates of the point (and of |F|/K0) are good enough.
 
-Each whole period gives one estimate of ``F(jω)`` over the last two periods
-and one of ``|F|/K0``. Two ways to be done:
+Each whole period gives one estimate of ``F(jω)`` over that period and one
+of ``|F|/K0``. Two ways to be done:
 
-* **settled** (a quiet plant): the latest ``k ≥ 2`` estimates (``settled_min``:
-  more under strong noise, where a few agree by chance) agree — the
+* **settled** (a quiet plant): the latest ``k ≥ 2`` estimates agree — the
   standard error of their mean is within half of ``gain_tol`` (relative) and
   ``static_tol`` — and the phase is within ``phase_tol_deg`` of the target.
   The shortest such run from the end is taken, so a transient a few periods
-  back (a filter correction, a shift of the relay) does not count.
+  back (a filter correction, a shift of the relay) does not count. The
+  result is the latest estimate (the estimates converge towards it as the
+  filter's last correction dies out, so their mean would lag behind), or
+  the mean of the last two when they alternate around it.
 * **averaged** (measurement noise that makes single estimates scatter more
-  than ``gain_tol``): the mean of at least ``NOISY_MIN`` estimates whose
+  than ``gain_tol``; the settled rule is then not used): the mean of at least ``NOISY_MIN`` estimates whose
   standard error is within ``noise_tol`` (relative |F|) and ``static_tol``
-  (|F|/K0). Consecutive estimates share one period of data, so ``k`` of them
-  count as ``k/2`` independent ones.
+  (|F|/K0). Estimates over consecutive periods share no data: ``k`` of them
+  are ``k`` independent ones.
 
 When neither holds by ``max_periods`` (or the time limit) and the noise is
 what keeps the averaged rule from passing, :func:`amp_factor` says how much
@@ -29,7 +31,7 @@ from autotuner.engine.experiment.point import Point
 
 # The averaged rule needs at least this many estimates (its standard error
 # is itself estimated from them).
-NOISY_MIN = 4
+NOISY_MIN = 3
 
 
 @dataclass(frozen=True)
@@ -61,15 +63,30 @@ def _stats(recent: list[tuple[Point, float]]) -> tuple[Point, float, float, floa
     return mean, inverse, spread, inverse_spread
 
 
+def _settled(estimates: list[tuple[Point, float]]) -> tuple[Point, float]:
+    """The settled value of converging estimates: the latest, or the mean of the last two if they straddle it.
+
+    A filter correction dies out monotonically or alternating; in the second
+    case the latest two lie on both sides of the limit.
+    """
+    (p1, i1), (p2, i2) = estimates[-2:]
+    if len(estimates) < 3:
+        return p2, i2
+    p0, i0 = estimates[-3]
+    point = p2
+    if ((p2.value - p1.value) * (p1.value - p0.value).conjugate()).real < 0.0:
+        point = Point(0.5 * (p1.omega + p2.omega), 0.5 * (p1.value + p2.value))
+    inverse = 0.5 * (i1 + i2) if (i2 - i1) * (i1 - i0) < 0.0 else i2
+    return point, inverse
+
+
 def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances, longest: int,
-          noisy: bool, inverse_std: float | None = None, settled_min: int = 2) -> Verdict | None:
+          noisy: bool, inverse_std: float | None = None) -> Verdict | None:
     """The accepted mean of the latest estimates, or None to go on.
 
     ``longest`` bounds how many of the latest are averaged; ``noisy`` enables
     the averaged rule; ``inverse_std`` (from a load fit) replaces the spread
-    of |F|/K0 by the fit's own standard error; ``settled_min`` is the fewest
-    estimates the settled rule accepts (strong noise: two or three that share
-    periods of data agree by chance).
+    of |F|/K0 by the fit's own standard error.
     """
     for k in range(2, min(len(estimates), longest) + 1):
         recent = estimates[-k:]
@@ -83,12 +100,13 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
             static_ok = inverse_std <= tol.static_tol
         else:
             static_ok = inverse_spread / math.sqrt(k) <= 0.5 * tol.static_tol
-        if k >= settled_min and spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
-            return Verdict(mean, inverse, k)
-        if noisy and k >= NOISY_MIN:
-            independent = k / 2.0
-            static_ok = static_ok or (inverse_std is None and inverse_spread / math.sqrt(independent) <= tol.static_tol)
-            if spread / math.sqrt(independent) <= tol.noise_tol and static_ok:
+        if not noisy:
+            if spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
+                point, inverse = _settled(estimates)
+                return Verdict(point, inverse, k)
+        elif k >= NOISY_MIN:
+            static_ok = static_ok or (inverse_std is None and inverse_spread / math.sqrt(k) <= tol.static_tol)
+            if spread / math.sqrt(k) <= tol.noise_tol and static_ok:
                 return Verdict(mean, inverse, k)
     return None
 
@@ -99,7 +117,5 @@ def amp_factor(estimates: list[tuple[Point, float]], tol: Tolerances) -> float:
     if k < NOISY_MIN:
         return math.inf
     _, _, spread, inverse_spread = _stats(estimates)
-    independent = k / 2.0
-    need = max(spread / math.sqrt(independent) / tol.noise_tol,
-               inverse_spread / math.sqrt(independent) / tol.static_tol)
+    need = max(spread / math.sqrt(k) / tol.noise_tol, inverse_spread / math.sqrt(k) / tol.static_tol)
     return max(need, 1.0)
