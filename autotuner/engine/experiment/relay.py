@@ -273,6 +273,10 @@ class RelayExperiment:
         self._crossings: list[float] = []
         self._estimates: list[tuple[Point, float]] = []
         self._windows: list[float] = []
+        # |F|/K0 over the last two periods (Hann), one per estimate: the unstable-process tests
+        # (_negative_ratio) read the sign of the static gain, which one period of the start-up
+        # transient can invert on a stable lag-dominant process.
+        self._wide: list[float] = []
         self._disturbance_seen = False
         self._last: tuple[float, float] | None = None
         self._slope = 1.0
@@ -654,7 +658,7 @@ class RelayExperiment:
         if negative and recognised and self._fit is None:
             # An open-loop unstable process: a weaker bias, and a phase it reaches.
             self._enter_unstable()
-            self._move_target(*self._estimates[-1])
+            self._move_target(self._estimates[-1][0], self._wide[-1])
         elif self._estimates and not negative:
             self._unstable = False  # a rescued level (_check_runaway) on a process the estimates call stable
         # (A change of the levels made just now, at the end of the period, leaves the period clean.)
@@ -814,14 +818,14 @@ class RelayExperiment:
         """
         if not self._negative_ratio():
             return False
-        point, x = self._estimates[-1]
+        point, x = self._estimates[-1][0], self._wide[-1]
         return x < 0.0 and self._on_rising_branch(point, x)
 
     def _negative_ratio(self) -> bool:
-        """True when the mean ratio |F|/K0 of the latest two estimates is below −static_tol."""
-        if not self._estimates:
+        """True when the mean two-period ratio |F|/K0 of the latest two estimates is below −static_tol."""
+        if not self._wide:
             return False
-        inverse = sum(i for _, i in self._estimates[-2:]) / len(self._estimates[-2:])
+        inverse = sum(self._wide[-2:]) / len(self._wide[-2:])
         return inverse < -self.config.static_tol
 
     def _unstable_model(self, point: Point, x: float) -> tuple[float, float] | None:
@@ -883,6 +887,7 @@ class RelayExperiment:
         # Windows that reach back before a load step are left out.
         self._estimates.append((point, inverse_gain))
         self._windows.append(ta)
+        self._wide.append(self._wide_inverse(tt, uu, yy) if self._fit is None else inverse_gain)
         periods = len(self._rising) - 1
         if periods < _MIN_PERIODS or len(self._estimates) < 2:
             return
@@ -904,6 +909,14 @@ class RelayExperiment:
         if self._fit is None and self._look_for_disturbance(tt, uu, np.asarray(self._y)):
             return
         self._succeed(verdict.point, self._fit.x if self._fit is not None else verdict.inverse_gain)
+
+    def _wide_inverse(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> float:
+        """|F|/K0 over the last two whole periods with a Hann window (the mean weighted to their middle)."""
+        ta, tb = self._crossings[-3], self._crossings[-1]
+        value = self._estimate(tt, uu, yy, ta, tb, 4.0 * math.pi / (tb - ta), hann=True)
+        du = held_coefficient(tt, uu - self.mv0, ta, tb, 0.0).real
+        dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0).real
+        return self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
 
     def _tolerances(self) -> Tolerances:
         c = self.config
