@@ -29,6 +29,17 @@ from dataclasses import dataclass
 
 from autotuner.engine.experiment.point import Point
 
+# The settled rule judges |F|/K0 over at least this many estimates.
+STATIC_MIN = 3
+
+# The settled rule's three-estimate check of |F|/K0 applies to a slow mode remembering more than one period
+# and at most this many; beyond (|F|/K0 < 0.053), K0 is resolved to static_tol of |F|/K0 only, as for
+# an integrator: the design's model is nearly one then, whatever K0 is.
+SLOW_MEMORY_MAX = 3.0
+
+# Below this |F|/K0 the settled rule's static bound stops being relative (static_bound).
+X_FLOOR = 0.25
+
 # The averaged rule needs at least this many estimates (its standard error
 # is itself estimated from them).
 NOISY_MIN = 3
@@ -51,6 +62,20 @@ class Verdict:
     point: Point
     inverse_gain: float
     count: int
+
+
+def static_bound(tol: Tolerances, inverse: float) -> float:
+    """The settled rule's bound on the spread of |F|/K0 near ``inverse``: ``static_tol`` relative to it (K0 to
+    about ``static_tol``) from ``X_FLOOR`` up; below, where the design hardly depends on K0 (its model tends to
+    an integrator's), ``static_tol`` of ``X_FLOOR``."""
+    return tol.static_tol * max(abs(inverse), X_FLOOR)
+
+
+def slow_memory(inverse: float) -> float:
+    """The time constant of the first-order model with ``inverse`` = |F|/K0 at the point, in periods
+    (methods.md §6: T = sqrt(1/x² − 1)/ω); inf for an integrator, 0 for a dead time."""
+    x = min(abs(inverse), 1.0)
+    return math.inf if x == 0.0 else math.sqrt(1.0 / (x * x) - 1.0) / (2.0 * math.pi)
 
 
 def _stats(recent: list[tuple[Point, float]]) -> tuple[Point, float, float, float]:
@@ -101,6 +126,13 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
         else:
             static_ok = inverse_spread / math.sqrt(k) <= 0.5 * tol.static_tol
         if not noisy:
+            if inverse_std is None and 1.0 < slow_memory(inverse) <= SLOW_MEMORY_MAX:
+                # A slow mode remembers the relay's means of earlier periods: its |F|/K0 estimates converge
+                # more slowly than the point's, and two can agree by chance (100·e^{−20s}/(300s+1):
+                # 0.0805, 0.0803, then 0.0768; true 0.0771): three must agree, each within the bound.
+                last = estimates[-max(k, STATIC_MIN):]
+                static_ok = static_ok and len(last) >= STATIC_MIN and _stats(last)[3] <= 0.5 * static_bound(
+                    tol, inverse)
             if spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
                 point, inverse = _settled(estimates)
                 return Verdict(point, inverse, k)
