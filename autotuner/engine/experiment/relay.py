@@ -212,11 +212,16 @@ _FIRST_LOW = 0.4
 # first one still carries the start's transient); one whose ratio turns negative later is a load step or
 # noise, which the load fit and the stopping rule deal with.
 _HINT_ESTIMATES = 3
+# A runaway from a full-amp level within this fraction of its growth time constant after the relay's answer
+# arrived is faster than one unstable pole with dead time runs from it (D/T ≥ 0.5 for that): _runaway_at_full_amp.
+_REACH_ONE_POLE = 0.25
 # A first switch within this many samples of the relay's start tells nothing of the process's reaction time
 # (see RelayExperiment._reaction).
 _REACT_SAMPLES = 3
 # Windows of the runaway test (_check_runaway), as a share of the process's reaction time.
 _RUNAWAY_WINDOW = 0.15
+# The runaway test's steps must grow this close to geometrically (s0·s2 ≥ _GEOMETRIC·s1², less the noise).
+_GEOMETRIC = 0.97
 
 
 class RelayExperiment:
@@ -277,6 +282,8 @@ class RelayExperiment:
         # (_negative_ratio) read the sign of the static gain, which one period of the start-up
         # transient can invert on a stable lag-dominant process.
         self._wide: list[float] = []
+        # The lag over every whole period, radians (also those before the first estimate is judged).
+        self._lags: list[float] = []
         self._disturbance_seen = False
         self._last: tuple[float, float] | None = None
         self._slope = 1.0
@@ -502,12 +509,17 @@ class RelayExperiment:
         floor = 3.0 * self._noise
         if not (steps[0] > floor and steps[1] > steps[0] + floor and steps[2] > steps[1] + floor):
             return False
+        # Growing steps alone are also a stable process's answer to a ramp (a drifting load), whose
+        # steps converge to the ramp's; an unstable pole's grow geometrically (s0·s2 = s1²).
+        if steps[0] * steps[2] < _GEOMETRIC * steps[1] ** 2 - floor * (steps[0] + steps[2]):
+            return False
         if len(self._switches) >= 3 and away[-1] <= self._peak_away():
             return False  # within the swing the cycle already had
         level = self._mv_high if self._relay > 0 else self._mv_low
         amp = self.config.amp
         if abs(level - self._center) >= amp * (1.0 - 1e-9) or self._full_level:
-            self._runaway_at_full_amp(amp)
+            # The runaway's growth rate (1/s) is an unstable pole's 1/T once the MV is held.
+            self._runaway_at_full_amp(amp, react * math.log(steps[2] / steps[1]) / (m * self._dt))
             return False
         lo, hi = self.config.mv_limits
         if self._relay > 0:
@@ -544,32 +556,39 @@ class RelayExperiment:
                     self._turn = self._t[k - 1] - self._t[first]
         return self._turn
 
-    def _runaway_at_full_amp(self, amp: float) -> None:
+    def _runaway_at_full_amp(self, amp: float, reach: float) -> None:
         """End the experiment: the PV runs away from a level at full amp (no relay holds this process).
 
-        A lag beyond 180° measured on the way (an unstable pole's lag is below
-        180° at any frequency where its dead time lets a relay oscillate) means
-        more than one unstable pole: NOT_STABILISABLE, as the design says of
-        such a process. Otherwise the dead time is too long for a relay to hold
-        the process (about 0.7 × its unstable time constant or more), so too
-        long for a PI/PID as well: UNSTABLE_DEAD_TIME_TOO_LONG.
+        ``reach``: the time the process takes to answer the relay times the
+        runaway's growth rate — for ``K·e^{−Ds}/(Ts − 1)``, D/T. A single
+        unstable pole defeats a full-amp relay only from D/T ≈ 0.5–0.7 on, and
+        its lag stays below 180° at any frequency where a relay oscillates; a
+        runaway with ``reach`` below ``_REACH_ONE_POLE`` or a lag beyond 180°
+        means more than one unstable pole: NOT_STABILISABLE, as the design says
+        of such a process. Otherwise the dead time is too long for a relay to
+        hold the process, so too long for a PI/PID as well:
+        UNSTABLE_DEAD_TIME_TOO_LONG.
         """
         what = (f"the PV runs away from the set point faster and faster while the relay pushes back with its full "
                 f"amplitude ({amp:g})")
-        lags = [self._lag(p.value) for p, _ in self._estimates]
-        if lags and max(lags) > math.pi:
+        lag = max(self._lags, default=0.0)
+        if lag > math.pi or reach < _REACH_ONE_POLE:
+            evidence = (f"the process lagged {math.degrees(lag):.0f}° (more than 180°) at the relay's frequency"
+                        if lag > math.pi else
+                        f"the relay's answer reached it within {reach:.2f} × the runaway's time constant (a relay "
+                        "holds a single unstable pole with so short a dead time)")
             self._finish(
                 Code.NOT_STABILISABLE,
-                f"{MESSAGES[Code.NOT_STABILISABLE]}: {what}, and the process lagged {math.degrees(max(lags)):.0f}° "
-                "(more than 180°) at the relay's frequency — an open-loop unstable process with more than one "
-                "unstable pole: no relay holds it and no PI stabilises it, so no relay experiment tunes it",
+                f"{MESSAGES[Code.NOT_STABILISABLE]}: {what}, and {evidence} — an open-loop unstable process with "
+                "more than one unstable pole: no relay holds it and no PI stabilises it, so no relay experiment "
+                "tunes it",
             )
             return
         self._finish(
             Code.UNSTABLE_DEAD_TIME_TOO_LONG,
             f"{MESSAGES[Code.UNSTABLE_DEAD_TIME_TOO_LONG]}: {what} — an open-loop unstable process whose dead time "
-            "is too long for a relay to hold it (about 0.7 × its unstable time constant or more), so too long for "
-            "a PI/PID as well",
+            f"is too long for a relay to hold it (about {reach:.2f} × the runaway's time constant; a relay holds up "
+            "to about 0.5–0.7), so too long for a PI/PID as well",
         )
 
     def _peak_away(self) -> float:
@@ -650,6 +669,7 @@ class RelayExperiment:
         ta, tb = self._crossings[-2], self._crossings[-1]
         omega = 2.0 * math.pi / (tb - ta)
         lag = self._lag(self._estimate(tt, uu, yy, ta, tb, omega, hann=False))
+        self._lags.append(lag)
         # An open-loop unstable process shows a negative mean ratio from its first estimates on (or ran
         # away from a level already); one that turns negative later is a load step or noise, which the
         # load fit and the stopping rule deal with.
