@@ -31,6 +31,22 @@ def analytic(w: float) -> complex:
     return cmath.exp(-s) / (2 * s + 1)
 
 
+def record_ticks(plc: SimulatedPlc, ticks: list[tuple[Mode, float]]) -> None:
+    """Record (mode, actual MV) after every tick of ``plc``."""
+    tick = plc.tick
+
+    def recorded() -> None:
+        tick()
+        ticks.append((plc.mode, plc.mv))
+
+    plc.tick = recorded
+
+
+def first_auto(ticks: list[tuple[Mode, float]]) -> int:
+    """Index of the first AUTO tick after a MAN one (the hand-back's first sample)."""
+    return next(i for i in range(1, len(ticks)) if ticks[i][0] is Mode.AUTO and ticks[i - 1][0] is Mode.MAN)
+
+
 async def session(link_kwargs=None, *, apply=False, stop_after=None, mode=Mode.AUTO, handback=None, ticks=None,
                   stop_at_relay=False, **config):
     process = parse_process(PLANT)
@@ -38,14 +54,8 @@ async def session(link_kwargs=None, *, apply=False, stop_after=None, mode=Mode.A
     plc = SimulatedPlc(process, ts=ts / 5)
     plc.mode = mode
     before = (plc.mode, plc.gains, plc.hv)
-    if ticks is not None:  # record (mode, actual MV) after every tick
-        tick = plc.tick
-
-        def recorded() -> None:
-            tick()
-            ticks.append((plc.mode, plc.mv))
-
-        plc.tick = recorded
+    if ticks is not None:
+        record_ticks(plc, ticks)
     halt = asyncio.Event()
     plant = asyncio.create_task(run(plc, SPEED, halt))
     stop = asyncio.Event()
@@ -117,12 +127,12 @@ def test_the_hand_back_is_bumpless_the_first_auto_output_is_the_saved_mv():
     ticks: list[tuple[Mode, float]] = []
     result, plc, (_, _, saved_mv) = asyncio.run(session(stop_at_relay=True, ticks=ticks))
     assert result.code is Code.ABORTED
-    first_auto = next(i for i in range(1, len(ticks)) if ticks[i][0] is Mode.AUTO and ticks[i - 1][0] is Mode.MAN)
-    assert ticks[first_auto - 1][1] == saved_mv  # the last MAN tick ran at the saved MV: the unit tracked it
+    first = first_auto(ticks)
+    assert ticks[first - 1][1] == saved_mv  # the last MAN tick ran at the saved MV: the unit tracked it
     # One sample of a PI from where it tracked: far below the relay's amplitude (5), which a switch from the last
     # relay level would show.
-    assert abs(ticks[first_auto][1] - saved_mv) < 0.01 * 5.0
-    assert any(abs(mv - saved_mv) > 2.0 for mode, mv in ticks[:first_auto] if mode is Mode.MAN)  # the relay ran
+    assert abs(ticks[first][1] - saved_mv) < 0.01 * 5.0
+    assert any(abs(mv - saved_mv) > 2.0 for mode, mv in ticks[:first] if mode is Mode.MAN)  # the relay ran
 
 
 def test_a_link_that_never_returns_is_reported_as_not_restored():
@@ -138,6 +148,7 @@ def test_the_watchdog_hands_the_loop_back_when_the_heartbeat_stops():
         ts = default_sample_time(process) * 100 / SAMPLES_PER_PERIOD
         plc = SimulatedPlc(process, ts=ts / 5)
         saved_mv = plc.hv
+        record_ticks(plc, ticks)
         halt = asyncio.Event()
         plant = asyncio.create_task(run(plc, SPEED, halt))
         link = SimLink(plc)
@@ -146,17 +157,21 @@ def test_the_watchdog_hands_the_loop_back_when_the_heartbeat_stops():
         task = asyncio.create_task(tune_link(link, RelayConfig(amp=5.0), ts, speed=SPEED,
                                              handback=HandBack(window=30.0, watchdog=2.0)))
         await until(lambda: plc.fallbacks == 1, 20.0, "the watchdog to fall back")
-        mode, mv, flags = plc.mode, plc.mv, plc.flags
+        mode, flags = plc.mode, plc.flags
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
         halt.set()
         await plant
-        return mode, mv, flags, saved_mv
+        return mode, flags, saved_mv
 
-    mode, mv, flags, saved_mv = asyncio.run(scenario())
+    # The MV of the first AUTO sample, as the PLC ran it (the PI moves on from there while the test polls).
+    ticks: list[tuple[Mode, float]] = []
+    mode, flags, saved_mv = asyncio.run(scenario())
     assert mode is Mode.AUTO
-    assert abs(mv - saved_mv) < 0.01 * 5.0  # bumpless: one PI sample from the saved MV
+    first = first_auto(ticks)
+    assert ticks[first - 1][1] == saved_mv  # the fallback tick ran in MAN at the saved MV
+    assert abs(ticks[first][1] - saved_mv) < 0.01 * 5.0  # bumpless: one PI sample from the saved MV
     assert flags.tbsy is False and flags.te is True and flags.ite == float(Code.WATCHDOG_FALLBACK)
 
 
