@@ -138,3 +138,19 @@ class Daemon:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def record_ticks(plc: Any, ticks: list[tuple[Any, float]]) -> None:
+    """Record (mode, actual MV) after every tick of ``plc`` (a drivers.simplc.SimulatedPlc)."""
+    tick = plc.tick
+
+    def recorded() -> None:
+        tick()
+        ticks.append((plc.mode, plc.mv))
+
+    plc.tick = recorded
+
+
+def first_auto(ticks: list[tuple[Any, float]]) -> int:
+    """Index of the first AUTO tick after a MAN one (the hand-back's first sample)."""
+    return next(i for i in range(1, len(ticks)) if ticks[i][0].name == "AUTO" and ticks[i - 1][0].name == "MAN")

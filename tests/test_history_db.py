@@ -26,7 +26,7 @@ from autotuner.service.history import History, database_url
 from autotuner.engine.outcome import Code
 from autotuner.engine.result import ExperimentRecord, GainsRecord, ResultRecord
 from drivers.link import LoopState, Mode
-from helpers import free_port
+from helpers import first_auto, free_port, record_ticks
 from test_daemon import loop, manager, running
 
 SAVED = LoopState(mode=Mode.AUTO, mv=50.0, sp=50.0, gains=Gains(k=0.7, ti=3.0))
@@ -119,12 +119,15 @@ def test_a_crash_left_session_is_closed_and_its_loop_restored_from_either_databa
     m = manager(loop("A"), history=History(database))
     plc = m.loops["A"].plc
     plc.mode, plc.hv = Mode.MAN, 55.0  # where the relay left it
+    ticks: list[tuple[Mode, float]] = []
+    record_ticks(plc, ticks)
 
     async def body(m):
         return m.loops["A"].as_json()
 
     asyncio.run(running(m, body))
-    assert plc.mode is Mode.AUTO and plc.hv == 50.0
+    # Handed back at the saved MV (the PI moves on from there in AUTO while the daemon runs).
+    assert plc.mode is Mode.AUTO and ticks[first_auto(ticks) - 1] == (Mode.MAN, 50.0)
     record = m.history.get("s1")
     assert record["state"] == "interrupted" and record["code"] == int(Code.ABORTED)
     assert m.history.running() == []

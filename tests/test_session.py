@@ -17,7 +17,7 @@ from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import Mode
 from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc, run
-from helpers import until
+from helpers import first_auto, record_ticks, until
 
 PLANT = "exp(-s)/(2*s+1)"
 SPEED = 5.0
@@ -29,22 +29,6 @@ SAMPLES_PER_PERIOD = 40
 def analytic(w: float) -> complex:
     s = 1j * w
     return cmath.exp(-s) / (2 * s + 1)
-
-
-def record_ticks(plc: SimulatedPlc, ticks: list[tuple[Mode, float]]) -> None:
-    """Record (mode, actual MV) after every tick of ``plc``."""
-    tick = plc.tick
-
-    def recorded() -> None:
-        tick()
-        ticks.append((plc.mode, plc.mv))
-
-    plc.tick = recorded
-
-
-def first_auto(ticks: list[tuple[Mode, float]]) -> int:
-    """Index of the first AUTO tick after a MAN one (the hand-back's first sample)."""
-    return next(i for i in range(1, len(ticks)) if ticks[i][0] is Mode.AUTO and ticks[i - 1][0] is Mode.MAN)
 
 
 async def session(link_kwargs=None, *, apply=False, stop_after=None, mode=Mode.AUTO, handback=None, ticks=None,
