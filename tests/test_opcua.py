@@ -38,6 +38,7 @@ def config(tmp_path, port: int) -> DaemonConfig:
               "tuning": {"amp": 5.0, "time_limit": 200.0}, "limits": {"pv": [0.0, 100.0], "mv": [0.0, 100.0]}}
              for loop_id in LOOPS]
     loops[0]["units"] = UNITS  # TIC-2 and TIC-3 have none
+    loops[1]["group"] = loops[2]["group"] = "reactor"  # an exclusion group: never tuned together
     return DaemonConfig.model_validate({
         "history": str(tmp_path / "history.sqlite"),
         "tokens": [{"name": "hmi", "role": "viewer", "sha256": token_hash(VIEWER_TOKEN)}],
@@ -119,6 +120,13 @@ def test_the_loops_engineering_units_are_published_on_pv_sp_mv_and_the_gains(dae
             for name in ("PV", "SP", "MV", "k", "gain"):  # a loop without units: no unit is published
                 assert await _eu(c, idx, f"TIC-2.{name}") is None, name
             assert (await _eu(c, idx, "TIC-2.ti"))[:2] == ("s", 5457219)  # seconds are seconds everywhere
+            # Typed as OPC 10000-8's Analog types, whose mandatory properties these are (HMIs look there).
+            types = {node: (await c.get_node(ua.NodeId(node, idx)).read_type_definition()).Identifier for node in
+                     ("TIC-1.PV", "TIC-1.MV", "TIC-1.PIDParameters.I", "TIC-2.PV", "TIC-2.ti", "TIC-1.TBSY")}
+            assert types == {"TIC-1.PV": ua.ObjectIds.AnalogUnitRangeType, "TIC-1.MV": ua.ObjectIds.AnalogUnitType,
+                             "TIC-1.PIDParameters.I": ua.ObjectIds.AnalogUnitType,
+                             "TIC-2.PV": ua.ObjectIds.BaseDataVariableType, "TIC-2.ti": ua.ObjectIds.AnalogUnitType,
+                             "TIC-1.TBSY": ua.ObjectIds.BaseDataVariableType}
 
     run(main())
 
@@ -146,10 +154,13 @@ def test_a_viewers_tune_is_refused_with_a_bad_status(daemon):
 
     async def main() -> None:
         async with client(url, "viewer", VIEWER_PASSWORD) as c:
-            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
-                await call(c, "TIC-1", "Tune", "", NAN, NAN, NAN, NAN, "")
-            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
-                await call(c, "TIC-1", "AutoTuningOn")
+            for method, args in (("Tune", ("", NAN, NAN, NAN, NAN, "")), ("AutoTuningOn", ()), ("Apply", ())):
+                refused = await call(c, "TIC-1", method, *args)  # a Bad status and the message, as REST's 403
+                assert refused.StatusCode.value == ua.StatusCodes.BadUserAccessDenied, (method, refused)
+                assert [o.Value for o in refused.OutputArguments] == ["", "forbidden: this needs the operator role"]
+            with pytest.raises(ua.uaerrors.BadUserAccessDenied):  # asyncua's ordinary call raises it
+                idx = await c.get_namespace_index(NAMESPACE)
+                await c.get_node(ua.NodeId("TIC-1", idx)).call_method(f"{idx}:AutoTuningOn")
             assert await value(c, "TIC-1", "TBSY") is False
 
     run(main())
@@ -388,3 +399,41 @@ def test_a_compound_unit_inside_a_gains_unit_is_bracketed():
     flow = {"pv": "m³/h", "mv": "%"}
     assert unit_symbol("{mv}/{pv}", flow) == "%/(m³/h)" and unit_symbol("{pv}/{mv}", flow) == "(m³/h)/%"
     assert unit_symbol("{pv}", flow) == "m³/h" and unit_symbol("{mv}/{pv}", {"pv": "°C", "mv": "%"}) == "%/°C"
+
+
+def test_a_method_called_on_another_loops_object_is_refused_and_tunes_neither(daemon):
+    _, url, _ = daemon
+
+    async def main() -> None:
+        async with client(url) as c:
+            idx = await c.get_namespace_index(NAMESPACE)
+            request = ua.CallMethodRequest(ObjectId=ua.NodeId("TIC-3", idx),
+                                           MethodId=ua.NodeId("TIC-1.AutoTuningOn", idx), InputArguments=[])
+            wrong = (await c.uaclient.call([request]))[0]
+            assert wrong.StatusCode.value == ua.StatusCodes.BadMethodInvalid, wrong
+            assert wrong.OutputArguments[1].Value == f"invalid: AutoTuningOn is a method of loop TIC-1, not of " \
+                f"ns={idx};s=TIC-3"
+            assert await value(c, "TIC-1", "TBSY") is False and await value(c, "TIC-3", "TBSY") is False
+
+    run(main())
+
+
+def test_an_exclusion_group_holds_across_opcua_and_rest(daemon):
+    rest, url, _ = daemon
+    operator = {"Authorization": f"Bearer {OPERATOR}"}
+
+    async def main() -> None:
+        async with client(url) as c:
+            for loop_id in ("TIC-2", "TIC-3"):
+                await until(lambda: _not(value(c, loop_id, "TBSY")), 30, f"{loop_id} idle")
+            assert (await call(c, "TIC-2", "AutoTuningOn")).StatusCode.is_good()
+            refused = rest.post(f"{API}/loops/TIC-3/tune", headers=operator)  # the other interface
+            assert refused.status_code == 409 and refused.json()["code"] == "group_busy", refused.json()
+            twin = await call(c, "TIC-3", "AutoTuningOn")
+            assert twin.StatusCode.value == ua.StatusCodes.BadInvalidState, twin
+            assert twin.OutputArguments[1].Value.startswith("group_busy: loop 'TIC-2' of exclusion group 'reactor'")
+            assert (await call(c, "TIC-2", "Break")).StatusCode.is_good()
+            await until(lambda: _not(value(c, "TIC-2", "TBSY")), 30, "the break")
+            assert await value(c, "TIC-3", "TBSY") is False
+
+    run(main())

@@ -69,8 +69,8 @@ def test_refusals_are_logged_once_as_expected_outcomes_with_the_loop_and_reason_
                     pass
         async with client(url, "viewer", VIEWER_PASSWORD) as c:
             idx = await c.get_namespace_index(NAMESPACE)
-            with pytest.raises(ua.uaerrors.BadUserAccessDenied):
-                await call(c, "L1", "Tune", "", math.nan, math.nan, math.nan, math.nan, "")
+            forbidden = await call(c, "L1", "Tune", "", math.nan, math.nan, math.nan, math.nan, "")
+            assert forbidden.StatusCode.value == ua.StatusCodes.BadUserAccessDenied, forbidden
             with pytest.raises(ua.uaerrors.BadUserAccessDenied):
                 await c.get_node(ua.NodeId("L1.TBSY", idx)).write_value(True)
         async with client(url, "operator", OPERATOR) as c:

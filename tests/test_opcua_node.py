@@ -58,7 +58,8 @@ def test_node_opcua_client_browses_is_refused_as_viewer_and_tunes_and_breaks_as_
     assert {"PV", "TBSY", "TE", "ite", "pk", "AutoTuningActive", "PIDParameters", "Tune", "AutoTuningOn"} \
         <= set(out["children"])
     assert out["viewer_tbsy"] is False
-    assert "BadUserAccessDenied" in out["viewer_tune"] and "BadUserAccessDenied" in out["viewer_write"], out
+    assert out["viewer_tune"] == "BadUserAccessDenied" and "BadUserAccessDenied" in out["viewer_write"], out
+    assert out["viewer_message"] == ["", "forbidden: this needs the operator role"], out
     assert out["invalid"] == {"status": "BadInvalidArgument",
                               "message": ["", "invalid: amp: Input should be greater than 0"]}
     assert out["on"]["status"] == "Good" and out["on"]["outputs"][1] == "tuning"

@@ -55,6 +55,10 @@ UNECE_CODES: dict[str, tuple[str, str]] = {
     "mV": ("2Z", "millivolt"), "A": ("AMP", "ampere"), "mA": ("4K", "milliampere"), "W": ("WTT", "watt"),
     "kW": ("KWT", "kilowatt"),
 }
+# The variable type (OPC 10000-8 §5.3.2) of a variable with (EngineeringUnits, EURange): the Analog type having
+# those as mandatory properties; neither: BaseDataVariableType.
+ANALOG_TYPES = {(True, False): ua.ObjectIds.AnalogUnitType, (False, True): ua.ObjectIds.AnalogItemType,
+                (True, True): ua.ObjectIds.AnalogUnitRangeType}
 # The ``ite`` of a session whose loop could not be put back (docs/handback.md).
 NOT_RESTORED = float(Code.LOOP_NOT_RESTORED)
 # Severity of the events (1-1000).
@@ -214,6 +218,11 @@ async def _add_variable(parent: Node, idx: int, prefix: tuple[str, ...], var: Va
         await node.add_property(node_id(idx, *prefix, var.name, "EURange"), ua.QualifiedName("EURange", 0),
                                 ua.Range(Low=float(span[0]), High=float(span[1])),
                                 datatype=ua.NodeId(ua.ObjectIds.Range))
+    analog = ANALOG_TYPES.get((symbol is not None, span is not None))
+    if analog is not None:  # the type whose mandatory properties it has: what HMIs look for units and ranges on
+        base = ua.NodeId(ua.ObjectIds.BaseDataVariableType)
+        await node.delete_reference(base, ua.ObjectIds.HasTypeDefinition)
+        await node.add_reference(ua.NodeId(analog), ua.ObjectIds.HasTypeDefinition)
     return node
 
 

@@ -3,11 +3,13 @@
 - :class:`Users` checks a username/password against the scrypt hashes
   (:mod:`api.opcua.passwords`); anonymous sessions and unknown users are
   refused at ActivateSession, so they can read nothing.
-- :class:`RoleRuleset` decides per request type: a viewer browses, reads and
-  subscribes; an operator (or admin) also calls methods (Tune, Break, Apply,
-  AutoTuningOn/Off). Nobody writes attributes or changes the address space:
-  the loops change only through the methods. asyncua's own roles (Admin,
-  User) cannot say that, hence a ruleset of our own.
+- :class:`RoleRuleset` decides per request type: every user browses, reads,
+  subscribes and sends Call requests; nobody writes attributes or changes the
+  address space: the loops change only through the methods. asyncua's own
+  roles (Admin, User) cannot say that, hence a ruleset of our own. The loops'
+  methods (Tune, Break, Apply, AutoTuningOn/Off) check the operator role
+  themselves (:func:`may_call`), so a viewer's call is refused with a status
+  and a message per method, as REST's 403 has a body.
 - :class:`TrustedClients` (config ``trusted_clients``, a folder of trusted
   client certificates) refuses a session whose client certificate is not
   trusted: at CreateSession (asyncua's certificate validator over its
@@ -61,7 +63,7 @@ _READ_TYPES = (
 READ_REQUESTS = frozenset(ua.NodeId(getattr(ua.ObjectIds, f"{name}_Encoding_DefaultBinary")) for name in _READ_TYPES)
 CALL_REQUEST = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
 WRITE_REQUEST = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
-# Why a request is refused to an activated user (the only two cases: methods need the operator, nothing is written).
+# Why a request is refused to an activated user: a loop's method needs the operator; nothing is written.
 NEEDS_OPERATOR = "forbidden: this needs the operator role"
 READ_ONLY = "forbidden: the variables are read-only (the loops change only through the methods)"
 
@@ -160,37 +162,32 @@ def may_call(user: Any) -> bool:
 
 
 class RoleRuleset(PermissionRuleset):
-    """Viewers read and subscribe, operators also call methods; writes and node management are refused to all."""
+    """Everyone activated reads, subscribes and calls (the loops' methods refuse viewers); writes and node
+    management are refused to all."""
 
     def check_validity(self, user: Any, action_type_id: ua.NodeId, body: Any) -> bool:
         if not isinstance(user, RoledUser):
             return False  # anonymous, or a session not activated by :class:`Users`
         CALLER.set(user)
-        if action_type_id in READ_REQUESTS or (action_type_id == CALL_REQUEST and may_call(user)):
+        if action_type_id in READ_REQUESTS or action_type_id == CALL_REQUEST:  # the methods check the role
             return True
         _log_refusal(user, action_type_id, body)
         return False
 
 
 def _targets(body: Buffer, parameters: type, items: str) -> list[ua.NodeId]:
-    """The NodeIds a Call's or Write's body names (``parameters``: its parameter struct, ``items`` its list)."""
+    """The NodeIds a Write's body names (``parameters``: its parameter struct, ``items`` its list)."""
     from asyncua.ua.ua_binary import struct_from_binary
 
     try:  # a copy: asyncua decodes the body itself after the ruleset
-        return [getattr(item, "MethodId", None) or item.NodeId
-                for item in getattr(struct_from_binary(parameters, body.copy()), items)]
+        return [item.NodeId for item in getattr(struct_from_binary(parameters, body.copy()), items)]
     except Exception:  # a body asyncua cannot decode either: the refusal is logged without its targets
         return []
 
 
 def _log_refusal(user: RoledUser, action_type_id: ua.NodeId, body: Buffer) -> None:
-    """One WARNING line per refused request: who, what (the loop and method of a Call, the nodes of a Write), why."""
+    """One WARNING line per refused request: who, what (the nodes of a Write), why."""
     who = f"opcua:{user.name} ({user.api_role})"
-    if action_type_id == CALL_REQUEST:
-        for method in _targets(body, ua.CallParameters, "MethodsToCall"):
-            loop_id, _, name = str(method.Identifier).rpartition(".")
-            log.warning("loop %s: %s over OPC UA by %s refused: %s", loop_id or "?", name, who, NEEDS_OPERATOR)
-        return
     if action_type_id == WRITE_REQUEST:
         nodes = ", ".join(str(n.Identifier) for n in _targets(body, ua.WriteParameters, "NodesToWrite"))
         log.warning("OPC UA: write of %s by %s refused: %s", nodes or "?", who, READ_ONLY)

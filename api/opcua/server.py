@@ -19,7 +19,7 @@ The process ends when the daemon says stop, when its end of the socket pair
 closes (the daemon died, even by SIGKILL) or when it is orphaned.
 
 Methods of each loop (operator role; a viewer's call is refused with
-``BadUserAccessDenied`` by :class:`~api.opcua.security.RoleRuleset`):
+``BadUserAccessDenied`` and the message ``forbidden: this needs the operator role``):
 
 - ``Tune(controller, amp, hysteresis, phase, ms, apply)``: NaN or "" = the
   loop's default; ``apply`` "", "true" or "false" (a Boolean is taken too);
@@ -205,7 +205,12 @@ class OpcUaServer:
         tune_inputs = [_argument(*a) for a in TUNE_ARGS]
 
         def method(name: str, action: str, inputs: int) -> Callable[..., Awaitable[ua.CallMethodResult]]:
-            async def callback(_: ua.NodeId, *args: Any) -> ua.CallMethodResult:
+            async def callback(parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
+                if parent != obj.nodeid:  # asyncua runs a method for any object named: not a TUNE of another loop
+                    log.info("loop %s: %s called on %s refused: not a method of that object", loop_id, name,
+                             parent.to_string())
+                    return _result(ua.StatusCodes.BadMethodInvalid, "", f"invalid: {name} is a method of loop "
+                                   f"{loop_id}, not of {parent.to_string()}")
                 return await self._call(loop_id, name, action, list(args), inputs)
 
             return callback
@@ -245,7 +250,9 @@ class OpcUaServer:
         """Run ``action`` (tune, abort, apply) in the daemon for the calling operator; the result of ``method``
         (its name, for the log), which has ``inputs`` input arguments."""
         user = CALLER.get()
-        if not may_call(user):  # the ruleset refuses viewers already; a second check costs nothing
+        if not may_call(user):  # a viewer: refused as REST's 403, with the message, logged as the expected outcome
+            log.warning("loop %s: %s over OPC UA by opcua:%s (%s) refused: %s", loop_id, method,
+                        getattr(user, "name", "?"), getattr(user, "api_role", "?"), NEEDS_OPERATOR)
             return _result(ua.StatusCodes.BadUserAccessDenied, "", NEEDS_OPERATOR, inputs)
         who = f"opcua:{user.name}"
         what = f"loop {loop_id}: {method} over OPC UA by {who}"

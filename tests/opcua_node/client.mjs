@@ -60,6 +60,7 @@ async function main() {
         const r = await vs.call({ objectId: `ns=${ns};s=${loop}`, methodId: `ns=${ns};s=${loop}.Tune`,
                                   inputArguments: args("", NaN, "") });
         out.viewer_tune = r.statusCode.name;
+        out.viewer_message = (r.outputArguments || []).map((a) => a.value);
     } catch (err) {
         out.viewer_tune = text(err);
     }
