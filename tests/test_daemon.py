@@ -7,7 +7,8 @@ import asyncio
 import pytest
 
 from autotuner.service.config import DaemonConfig, TuneRequest
-from autotuner.service.daemon import LoopManager, Pending, Refused, _Tap, found
+from autotuner.service.daemon import LoopManager, Pending, Refused, found
+from autotuner.service.session_record import Tap
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.control.gains import Gains
 from autotuner.service.history import TRACE_POINTS, History
@@ -261,7 +262,7 @@ def test_an_mv_outside_the_sessions_range_on_record_is_recorded_before_it_is_wri
                 raise LinkError("the history is locked")
             tap.mv_range = (tap.mv_range[0], mv)
 
-        tap = _Tap(SimLink(plc), before_mv=widen)
+        tap = Tap(SimLink(plc), before_mv=widen)
         await tap.write_mv(70.0)  # no range yet (the session has not saved the loop): nothing to record
         tap.mv_range = (47.0, 55.0)
         await tap.write_mv(51.3)  # a switch sample between the levels

@@ -192,6 +192,20 @@ class ThreadedPlc:
         self._thread.join(30)
 
 
+def reconciled_at_start(plant: ThreadedPlc, config: Path, sid: str) -> dict:
+    """The PLC answering again, start the daemon on ``config``: session ``sid``'s record once its open gains intent
+    is reconciled with the device."""
+    plant.call(lambda: plant.server.hang(False))
+    plant.freeze_after_gains = False
+    with Daemon(config) as restarted:
+        def reconciled() -> bool:
+            record = httpx.get(f"{restarted.base}/sessions/{sid}", headers=restarted.headers).json()
+            return record["gains_intent"] is None and record["state"] != "running"
+
+        restarted.wait_until(reconciled, 60, "the intent reconciled with the device")
+        return httpx.get(f"{restarted.base}/sessions/{sid}", headers=restarted.headers).json()
+
+
 def test_gains_written_then_sigkill_are_reconciled_with_the_device_at_the_next_start(tmp_path: Path):
     plant = ThreadedPlc(SLOW)
     try:
@@ -216,15 +230,7 @@ def test_gains_written_then_sigkill_are_reconciled_with_the_device_at_the_next_s
         row = sqlite3.connect(db).execute("SELECT state, gains_intent, applied_by FROM sessions WHERE id = ?",
                                           (sid,)).fetchone()
         assert row[0] == "running" and row[1] is not None and row[2] is None  # written, not recorded
-        plant.call(lambda: plant.server.hang(False))
-        plant.freeze_after_gains = False
-        with Daemon(config) as restarted:
-            def reconciled() -> bool:
-                record = httpx.get(f"{restarted.base}/sessions/{sid}", headers=restarted.headers).json()
-                return record["gains_intent"] is None and record["state"] != "running"
-
-            restarted.wait_until(reconciled, 60, "the intent reconciled with the device")
-            record = httpx.get(f"{restarted.base}/sessions/{sid}", headers=restarted.headers).json()
+        record = reconciled_at_start(plant, config, sid)
         # History and device agree: the gains the PLC runs are the session's, recorded as applied by its user.
         assert record["applied_by"] == "AUTOTUNER_TOKEN" and record["applied_at"] is not None
         assert plant.plc.gains == written

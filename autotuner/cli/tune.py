@@ -257,14 +257,23 @@ def tune_command(
                   "(not with --config, --link or --via)")
     steps = _loads(load)
     if config_file is not None:
-        from autotuner.service.configured_loop import tune_configured
+        from autotuner.service.configured_loop import cli_user, tune_configured
+        from autotuner.service.history import History
+        from autotuner.service.session_record import RECORD_WAIT
 
         daemon_config, loop = _configured_loop(ctx, config_file, loop_id)
         request = _explicit_request(ctx, controller.value, amp, hysteresis, phase, ms, apply)
         sample_time = loop.ts
 
-        def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
-            return tune_configured(loop, request, on_status, daemon_config.handback.session())
+        async def start(on_status: Callable[[Status], None] | None) -> TuneResult:
+            # The loop's history, as the daemon keeps it (a damaged or unreachable one: ValueError, bad input).
+            # Writes are retried for as long as the session waits for them, so the command ends soon after.
+            history = History(daemon_config.history, retry_for=RECORD_WAIT)
+            try:
+                return await tune_configured(loop, request, on_status, daemon_config.handback.session(), history,
+                                             cli_user())
+            finally:
+                history.close()
     elif link is not None:
         from autotuner.service.link_session import tune_link
         from autotuner.service.remote_tuning import LINK_TIME_LIMIT, field_config, open_link, tune_opened

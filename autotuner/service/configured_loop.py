@@ -8,24 +8,44 @@ checked on a fresh read exactly as the daemon checks a TUNE
 (:func:`~autotuner.service.daemon.fresh_check`): a PV outside its limits, not
 finite or stale, an unhealthy link, or TBSY already set on the device (another
 tuner, e.g. the daemon, owns the loop) ends the run with the refusal's code
-(23-26), nothing written. Nothing else guards against the daemon tuning the
-same loop at the same time: stop it or leave that loop out.
+(23-26), nothing written.
+
+The session is recorded in the config's history as the daemon records its
+own (:class:`~autotuner.service.session_record.SessionRecord`, user
+``cli:NAME``): its begin, the saved state before the loop is touched (not
+recorded: not touched, code 27), a gains intent before the gains are written
+(not recorded: not written) and the end with the gains read back. What a
+killed command leaves — a session still ``running``, an open intent — is
+recovered and reconciled with the device by the next start of ``autotuner
+serve`` with that config (docs/handback.md). Nothing else guards against
+the daemon tuning the same loop at the same time: stop it or leave that
+loop out.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import functools
+import getpass
+import uuid
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
+from drivers.link import Link
 from drivers.simplc import run
 
-from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
-from autotuner.service.daemon import Refused, connector, fresh_check, relay_config, settings_of, simulated_plc
-from autotuner.engine.outcome import MESSAGES
 from autotuner.engine.experiment.relay import Status
+from autotuner.engine.outcome import MESSAGES, Code
+from autotuner.engine.result import TuneResult
+from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
+from autotuner.service.daemon import (Refused, Settings, connector, fresh_check, relay_config, settings_of,
+                                      simulated_plc)
+from autotuner.service.history import History, downsample
 from autotuner.service.link_session import HandBack, tune_link
 from autotuner.service.remote_tuning import tune_opened
-from autotuner.engine.result import TuneResult
+from autotuner.service.session_record import SessionRecord, waited
 
 
 def find_loop(config: DaemonConfig, loop_id: str) -> LoopConfig:
@@ -37,13 +57,21 @@ def find_loop(config: DaemonConfig, loop_id: str) -> LoopConfig:
     raise ValueError(f"no loop {loop_id!r} in the config (loops: {known})")
 
 
+def cli_user() -> str:
+    """Who the history records for a session of ``tune --config``: ``cli:`` and the login name."""
+    try:
+        return f"cli:{getpass.getuser()}"
+    except (KeyError, OSError):  # no name for this uid (a container)
+        return "cli"
+
+
 async def tune_configured(
     loop: LoopConfig, request: TuneRequest, on_status: Callable[[Status], None] | None = None,
-    handback: HandBack | None = None,
+    handback: HandBack | None = None, history: History | None = None, user: str = "cli",
 ) -> TuneResult:
     """Tune ``loop`` once with ``request`` over the loop's defaults (a simulated loop's plant runs meanwhile),
     handed back as ``handback`` says (the config's ``handback`` section: its watchdog armed as the daemon arms
-    it; None: the defaults).
+    it; None: the defaults), recorded in ``history`` as asked by ``user`` (None: not recorded).
 
     A loop the daemon's fresh check refuses is not touched: the result is failed with the refusal's code.
     ValueError for an ``amp`` above the loop's bound."""
@@ -62,10 +90,66 @@ async def tune_configured(
             code = refused.ite
             assert code is not None  # every refusal of the fresh check has its code
             return TuneResult.failed(code, f"{MESSAGES[code]}: {refused.message}", settings.controller)
-        return await tune_opened(connect(), settings.controller, lambda link: tune_link(
-            link, relay_config(loop, settings), loop.ts, settings.controller, settings.ms, settings.apply, loop.speed,
-            on_status=on_status, handback=handback))
+        if history is None:
+            return await tune_opened(connect(), settings.controller, lambda link: tune_link(
+                link, relay_config(loop, settings), loop.ts, settings.controller, settings.ms, settings.apply,
+                loop.speed, on_status=on_status, handback=handback))
+        return await _recorded(loop, settings, connect, history, user, on_status, handback)
     finally:
         halt.set()
         if plant is not None:
             await plant
+
+
+async def _recorded(loop: LoopConfig, settings: Settings, connect: Callable[[], Link], history: History, user: str,
+                    on_status: Callable[[Status], None] | None, handback: HandBack | None) -> TuneResult:
+    """The session, recorded in ``history`` as the daemon records its sessions (writes in order in a thread of
+    their own, each awaited at most ``RECORD_WAIT`` s)."""
+    sid = uuid.uuid4().hex
+    events = asyncio.get_running_loop()
+    recorder = ThreadPoolExecutor(1, thread_name_prefix="history")
+
+    async def durable(method: Callable[..., Any], *args: Any) -> str:
+        return await waited(events.run_in_executor(recorder, functools.partial(method, *args)))
+
+    try:
+        why = await durable(history.begin, sid, loop.id, user, settings.as_json())
+        if why:
+            return TuneResult.failed(Code.HISTORY_UNAVAILABLE, f"{MESSAGES[Code.HISTORY_UNAVAILABLE]}: {why}",
+                                     settings.controller)
+        record = SessionRecord(durable, history, sid, loop.id, user)
+        restore_error = ""
+        gains_after = None
+
+        def handed_back(error: str) -> None:
+            nonlocal restore_error
+            restore_error = error
+
+        async def session(link: Link) -> TuneResult:
+            nonlocal gains_after
+            result = await tune_link(link, relay_config(loop, settings), loop.ts, settings.controller, settings.ms,
+                                     settings.apply, loop.speed, on_status=on_status, handback=handback,
+                                     on_saved=record.on_saved, on_handed_back=handed_back)
+            gains_after = await record.gains_after(link, result, settings.apply)
+            return result
+
+        result: TuneResult | None = None
+        state = "finished"
+        try:
+            result = await tune_opened(record.link(connect()), settings.controller, session)
+        except asyncio.CancelledError:  # Ctrl-C, SIGTERM: tune_link has handed the loop back (or said why not)
+            state = "interrupted"
+            raise
+        finally:
+            if result is None:
+                result = TuneResult.failed(Code.ABORTED, "aborted: the command was interrupted", settings.controller)
+            if restore_error and record.saved is not None:  # the next start of the daemon resumes the restore
+                state = "not_restored"
+            why = await durable(history.finish, sid, result.record(), gains_after, downsample(result.trace), state,
+                                record.applied_by(gains_after))
+            if why:
+                result = dataclasses.replace(result, message=f"{result.message}; its end is not recorded in the "
+                                             f"history: {why}")
+        return result
+    finally:
+        recorder.shutdown(wait=True)  # the writes still retried end within the history's retry_for

@@ -69,7 +69,7 @@ import logging
 import math
 import time
 import uuid
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -89,6 +89,7 @@ from autotuner.engine.experiment.relay import RelayConfig, Stage, Status
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, field_config, open_link
 from autotuner.service.link_session import (HandBack, NotTracking, close_design_pool, hand_back_once, not_restored,
                                             tune_link)
+from autotuner.service.session_record import SessionRecord, Tap, mv_hull, read_gains, same_gains, waited
 from autotuner.service.trend import Trend
 from autotuner.engine.result import ResultRecord, TuneResult
 
@@ -102,12 +103,6 @@ SHUTDOWN_GRACE = 2.0
 PLC_USER = "plc"
 # Longest pause between two tries of a watch task whose link fails, wall seconds.
 LINK_RETRY_MAX = 5.0
-# How long a session waits for the history to record what must be durable before it goes on (the saved state
-# before the loop is touched, a gains intent before the write), and for its end to be recorded before the loop is
-# idle again, wall seconds. Beyond it: the loop is not touched / the gains are not written / the end is recorded
-# later (writes are retried in the history's thread meanwhile; they never block the event loop).
-RECORD_WAIT = 10.0
-
 log = logging.getLogger("autotuner.service.daemon")
 
 
@@ -190,52 +185,6 @@ def relay_config(loop: LoopConfig, settings: Settings) -> RelayConfig:
     ))
 
 
-class _Tap:
-    """A link that remembers the last PV read and MV written (for the live samples) and forwards everything.
-
-    A gains write first awaits ``before_gains`` (the history's intent; a
-    LinkError there means the gains are not written) and remembers the gains
-    in ``intended``. Once ``mv_range`` is set (the session's MV range on
-    record, MV units), an MV outside it first awaits ``before_mv(mv)``, which
-    records the widened range durably (a LinkError there: not written): a
-    restart after a crash then knows every MV the session may have left.
-    """
-
-    def __init__(self, link: Link, before_gains: Callable[[Gains], Awaitable[None]] | None = None,
-                 before_mv: Callable[[float], Awaitable[None]] | None = None) -> None:
-        self._link = link
-        self.pv = math.nan
-        self.mv = math.nan
-        self.before_gains = before_gains
-        self.intended: Gains | None = None
-        self.before_mv = before_mv
-        self.mv_range: tuple[float, float] | None = None
-
-    @property
-    def pv_age(self) -> float | None:
-        return self._link.pv_age
-
-    async def read_pv(self) -> float:
-        self.pv = await self._link.read_pv()
-        return self.pv
-
-    async def write_mv(self, mv: float) -> None:
-        r = self.mv_range
-        if r is not None and self.before_mv is not None and not r[0] <= mv <= r[1]:
-            await self.before_mv(mv)
-        await self._link.write_mv(mv)
-        self.mv = mv
-
-    async def write_gains(self, gains: Gains) -> None:
-        if self.before_gains is not None:
-            await self.before_gains(gains)
-        self.intended = gains
-        await self._link.write_gains(gains)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._link, name)
-
-
 async def fresh_check(config: LoopConfig, connect: Callable[[], Link]) -> None:
     """Before a TUNE touches the loop: read its PV and handshake bits on a new link (``connect()``), and close it.
 
@@ -270,11 +219,6 @@ async def fresh_check(config: LoopConfig, connect: Callable[[], Link]) -> None:
     if flags.tbsy:
         raise Refused("device_busy", f"loop {loop_id!r} not tuned: the device already shows TBSY (another "
                       "tuner owns the loop)", Code.REFUSED_DEVICE_BUSY)
-
-
-def mv_hull(*mvs: float) -> tuple[float, float]:
-    """The smallest range (low, high), MV units, holding every one of ``mvs``."""
-    return min(mvs), max(mvs)
 
 
 @dataclass
@@ -345,7 +289,7 @@ class Loop:
     gains: Gains | None = None
     latest: dict[str, Any] | None = None
     saved: LoopState | None = None
-    tap: _Tap | None = None
+    tap: Tap | None = None
     applying: bool = False
     pending: Pending | None = None
     restorer: asyncio.Task[None] | None = None
@@ -592,24 +536,13 @@ class LoopManager:
                       future.exception())
 
     async def _durable(self, method: Callable[..., Any], *args: Any) -> str:
-        """Record ``method(*args)`` and wait up to :data:`RECORD_WAIT` s; '' once recorded, else why not."""
-        return await self._waited(self._record(method, *args))
-
-    @staticmethod
-    async def _waited(record: asyncio.Future[Any]) -> str:
-        """Wait up to :data:`RECORD_WAIT` s for a write of :meth:`_record` (it goes on after); '' once recorded,
-        else why not."""
-        try:
-            await asyncio.wait_for(asyncio.shield(record), RECORD_WAIT)
-        except asyncio.TimeoutError:
-            return f"the history did not record it within {RECORD_WAIT:g} s (still retried)"
-        except Exception as exc:  # the history's error after its retries (logged by _recorded)
-            return f"the history could not record it ({type(exc).__name__}: {exc})"
-        return ""
+        """Record ``method(*args)`` and wait up to ``RECORD_WAIT`` s (:mod:`~autotuner.service.session_record`); ''
+        once recorded, else why not."""
+        return await waited(self._record(method, *args))
 
     def _refresh_latest(self, loop: Loop) -> asyncio.Future[Any]:
         """Read the loop's newest session in the history's thread (after the writes before), then publish; the
-        read's future, which a caller may await (:meth:`_waited`): ``loop.latest`` is set by then (the callback
+        read's future, which a caller may await (:func:`waited`): ``loop.latest`` is set by then (the callback
         setting it was added first)."""
         future = self._record(self.history.latest, loop.config.id)
 
@@ -730,7 +663,7 @@ class LoopManager:
         loop.gains = after
         # Awaited (bounded): whoever reads the loop next — the REST client, the OPC UA reply's status — sees the
         # session applied (pending_gains false), not the record from before until the next refresh.
-        await self._waited(self._refresh_latest(loop))
+        await waited(self._refresh_latest(loop))
         log.info("loop %s: gains of session %s applied by %s", loop_id, sid, user)
         self._publish(loop, "state", loop.as_json())
         return {"loop": loop_id, "session": sid, "gains": after.as_json()}
@@ -805,35 +738,16 @@ class LoopManager:
             if stage_changed:
                 self._publish(loop, "state", loop.as_json())
 
-        levels: tuple[float, ...] = ()
-        mv_range: tuple[float, float] | None = None
+        record = SessionRecord(self._durable, self.history, sid, loop.config.id, user)
         restore_error = ""
         pending: Pending | None = None
 
         async def on_saved(saved: LoopState, relay_levels: tuple[float, ...]) -> str:
             """Durably, before the session touches the loop (after the begin, in the history's thread)."""
-            nonlocal levels, mv_range
-            hull = mv_hull(saved.mv, *relay_levels)  # a switch sample lies between the levels
-            why = await self._durable(self.history.saved, sid, saved, relay_levels, hull)
-            if why:
-                log.error("loop %s: session %s ends without touching the loop: its saved state is not recorded (%s)",
-                          loop.config.id, sid, why)
-                return why
-            loop.saved, levels, mv_range = saved, relay_levels, hull
-            if tap is not None:
-                tap.mv_range = hull
-            return ""
-
-        async def widen(mv: float) -> None:  # before an MV outside the range on record: the new range, durably
-            nonlocal mv_range
-            assert loop.saved is not None and mv_range is not None
-            hull = mv_hull(*mv_range, mv)
-            why = await self._durable(self.history.saved, sid, loop.saved, levels, hull)
-            if why:
-                raise LinkError(f"MV {mv:g} not written: the session's MV range must be recorded first; {why}")
-            mv_range = hull
-            if tap is not None:
-                tap.mv_range = hull
+            why = await record.on_saved(saved, relay_levels)
+            if not why:
+                loop.saved = saved
+            return why
 
         def on_handed_back(error: str) -> None:
             nonlocal restore_error
@@ -844,24 +758,14 @@ class LoopManager:
         state = "finished"
         loop.handback = self._handback()
 
-        async def intend(gains: Gains) -> None:  # before the gains write: its intent, durably (else no write)
-            why = await self._durable(self.history.intend, sid, user, gains)
-            if why:
-                raise LinkError(f"the intent to write them must be recorded first; {why}")
-
-        intended: Gains | None = None
-        tap: _Tap | None = None
+        tap: Tap | None = None
         try:
             link = loop.connect()
-            tap = loop.tap = _Tap(link, intend, widen)
+            tap = loop.tap = record.link(link)
             await link.open()
             result = await tune_link(tap, config, loop.config.ts, settings.controller, settings.ms, settings.apply,
                                      speed, loop.stop, on_status, loop.handback, on_saved, on_handed_back)
-            intended = tap.intended
-            if intended is not None:  # a gains write was attempted: what the device holds decides if it was applied
-                gains_after = await _read_gains(link)
-            elif loop.saved is not None:
-                gains_after = await _gains(link, loop.saved, result, settings.apply)
+            gains_after = await record.gains_after(link, result, settings.apply)
         except LinkError as exc:
             result = TuneResult.failed(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}", settings.controller)
         except asyncio.CancelledError:
@@ -878,18 +782,18 @@ class LoopManager:
                 if result is None:  # cancelled: tune_link has handed the loop back (or said why not)
                     result = TuneResult.failed(Code.ABORTED, "aborted: the daemon stopped", settings.controller)
                 loop.result = result.record()
-                applied = intended is not None and gains_after is not None and same_gains(gains_after, intended)
                 if restore_error and loop.saved is not None:  # shown with the idle loop, not while still busy
-                    pending = Pending(sid, loop.saved, mv_range or mv_hull(loop.saved.mv, *levels), result.code,
-                                      state, restore_error)
+                    pending = Pending(sid, loop.saved, record.mv_range or mv_hull(loop.saved.mv, *record.levels),
+                                      result.code, state, restore_error)
                     log.error("loop %s: LOOP NOT RESTORED at the end of session %s (%s); retrying",
                               loop.config.id, sid, restore_error)
                 end = (self.history.finish, sid, loop.result, gains_after, downsample(result.trace),
-                       "not_restored" if pending is not None else state, user if applied else None)
+                       "not_restored" if pending is not None else state, record.applied_by(gains_after))
                 if self._stopping:  # the shutdown's bound is for the hand-back: the record goes on in its thread
                     self._record(*end)
                 elif why := await self._durable(*end):
                     log.error("loop %s: the end of session %s is not recorded yet: %s", loop.config.id, sid, why)
+                intended = record.intended
                 if intended is not None and gains_after is None:  # unknown whether the write happened: ask later
                     self._reconcilers.append(asyncio.create_task(self._reconcile(
                         {"id": sid, "loop": loop.config.id, "gains_intent": {"gains": intended.as_json()}})))
@@ -1134,7 +1038,7 @@ class LoopManager:
         # database is locked): the event loop never waits on the database, and the records keep their order.
         written = self._record(self.history.restored, p.sid, p.final, message, int(code))
         try:  # shown restored once recorded (bounded; not during a shutdown, whose bound is for the hand-backs)
-            if not self._stopping and (why := await self._waited(written)):
+            if not self._stopping and (why := await waited(written)):
                 log.error("loop %s: the restore of session %s is not recorded yet: %s", loop_id, p.sid, why)
         finally:  # cancelled while waiting (a shutdown): the loop is dealt with all the same
             loop.pending = None
@@ -1164,39 +1068,15 @@ async def _write_gains(link: Link, gains: Gains) -> Gains:
         await link.close()
 
 
-def same_gains(a: Gains, b: Gains) -> bool:
-    """``a`` and ``b`` equal within the resolution of the links (float32 on the wire)."""
-    ja, jb = a.as_json(), b.as_json()
-    return all((ja[k] is None) == (jb[k] is None) and (ja[k] is None or math.isclose(ja[k], jb[k], rel_tol=1e-6,
-                                                                                        abs_tol=1e-12))
-               for k in ja)
-
-
-async def _read_gains(link: Link) -> Gains | None:
-    """The controller's gains read back, None if the read fails."""
-    try:
-        return (await link.read_state()).gains
-    except LinkError:
-        return None
-
-
 async def _read_gains_opened(link: Link) -> Gains | None:
     """Open ``link``, read the controller's gains, close; None if the device cannot be reached."""
     try:
         await link.open()
-        return await _read_gains(link)
+        return await read_gains(link)
     except LinkError:
         return None
     finally:
         await link.close()
-
-
-async def _gains(link: Link, saved: LoopState, result: TuneResult, apply: bool) -> Gains:
-    """The controller's gains after a session: read back, else what the session should have left."""
-    try:
-        return (await link.read_state()).gains
-    except LinkError:
-        return result.design.gains if result.ok and apply else saved.gains
 
 
 def _str(path: Any) -> str | None:
