@@ -228,6 +228,14 @@ def test_installed_console_script_exit_codes() -> None:
     assert "position 1" in bad.stderr and "Traceback" not in bad.stderr
 
 
+def test_an_unstable_plant_tunes_without_numpy_warnings_on_stderr() -> None:
+    # The load fit's unstable candidates overflow on purpose; their warnings used to reach the user.
+    proc = subprocess.run([str(_console_script()), "tune", "--plant", "exp(-0.2*s)/(2*s-1)", "--json"],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0 and _last_json(proc.stdout)["ite"] == 0, proc.stderr
+    assert proc.stderr == ""
+
+
 def test_tune_via_modbus_tunes_through_the_real_protocol_stack() -> None:
     result = _invoke("tune", "--plant", PLANT, "--via", "modbus", "--json")
     assert result.exit_code == 0, result.output
