@@ -135,6 +135,11 @@ def test_password_hash_prints_a_hash_the_config_accepts():
     OpcUaUser(name="scada", role="operator", password_hash=digest)
     with pytest.raises(ValueError, match="password_hash"):
         OpcUaUser(name="scada", role="operator", password_hash="s3cret")
+    _, n, r, p, salt, hashed = digest.split("$")
+    for bad in ("99999999999999999999", str(2**30), "1000"):  # overflows scrypt, 1 TiB per login, no power of 2
+        with pytest.raises(ValueError, match=rf"(?s)password_hash.*N={bad}, r={r}, p={p} out of range"):
+            OpcUaUser(name="scada", role="operator", password_hash="$".join(("scrypt", bad, r, p, salt, hashed)))
+        assert not verify_password("s3cret", "$".join(("scrypt", bad, r, p, salt, hashed)))
 
 
 def test_a_second_daemon_on_a_port_in_use_says_so_in_one_line_and_exits_3():

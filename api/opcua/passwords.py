@@ -39,6 +39,6 @@ def verify_password(password: str, stored: str) -> bool:
             return False
         expected = base64.b64decode(digest)
         actual = _scrypt(password, base64.b64decode(salt), int(n), int(r), int(p))
-    except (ValueError, TypeError):
+    except (ValueError, TypeError, OverflowError, MemoryError):  # malformed or too costly: no match, no crash
         return False
     return hmac.compare_digest(actual, expected)

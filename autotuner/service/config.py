@@ -227,6 +227,8 @@ class Token(Strict):
 # A stored OPC UA password hash (api/opcua/passwords.py): a password pasted in clear is refused.
 PASSWORD_HASH_PATTERN = r"^scrypt\$\d+\$\d+\$\d+\$[A-Za-z0-9+/]+=*\$[A-Za-z0-9+/]+=*$"
 SecurityPolicy = Literal["None", "Basic256Sha256_Sign", "Basic256Sha256_SignAndEncrypt"]
+# The largest scrypt N a stored hash may use: 2^20 costs 1 GiB per login (autotuner password-hash uses 2^14, 16 MiB).
+SCRYPT_MAX_N = 2**20
 
 
 class OpcUaUser(Strict):
@@ -236,6 +238,16 @@ class OpcUaUser(Strict):
     name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$")]
     role: Role
     password_hash: Annotated[str, Field(pattern=PASSWORD_HASH_PATTERN)]
+
+    @field_validator("password_hash")
+    @classmethod
+    def _scrypt_cost(cls, value: str) -> str:
+        # At load, not at every login: a hash no login could ever match (or whose cost overflows scrypt).
+        n, r, p = (int(x) for x in value.split("$")[1:4])
+        if not (2 <= n <= SCRYPT_MAX_N and n & (n - 1) == 0 and 1 <= r <= 32 and 1 <= p <= 16):
+            raise ValueError(f"scrypt parameters N={n}, r={r}, p={p} out of range (N a power of 2 up to 2^20, r 1-32, "
+                             "p 1-16): make the hash with 'autotuner password-hash'")
+        return value
 
 
 class OpcUaConfig(Strict):
