@@ -15,6 +15,9 @@ from typing import Any
 
 import pytest
 
+from drivers.link import Mode
+from drivers.simplc import SimulatedPlc
+
 # Headless Chromium as root, without its background connections (this machine's network is closed).
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
                  "--disable-sync", "--no-first-run", "--disable-quic"]
@@ -140,8 +143,8 @@ class Daemon:
         self.stop()
 
 
-def record_ticks(plc: Any, ticks: list[tuple[Any, float]]) -> None:
-    """Record (mode, actual MV) after every tick of ``plc`` (a drivers.simplc.SimulatedPlc)."""
+def record_ticks(plc: SimulatedPlc, ticks: list[tuple[Mode, float]]) -> None:
+    """Record (mode, actual MV) after every tick of ``plc``."""
     tick = plc.tick
 
     def recorded() -> None:
@@ -151,6 +154,6 @@ def record_ticks(plc: Any, ticks: list[tuple[Any, float]]) -> None:
     plc.tick = recorded
 
 
-def first_auto(ticks: list[tuple[Any, float]]) -> int:
+def first_auto(ticks: list[tuple[Mode, float]]) -> int:
     """Index of the first AUTO tick after a MAN one (the hand-back's first sample)."""
-    return next(i for i in range(1, len(ticks)) if ticks[i][0].name == "AUTO" and ticks[i - 1][0].name == "MAN")
+    return next(i for i in range(1, len(ticks)) if ticks[i][0] is Mode.AUTO and ticks[i - 1][0] is Mode.MAN)

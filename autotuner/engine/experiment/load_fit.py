@@ -176,15 +176,11 @@ class LoadFitter:
             cols.append(decay)
         return target, np.stack(cols, axis=1)
 
+    # An unstable candidate's columns can overflow; such a candidate gets an infinite residual
+    # (non-finite averages, or r @ r = inf) and loses the search, so numpy's warnings are noise
+    # (they reached `autotuner tune`'s stderr on every unstable plant).
+    @np.errstate(over="ignore", invalid="ignore")
     def _solve(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[float, np.ndarray, np.ndarray]:
-        # An unstable candidate's columns can overflow; such a candidate gets an infinite residual
-        # (non-finite averages, or r @ r = inf) and loses the search, so numpy's warnings are noise
-        # (they reached `autotuner tune`'s stderr on every unstable plant).
-        with np.errstate(over="ignore", invalid="ignore"):
-            return self._solve_quietly(x, steps, ramp, free)
-
-    def _solve_quietly(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[float, np.ndarray,
-                                                                                                 np.ndarray]:
         target, cols = self._columns(x, steps, ramp, free)
         if len(target) <= self.n + cols.shape[1]:
             return math.inf, np.zeros(cols.shape[1]), cols
