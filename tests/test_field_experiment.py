@@ -48,6 +48,25 @@ def test_a_load_step_part_way_is_estimated_through(size: float) -> None:
     assert abs(trace.mv[-200:].mean() + size) < 0.5
 
 
+def test_a_small_load_step_against_the_bias_is_not_taken_for_a_resonance() -> None:
+    # −0.1 × amp at 3.5 periods made the period ratio |F|/K0 read 1.4–1.5: the fit that had found
+    # the step was then skipped as "a resonance", and the run ended "ok" with K0 0.26 (true 1) and
+    # Ms 1.78 on the true plant.
+    experiment, _, process = _run("exp(-s)/(2*s+1)", loads=[(3.5, -0.1)])
+    _assert_accurate(experiment, process, 0.05)
+    assert experiment.result.disturbance
+
+
+@pytest.mark.parametrize("expr", ["exp(-s)/(2*s+1)", "2*exp(-0.5*s)/((2*s+1)*(0.5*s+1))"])
+def test_an_early_load_step_is_not_taken_for_an_unstable_process(expr: str) -> None:
+    # +0.2 × amp at 1.5 periods makes the first mean ratios negative, as an unstable process's are;
+    # the process was then treated as unstable (phase target moved to 150–160°) and the run ended
+    # with 11 or 17.
+    experiment, _, process = _run(expr, loads=[(1.5, 0.2)])
+    _assert_accurate(experiment, process, 0.1)
+    assert experiment.result.disturbance and not experiment.result.phase_moved
+
+
 def test_a_drift_is_followed_and_estimated_through() -> None:
     # 0.3 × amp over 10 periods at the process input.
     experiment, _, process = _run("1/(s+1)^4", drift_per_period=0.03)

@@ -66,6 +66,8 @@ class LoadFit:
     disturbance: pv samples of the fitted disturbance (load and free response),
     to be removed from the PV before the Fourier estimate.
     residual_std: standard deviation of the averaged residual (PV units).
+    score: the information criterion of the chosen model (lower explains the
+    same record better; comparable between fits of one record only).
     """
 
     x: float
@@ -77,6 +79,7 @@ class LoadFit:
     ramp: float
     free: float
     residual_std: float
+    score: float
     disturbance: np.ndarray = field(repr=False)
 
     def load_at(self, t: float, t0: float) -> float:
@@ -132,9 +135,41 @@ def _average(columns: np.ndarray, n: int) -> np.ndarray:
     Averages closer than that are nearly the same number; leaving them out
     makes the fit several times cheaper without losing information.
     """
-    total = np.cumsum(np.vstack((np.zeros((1, columns.shape[1])), columns)), axis=0)
-    ends = np.arange(n, len(columns) + 1, max(n // 8, 1))
+    return _window_means(_running_sum(columns), n, len(columns))
+
+
+def _running_sum(columns: np.ndarray) -> np.ndarray:
+    """Sums of each column over its first 0, 1, … samples (one row more than ``columns``)."""
+    return np.cumsum(np.vstack((np.zeros((1, columns.shape[1])), columns)), axis=0)
+
+
+def _ends(n: int, length: int) -> np.ndarray:
+    return np.arange(n, length + 1, max(n // 8, 1))
+
+
+def _window_means(total: np.ndarray, n: int, length: int) -> np.ndarray:
+    ends = _ends(n, length)
     return (total[ends] - total[ends - n]) / n
+
+
+@dataclass(frozen=True)
+class _Responses:
+    """What one candidate x contributes to every fit, averaged: the target and the model's responses.
+
+    A load step's response at any time is the step response from the start,
+    shifted; its averages come from one running sum, so every step time
+    costs an index lookup instead of a model run.
+    """
+
+    target: np.ndarray
+    ramp: np.ndarray
+    free: np.ndarray
+    step_sum: np.ndarray  # running sum of the step response from the start (length + 1)
+
+    def step(self, ks: np.ndarray, n: int) -> np.ndarray:
+        """Averaged responses to unit load steps at samples ``ks`` (one column each)."""
+        ends = _ends(n, len(self.step_sum) - 1)[:, None]
+        return (self.step_sum[np.maximum(ends - ks, 0)] - self.step_sum[np.maximum(ends - n - ks, 0)]) / n
 
 
 class LoadFitter:
@@ -146,7 +181,8 @@ class LoadFitter:
         # run on an even grid, the PV interpolated and the MV held onto it.
         self.dt = float(np.median(np.diff(t)))
         grid = t[0] + self.dt * np.arange(int((t[-1] - t[0]) / self.dt + 1e-9) + 1)
-        held = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, len(u) - 1)
+        # (A grid point a rounding error before its sample still holds that sample's MV.)
+        held = np.clip(np.searchsorted(t, grid + 1e-6 * self.dt, side="right") - 1, 0, len(u) - 1)
         self.t, self.y, self.u = grid, np.interp(grid, t, y), u[held]
         self.source_t = t
         self.u0, self.start = u0, int(np.searchsorted(grid, t[min(start, len(t) - 1)]))
@@ -154,47 +190,84 @@ class LoadFitter:
         self.n = max(int(round(2.0 * math.pi / omega / self.dt)), 1)
         self.max_steps = max_steps
         self.scale = scale
+        self._cache: dict[float, _Responses] = {}
 
     # -- one candidate model ----------------------------------------------
 
-    def _columns(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[np.ndarray, np.ndarray]:
-        """(target, regressors) before averaging for model ``x`` with the chosen terms."""
-        n = len(self.t)
-        resp = lambda v: _respond(v, self.dt, x, self.gain, self.omega, self.lag)  # noqa: E731
-        target = self.y - resp(self.u - self.u0)
-        cols = [np.ones(n)]
-        for k in steps:
-            unit = np.zeros(n)
-            unit[k:] = 1.0
-            cols.append(resp(unit))
-        if ramp:
-            cols.append(resp((self.t - self.t[0])))
-        if free:
-            k0, tc, _ = _model(x, self.gain, self.omega, self.lag)
-            # An integrator's free response is a constant: the offset already.
-            decay = np.exp(-(self.t - self.t[0]) / tc) if math.isfinite(tc) else np.zeros(n)
-            cols.append(decay)
-        return target, np.stack(cols, axis=1)
+    def _respond(self, x: float, v: np.ndarray) -> np.ndarray:
+        return _respond(v, self.dt, x, self.gain, self.omega, self.lag)
 
-    # An unstable candidate's columns can overflow; such a candidate gets an infinite residual
+    def _free(self, x: float) -> np.ndarray:
+        tc = _model(x, self.gain, self.omega, self.lag)[1]
+        # An integrator's free response is a constant: the offset already.
+        return np.exp(-(self.t - self.t[0]) / tc) if math.isfinite(tc) else np.zeros(len(self.t))
+
+    # An unstable candidate's responses can overflow; such a candidate gets an infinite residual
     # (non-finite averages, or r @ r = inf) and loses the search, so numpy's warnings are noise
     # (they reached `autotuner tune`'s stderr on every unstable plant).
     @np.errstate(over="ignore", invalid="ignore")
-    def _solve(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[float, np.ndarray, np.ndarray]:
-        target, cols = self._columns(x, steps, ramp, free)
-        if len(target) <= self.n + cols.shape[1]:
-            return math.inf, np.zeros(cols.shape[1]), cols
-        a = _average(cols, self.n)
-        b = _average(target[:, None], self.n)[:, 0]
-        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-            return math.inf, np.zeros(cols.shape[1]), cols
+    def _responses(self, x: float) -> _Responses:
+        cached = self._cache.get(x)
+        if cached is None:
+            unit = np.ones(len(self.t))
+            columns = np.stack((self.y - self._respond(x, self.u - self.u0), self._respond(x, self.t - self.t[0]),
+                                self._free(x)), axis=1)
+            target, ramp, free = _average(columns, self.n).T
+            step_sum = _running_sum(self._respond(x, unit)[:, None])[:, 0]
+            cached = self._cache[x] = _Responses(target, ramp, free, step_sum)
+        return cached
+
+    def _base(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(averaged target, averaged regressors) for model ``x`` with the chosen terms."""
+        r = self._responses(x)
+        cols = [np.ones((len(r.target), 1)), r.step(np.array(steps, dtype=int), self.n)]
+        if ramp:
+            cols.append(r.ramp[:, None])
+        if free:
+            cols.append(r.free[:, None])
+        return r.target, np.hstack(cols)
+
+    def _too_short(self, terms: int) -> bool:
+        return len(self.t) <= self.n + terms
+
+    @np.errstate(over="ignore", invalid="ignore")
+    def _solve(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[float, np.ndarray]:
+        """(residual sum of squares, coefficients) of the fit with model ``x`` and the chosen terms."""
+        b, a = self._base(x, steps, ramp, free)
+        if self._too_short(a.shape[1]) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            return math.inf, np.zeros(a.shape[1])
         # Unstable models grow without bound; scale the columns so the
         # least-squares problem stays well conditioned.
         scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
         coef, *_ = np.linalg.lstsq(a / scale, b, rcond=None)
         coef = coef / scale
         r = b - a @ coef
-        return float(r @ r), coef, cols
+        return float(r @ r), coef
+
+    @np.errstate(over="ignore", invalid="ignore", divide="ignore")
+    def _scan_step(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool, ks: np.ndarray) -> np.ndarray:
+        """Residual sums of squares with one more load step at each sample of ``ks``, all at once.
+
+        Each candidate adds one column to the same regressors: its residual
+        is what is left of the target, the others projected out, after the
+        new column's own remainder is fitted to it.
+        """
+        b, a = self._base(x, steps, ramp, free)
+        s = self._responses(x).step(ks, self.n)
+        if self._too_short(a.shape[1] + 1) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            return np.full(len(ks), math.inf)
+        scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
+        s_scale = np.maximum(np.max(np.abs(s), axis=0), 1e-300)
+        a, s = a / scale, s / s_scale
+        proj, *_ = np.linalg.lstsq(a, np.column_stack((b, np.nan_to_num(s))), rcond=None)
+        rest = np.column_stack((b, np.nan_to_num(s))) - a @ proj
+        rb, rs = rest[:, 0], rest[:, 1:]
+        norm = np.einsum("ij,ij->j", rs, rs)
+        coef = np.where(norm > 0.0, (rs.T @ rb) / np.where(norm > 0.0, norm, 1.0), 0.0)
+        # Summed from the residual vectors, not as |rb|² less the explained part: an
+        # unstable candidate's sums are huge and their difference would cancel to nothing.
+        sums = np.einsum("ij,ij->j", rb[:, None] - rs * coef, rb[:, None] - rs * coef)
+        return np.where(np.all(np.isfinite(s), axis=0) & np.isfinite(sums), sums, math.inf)
 
     def _best_x(self, steps: tuple[int, ...], ramp: bool, free: bool, lo: float, hi: float) -> tuple[float, float]:
         """Golden-section search of the residual over x in [lo, hi] (after a coarse scan)."""
@@ -216,6 +289,20 @@ class LoadFitter:
                 fd = self._solve(d, steps, ramp, free)[0]
         x = 0.5 * (a + b)
         return x, self._solve(x, steps, ramp, free)[0]
+
+    def _disturbance(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool, coef: np.ndarray) -> np.ndarray:
+        """The fitted disturbance sample by sample (PV units): loads and free response, not the offset."""
+        unit = self._respond(x, np.ones(len(self.t)))
+        total = np.zeros(len(self.t))
+        for k, size in zip(steps, coef[1:]):
+            total[k:] += size * unit[: len(self.t) - k]
+        j = 1 + len(steps)
+        if ramp:
+            total += coef[j] * self._respond(x, self.t - self.t[0])
+            j += 1
+        if free:
+            total += coef[j] * self._free(x)
+        return np.interp(self.source_t, self.t, total)
 
     # -- model selection ----------------------------------------------------
 
@@ -253,20 +340,21 @@ class LoadFitter:
             grid = [0, *range(first, last, max(self.n // _STEP_GRID, 1))]
             # Step time and x together on a coarse grid: the best step time
             # for a wrong x can be far from the right one.
-            xs_grid = np.linspace(lo, hi, 11)
-            trial, xg = min(((k, float(xg)) for k in grid for xg in xs_grid),
-                            key=lambda kx: self._solve(kx[1], steps + (kx[0],), ramp, free)[0])
+            ks = np.array(grid)
+            scans = [(self._scan_step(float(xg), steps, ramp, free, ks), float(xg)) for xg in np.linspace(lo, hi, 11)]
+            sums, xg = min(scans, key=lambda scan: float(np.min(scan[0])))
+            trial = int(ks[int(np.argmin(sums))])
             # Then to the sample, so the step time does not hop between grid points from fit to fit.
             spacing = max(self.n // _STEP_GRID, 1)
-            near = range(max(trial - spacing, 0), min(trial + spacing + 1, last))
+            near = np.arange(max(trial - spacing, 0), min(trial + spacing + 1, last))
             xg = self._best_x(steps + (trial,), ramp, free, lo, hi)[0]
-            trial = min(near, key=lambda k: self._solve(xg, steps + (k,), ramp, free)[0])
+            trial = int(near[int(np.argmin(self._scan_step(xg, steps, ramp, free, near)))])
             xs, s = self._best_x(steps + (trial,), ramp, free, lo, hi)
             new = criterion(s, 1 + len(steps) + 1 + ramp + free)
             if new >= score:
                 break
             score, x, steps = new, xs, steps + (trial,)
-        s, coef, cols = self._solve(x, steps, ramp, free)
+        s, coef = self._solve(x, steps, ramp, free)
         # Curvature of the residual at the optimum: σ² of x ≈ 2·σ̂²/S''.
         h = 0.01 * max(abs(x), 0.02)
         s_lo, s_hi = self._solve(x - h, steps, ramp, free)[0], self._solve(x + h, steps, ramp, free)[0]
@@ -275,24 +363,12 @@ class LoadFitter:
         sigma2 = s / dof
         x_std = math.sqrt(2.0 * sigma2 / curvature) if curvature > 0.0 else math.inf
         residual_std = math.sqrt(s / max(len(self.t) - self.n, 1))
-        j = 1
-        step_time, step = None, 0.0
-        disturbance = np.zeros(len(self.t))
-        for k in steps:
-            step_time, step = float(self.t[k]), float(coef[j])
-            disturbance += coef[j] * cols[:, j]
-            j += 1
-        ramp_rate = 0.0
-        if ramp:
-            ramp_rate = float(coef[j])
-            disturbance += coef[j] * cols[:, j]
-            j += 1
-        free_size = 0.0
-        if free:
-            free_size = float(coef[j])
-            disturbance += coef[j] * cols[:, j]
+        step_time, step = (float(self.t[steps[-1]]), float(coef[len(steps)])) if steps else (None, 0.0)
+        j = 1 + len(steps)
+        ramp_rate = float(coef[j]) if ramp else 0.0
+        free_size = float(coef[j + ramp]) if free else 0.0
+        disturbance = self._disturbance(x, steps, ramp, free, coef)
         x_used = 0.0 if abs(x) < 1e-4 else x
         static = math.inf if x_used == 0.0 else self.gain / x_used
-        disturbance = np.interp(self.source_t, self.t, disturbance)
         return LoadFit(x_used, x_std, static, float(coef[0]), step_time, step, ramp_rate, free_size, residual_std,
-                       disturbance)
+                       score, disturbance)

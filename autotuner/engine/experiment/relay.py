@@ -675,7 +675,7 @@ class RelayExperiment:
         # load fit and the stopping rule deal with.
         negative = self._negative_ratio()
         recognised = self._unstable or (len(self._estimates) <= _HINT_ESTIMATES and self._unstable_hint())
-        if negative and recognised and self._fit is None:
+        if negative and recognised and self._fit is None and not self._stable_with_load(tt, uu, yy):
             # An open-loop unstable process: a weaker bias, and a phase it reaches.
             self._enter_unstable()
             self._move_target(self._estimates[-1][0], self._wide[-1])
@@ -708,9 +708,11 @@ class RelayExperiment:
     def _fitter(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> LoadFitter | None:
         if not self._estimates or len(self._crossings) < 4:
             return None
-        if self._estimates[-1][1] > 1.0:
+        if self._estimates[-1][1] > 1.0 and self._candidate is None:
             # |F(jω)| above the static gain: a resonance, which no first-order
             # model through the point can describe; the fit would invent loads.
+            # Unless the last fit explained the data with a load: a load step
+            # against the relay's bias makes a stable lag look resonant too.
             return None
         # A sampling gap (a link that stalled: the MV reached the plant late)
         # makes the record disagree with what the plant got; the fit would
@@ -755,8 +757,12 @@ class RelayExperiment:
         if a.step_time is not None:
             if abs(a.step_time - b.step_time) > 0.25 * period or abs(a.step - b.step) > abs(b.step) / 3.0:
                 return False
-        scale = max(abs(a.ramp), abs(b.ramp))
-        return scale == 0.0 or abs(a.ramp - b.ramp) <= scale / 3.0
+        # Ramps agree within a third, or when they differ by less than a load worth
+        # following over the whole record (the information criterion keeps a negligible
+        # ramp in one fit and not the next).
+        duration = self._t[-1] - self._t[0]
+        difference = abs(a.ramp - b.ramp)
+        return difference <= max(abs(a.ramp), abs(b.ramp)) / 3.0 or difference * duration < _LOAD_FRACTION * self.config.amp
 
     def _significant(self, fit: LoadFit) -> bool:
         """A fitted disturbance worth estimating through: larger than a fraction of amp (or of the PV scale)."""
@@ -840,6 +846,22 @@ class RelayExperiment:
             return False
         point, x = self._estimates[-1][0], self._wide[-1]
         return x < 0.0 and self._on_rising_branch(point, x)
+
+    def _stable_with_load(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
+        """True when a stable model with a load explains the record better than an unstable one.
+
+        A load step early in the experiment shifts the relay's mean MV against
+        the PV's mean and makes the mean ratio negative, as an unstable process
+        does; the load fit tells them apart: the growth of an unstable process
+        is no stable model's response to a step, and a stable process's
+        response to a load is no unstable model's.
+        """
+        if self.config.follow_loads is not True:
+            return False
+        fitter = self._fitter(tt, uu, yy)
+        if fitter is None:
+            return False
+        return fitter.fit(unstable=False).score < fitter.fit(unstable=True).score
 
     def _negative_ratio(self) -> bool:
         """True when the mean two-period ratio |F|/K0 of the latest two estimates is below −static_tol."""
