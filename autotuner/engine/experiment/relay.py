@@ -212,6 +212,10 @@ _FIRST_LOW = 0.4
 # first one still carries the start's transient); one whose ratio turns negative later is a load step or
 # noise, which the load fit and the stopping rule deal with.
 _HINT_ESTIMATES = 3
+# How much lower (information criterion) the unstable load fit must score than the stable one to call a
+# process unstable: both ranges share x = 0, so an integrator with a load ties (differences of 1–3 seen);
+# unstable processes score 20–250 lower. 10 is "very strong" evidence on the usual BIC scale.
+_UNSTABLE_EVIDENCE = 10.0
 # A runaway from a full-amp level within this fraction of its growth time constant after the relay's answer
 # arrived is faster than one unstable pole with dead time runs from it (D/T ≥ 0.5 for that): _runaway_at_full_amp.
 _REACH_ONE_POLE = 0.25
@@ -708,11 +712,7 @@ class RelayExperiment:
     def _fitter(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> LoadFitter | None:
         if not self._estimates or len(self._crossings) < 4:
             return None
-        if self._estimates[-1][1] > 1.0 and self._candidate is None:
-            # |F(jω)| above the static gain: a resonance, which no first-order
-            # model through the point can describe; the fit would invent loads.
-            # Unless the last fit explained the data with a load: a load step
-            # against the relay's bias makes a stable lag look resonant too.
+        if self._resonant():
             return None
         # A sampling gap (a link that stalled: the MV reached the plant late)
         # makes the record disagree with what the plant got; the fit would
@@ -726,6 +726,20 @@ class RelayExperiment:
         scale = point.gain * self.config.amp
         return LoadFitter(tt[:n], self._sign * (yy[:n] - self._sp), uu[:n], self.mv0, self._relay_start,
                           point.omega, point.gain, self._lag(point.value), scale)
+
+    def _resonant(self) -> bool:
+        """True when |F(jω)| reads above the static gain: a resonance, which no first-order model describes.
+
+        The fit would invent loads there. But a load step against the relay's
+        bias makes a plain lag's ratio |F|/K0 read above 1 too (−0.1 × amp on
+        ``exp(-s)/(2*s+1)``: 0.37, then 1.4): there an earlier estimate of about
+        the same |F| (within 10 %) read below 1. A resonance builds |F| up with
+        its ratio (0.49 at 0.13 … 1.68 at 1.68 on ``exp(-0.1*s)/(s^2+0.4*s+1)``).
+        """
+        latest, x = self._estimates[-1]
+        if x <= 1.0:
+            return False
+        return not any(i < 1.0 and abs(p.gain - latest.gain) <= 0.1 * latest.gain for p, i in self._estimates[1:-1])
 
     def _look_for_disturbance(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
         """Fit the slow part of the record; True (and the disturbed mode on) if it needed a disturbance."""
@@ -848,7 +862,7 @@ class RelayExperiment:
         return x < 0.0 and self._on_rising_branch(point, x)
 
     def _stable_with_load(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
-        """True when a stable model with a load explains the record better than an unstable one.
+        """True unless an unstable model explains the record clearly better than a stable one with a load.
 
         A load step early in the experiment shifts the relay's mean MV against
         the PV's mean and makes the mean ratio negative, as an unstable process
@@ -861,7 +875,7 @@ class RelayExperiment:
         fitter = self._fitter(tt, uu, yy)
         if fitter is None:
             return False
-        return fitter.fit(unstable=False).score < fitter.fit(unstable=True).score
+        return fitter.fit(unstable=True).score > fitter.fit(unstable=False).score - _UNSTABLE_EVIDENCE
 
     def _negative_ratio(self) -> bool:
         """True when the mean two-period ratio |F|/K0 of the latest two estimates is below −static_tol."""
