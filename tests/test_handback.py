@@ -59,12 +59,13 @@ def wait_for(predicate: Callable[[], Any], timeout: float, what: str) -> Any:
 class Plc:
     """An `autotuner sim --modbus` process and a Modbus client of our own reading (and, as an operator, writing) it."""
 
-    def __init__(self, tmp: Path) -> None:
+    def __init__(self, tmp: Path, speed: float = SPEED) -> None:
         self.port = free_port()
+        self.speed = speed
         self.log_path = tmp / f"plc-{self.port}.log"
         self.log = open(self.log_path, "w")  # noqa: SIM115 - closed in close(); a file, never a pipe left unread
         self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "sim", "--modbus",
-                                      f"127.0.0.1:{self.port}", "--speed", str(SPEED), "--ts", str(PLC_TS)],
+                                      f"127.0.0.1:{self.port}", "--speed", str(speed), "--ts", str(PLC_TS)],
                                      stdout=self.log, stderr=subprocess.STDOUT, text=True)
         self.stopped = False
         self.client = ModbusTcpClient("127.0.0.1", port=self.port, timeout=1.0, retries=0)
@@ -133,7 +134,7 @@ class Daemon:
         settings = {"window": 2.0, "retry_first": 0.3, "retry_max": 1.0, "track_timeout": 2.0, "shutdown": 8.0,
                     "watchdog": 0.0} | handback
         config = {"history": str(self.history), "handback": settings, "loops": [{
-            "id": "L1", "link": plc.url, "ts": 0.3, "speed": SPEED, "monitor_period": 0.5,
+            "id": "L1", "link": plc.url, "ts": 0.3, "speed": plc.speed, "monitor_period": 0.5,
             "tuning": {"controller": "PI", "amp": AMP, "time_limit": 2000}, "limits": {"pv": [0, 100],
                                                                                         "mv": [0, 100]}}]}
         self.config = tmp / "daemon.yaml"
@@ -304,7 +305,7 @@ def test_sigkill_then_the_device_watchdog_hands_the_loop_back(tmp_path, plc):
     with daemon(tmp_path, plc, watchdog=1.5) as d:
         sid = d.tune()
         armed = at_relay_level(plc)
-        assert armed["wd_time"] == 1.5 * SPEED  # wall seconds × speed = the PLC's seconds
+        assert armed["wd_time"] == 1.5 * plc.speed  # wall seconds × speed = the PLC's seconds
         d.proc.kill()
         d.proc.wait()
         auto, before = first_auto(plc, timeout=WAIT)
@@ -384,12 +385,25 @@ def test_an_operators_intervention_between_a_sigkill_and_the_restart_is_kept_and
         assert "an operator's intervention" in d.output()
 
 
+@pytest.fixture
+def slow_plc(tmp_path) -> Iterator[Plc]:
+    """A PLC at a quarter of the speed: where the PV is far from the set point at the hand-back (here at the
+    relay's high level) its PI moves the MV fast, and a poll that comes late on a loaded machine (20 ms asked,
+    100 ms seen) read it 20 PLC cycles on, 0.5 from the saved MV; at this speed the same delay is 5 cycles."""
+    p = Plc(tmp_path, speed=SPEED / 4.0)
+    try:
+        yield p
+    finally:
+        p.close()
+
+
 def test_a_sigkill_at_a_switch_sample_between_the_levels_is_the_daemons_own_mv_and_the_restart_hands_back(
-        tmp_path, plc):
+        tmp_path, slow_plc):
     """At each switch the relay writes one MV between its levels (the sample that keeps the cycle periodic). A crash
     there leaves the loop at neither a level nor the saved MV; the restart took that for an operator's intervention
     and left the loop in MAN. The session's MV range (hull of the levels and the saved MV) is recorded before the
     loop is touched, so the restart knows the MV for its own and hands the loop back."""
+    plc = slow_plc
     # Every level the relay can hold (45, 46, 47, 48 and 55: docs/experiment.md); it swings between 47 and 55 here.
     levels = RelayExperiment(RelayConfig(amp=AMP), mv0=SAVED_MV).levels
 
