@@ -135,7 +135,9 @@ def _average(columns: np.ndarray, n: int) -> np.ndarray:
     Averages closer than that are nearly the same number; leaving them out
     makes the fit several times cheaper without losing information.
     """
-    return _window_means(_running_sum(columns), n, len(columns))
+    total = _running_sum(columns)
+    ends = _ends(n, len(columns))
+    return (total[ends] - total[ends - n]) / n
 
 
 def _running_sum(columns: np.ndarray) -> np.ndarray:
@@ -145,11 +147,6 @@ def _running_sum(columns: np.ndarray) -> np.ndarray:
 
 def _ends(n: int, length: int) -> np.ndarray:
     return np.arange(n, length + 1, max(n // 8, 1))
-
-
-def _window_means(total: np.ndarray, n: int, length: int) -> np.ndarray:
-    ends = _ends(n, length)
-    return (total[ends] - total[ends - n]) / n
 
 
 @dataclass(frozen=True)
@@ -227,14 +224,15 @@ class LoadFitter:
             cols.append(r.free[:, None])
         return r.target, np.hstack(cols)
 
-    def _too_short(self, terms: int) -> bool:
-        return len(self.t) <= self.n + terms
+    def _fitted(self, b: np.ndarray, a: np.ndarray, extra: int = 0) -> bool:
+        """True when the record is long enough for these terms and their averages are finite."""
+        return len(self.t) > self.n + a.shape[1] + extra and bool(np.all(np.isfinite(a)) and np.all(np.isfinite(b)))
 
     @np.errstate(over="ignore", invalid="ignore")
     def _solve(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[float, np.ndarray]:
         """(residual sum of squares, coefficients) of the fit with model ``x`` and the chosen terms."""
         b, a = self._base(x, steps, ramp, free)
-        if self._too_short(a.shape[1]) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        if not self._fitted(b, a):
             return math.inf, np.zeros(a.shape[1])
         # Unstable models grow without bound; scale the columns so the
         # least-squares problem stays well conditioned.
@@ -254,20 +252,21 @@ class LoadFitter:
         """
         b, a = self._base(x, steps, ramp, free)
         s = self._responses(x).step(ks, self.n)
-        if self._too_short(a.shape[1] + 1) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        if not self._fitted(b, a, extra=1):
             return np.full(len(ks), math.inf)
-        scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
-        s_scale = np.maximum(np.max(np.abs(s), axis=0), 1e-300)
-        a, s = a / scale, s / s_scale
-        proj, *_ = np.linalg.lstsq(a, np.column_stack((b, np.nan_to_num(s))), rcond=None)
-        rest = np.column_stack((b, np.nan_to_num(s))) - a @ proj
+        finite = np.all(np.isfinite(s), axis=0)
+        s = np.nan_to_num(s)
+        a = a / np.maximum(np.max(np.abs(a), axis=0), 1e-300)
+        rhs = np.column_stack((b, s / np.maximum(np.max(np.abs(s), axis=0), 1e-300)))
+        proj, *_ = np.linalg.lstsq(a, rhs, rcond=None)
+        rest = rhs - a @ proj
         rb, rs = rest[:, 0], rest[:, 1:]
         norm = np.einsum("ij,ij->j", rs, rs)
         coef = np.where(norm > 0.0, (rs.T @ rb) / np.where(norm > 0.0, norm, 1.0), 0.0)
         # Summed from the residual vectors, not as |rb|² less the explained part: an
         # unstable candidate's sums are huge and their difference would cancel to nothing.
         sums = np.einsum("ij,ij->j", rb[:, None] - rs * coef, rb[:, None] - rs * coef)
-        return np.where(np.all(np.isfinite(s), axis=0) & np.isfinite(sums), sums, math.inf)
+        return np.where(finite & np.isfinite(sums), sums, math.inf)
 
     def _best_x(self, steps: tuple[int, ...], ramp: bool, free: bool, lo: float, hi: float) -> tuple[float, float]:
         """Golden-section search of the residual over x in [lo, hi] (after a coarse scan)."""

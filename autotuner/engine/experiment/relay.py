@@ -679,7 +679,8 @@ class RelayExperiment:
         # load fit and the stopping rule deal with.
         negative = self._negative_ratio()
         recognised = self._unstable or (len(self._estimates) <= _HINT_ESTIMATES and self._unstable_hint())
-        if negative and recognised and self._fit is None and not self._stable_with_load(tt, uu, yy):
+        # (Asked once, when the process would first be taken for unstable: the load fit costs two fits.)
+        if negative and recognised and self._fit is None and (self._unstable or not self._stable_with_load(tt, uu, yy)):
             # An open-loop unstable process: a weaker bias, and a phase it reaches.
             self._enter_unstable()
             self._move_target(self._estimates[-1][0], self._wide[-1])
@@ -776,7 +777,8 @@ class RelayExperiment:
         # ramp in one fit and not the next).
         duration = self._t[-1] - self._t[0]
         difference = abs(a.ramp - b.ramp)
-        return difference <= max(abs(a.ramp), abs(b.ramp)) / 3.0 or difference * duration < _LOAD_FRACTION * self.config.amp
+        negligible = difference * duration < _LOAD_FRACTION * self.config.amp
+        return negligible or difference <= max(abs(a.ramp), abs(b.ramp)) / 3.0
 
     def _significant(self, fit: LoadFit) -> bool:
         """A fitted disturbance worth estimating through: larger than a fraction of amp (or of the PV scale)."""
