@@ -9,6 +9,7 @@ import pytest
 
 from autotuner.engine.design.process_data import exact_point
 from autotuner.engine.experiment import load_fit
+from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
 from autotuner.engine.experiment.load_fit import LoadFitter
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.plant.simulation import PlantSim
@@ -74,3 +75,53 @@ def test_the_step_time_scan_equals_one_least_squares_fit_per_step_time(x: float)
         coef, *_ = np.linalg.lstsq(a, b, rcond=None)
         r = b - a @ coef
         assert value == pytest.approx(float(r @ r), rel=1e-6, abs=1e-12 * float(b @ b))
+
+
+def _uneven_relay_record(process_text: str, periods: float, seed: int = 3):
+    """A biased square wave from rest, sampled unevenly (±30 % jitter, as over a link); exact plant between samples."""
+    process = parse_process(process_text)
+    point = exact_point(process, 135.0)
+    period = 2.0 * math.pi / point.omega
+    sub = 10
+    sim = PlantSim(process, period / 100.0 / sub)
+    rng = np.random.default_rng(seed)
+    t, y, u = [], [], []
+    while sim.t < periods * period:
+        t.append(sim.t)
+        y.append(sim.measure())
+        u.append(0.2 + (1.0 if math.sin(point.omega * sim.t) >= 0.0 else -1.0))
+        for _ in range(sub + int(rng.integers(-3, 4))):
+            sim.advance(u[-1])
+    return np.array(t), np.array(y), np.array(u), point, period, point.gain / process.static_gain()
+
+
+def test_the_settled_ratio_sees_through_the_start_transient_on_an_uneven_record() -> None:
+    # The second period from rest: the PV's mean still rises towards K0 × the MV's, so the plain ratio
+    # of the means is far off; through the model's lag the ratio is the true |F|/K0.
+    t, y, u, point, period, x_true = _uneven_relay_record("exp(-s)/(4*s+1)", 3.0)
+    ta, tb = period, 2.0 * period
+    du = held_coefficient(t, u, ta, tb, 0.0, hann=False).real
+    dy = sampled_coefficient(t, y, ta, tb, 0.0, hann=False).real
+    plain = point.gain * du / dy
+    settled = load_fit.settled_ratio(t, u, dy, plain, point.gain, point.omega, math.radians(135.0), ta, tb)
+    assert abs(plain - x_true) > 0.1 * x_true
+    assert settled == pytest.approx(x_true, rel=0.005)
+
+
+def test_the_lagged_mean_equals_the_lag_run_sample_by_sample_over_many_chunks() -> None:
+    # 2 000 time constants: the closed form is summed in chunks; here the lag runs one interval at a time.
+    rng = np.random.default_rng(7)
+    s = np.cumsum(rng.uniform(0.005, 0.015, 2000))
+    u = rng.normal(size=len(s))
+    tc, ta, tb = 0.01, 7.3, 11.9
+    z, fine_t, fine_z = 0.0, [], []
+    for i in range(len(s) - 1):
+        for tau in np.linspace(0.0, s[i + 1] - s[i], 40, endpoint=False):
+            fine_t.append(s[i] + tau)
+            fine_z.append(u[i] + (z - u[i]) * math.exp(-tau / tc))
+        z = u[i] + (z - u[i]) * math.exp(-(s[i + 1] - s[i]) / tc)
+    fine_t, fine_z = np.array(fine_t), np.array(fine_z)
+    inside = (fine_t >= ta) & (fine_t <= tb)
+    zi, ti = fine_z[inside], fine_t[inside]
+    expected = np.sum(0.5 * (zi[1:] + zi[:-1]) * np.diff(ti)) / (ti[-1] - ti[0])
+    assert load_fit._lagged_mean(s, u, tc, ta, tb) == pytest.approx(expected, rel=2e-3)

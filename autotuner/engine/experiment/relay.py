@@ -36,9 +36,9 @@ import numpy as np
 from autotuner.engine.described import described as _d
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
-from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
+from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter, settled_ratio
 from autotuner.engine.experiment.point import Point
-from autotuner.engine.experiment.stopping import Tolerances, amp_factor, judge
+from autotuner.engine.experiment.stopping import Tolerances, Verdict, amp_factor, judge
 from autotuner.engine.experiment.phase_filter import PhaseFilter
 
 
@@ -99,7 +99,7 @@ class RelayConfig:
     phase_tol_deg: float = 0.5
     gain_tol: float = 0.01
     static_tol: float = 0.02
-    noise_tol: float = 0.0025
+    noise_tol: float = 0.004
     expected_period: float | None = None
     follow_loads: bool | None = None
 
@@ -202,6 +202,11 @@ _UNSTABLE_BIAS = 0.1
 # model reaches to 180° (where the plain relay oscillates): a target near the least lag sits where
 # the phase curve is flat and the cycle slides onto the low-frequency branch and runs away.
 _UNSTABLE_MARGIN = 0.4
+# The share of gain_tol and static_tol within which a period between falling crossings must agree with the
+# latest rising one (_judge_half): a transient decaying by ρ per period leaves the latest estimate off by
+# ρ/(1 − ρ) × the difference of disjoint windows, but by √ρ/(1 − √ρ) × that of windows half a period apart —
+# 2.4–2.9 times more for ρ = 0.5–0.3.
+_HALF_TOL = 1.0 / 3.0
 # Highest phase target (the RelayConfig's upper bound).
 _MAX_TARGET_DEG = 170.0
 # The relay's low level in its first half period, as a share of amp (see RelayExperiment.__init__):
@@ -280,6 +285,7 @@ class RelayExperiment:
         # Sub-sample times of the rising crossings: the period they give is
         # free of the sampling jitter of the switch instants.
         self._crossings: list[float] = []
+        self._falls: list[float] = []  # the same at the falling switches
         self._estimates: list[tuple[Point, float]] = []
         self._windows: list[float] = []
         # |F|/K0 over the last two periods (Hann), one per estimate: the unstable-process tests
@@ -431,6 +437,7 @@ class RelayExperiment:
         old = self._relay_mv()
         if self._relay > 0 and self._filtered < -self._eps:
             self._switch(-1, k, -self._eps, before, dt)
+            self._judge_half()
         elif self._relay < 0 and self._filtered > self._eps:
             self._switch(1, k, self._eps, before, dt)
             self._on_period()
@@ -465,6 +472,8 @@ class RelayExperiment:
         if relay > 0:
             self._rising.append(k)
             self._crossings.append(self._crossing)
+        else:
+            self._falls.append(self._crossing)
 
     def _relay_mv(self) -> float:
         level = self._mv_high if self._relay > 0 else self._mv_low
@@ -930,18 +939,8 @@ class RelayExperiment:
 
         ``yy`` has its drift (or the fitted disturbance) removed already.
         """
-        # One whole period, rectangular: a Hann window over a single period
-        # would mix the fundamental with the mean and the second harmonic.
         ta, tb = self._crossings[-2], self._crossings[-1]
-        omega = 2.0 * math.pi / (tb - ta)
-        value = self._estimate(tt, uu, yy, ta, tb, omega, hann=False)
-        du = held_coefficient(tt, uu - self.mv0, ta, tb, 0.0, hann=False).real
-        dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0, hann=False).real
-        # Compare estimates through |F|/K0, which stays bounded as K0 grows.
-        inverse_gain = self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
-        if self._fit is not None:
-            inverse_gain = self._fit.x
-        point = Point(omega, value)
+        point, inverse_gain = self._period_point(tt, uu, yy, self._crossings[-3:])
         # Windows that reach back before a load step are left out.
         self._estimates.append((point, inverse_gain))
         self._windows.append(ta)
@@ -958,8 +957,35 @@ class RelayExperiment:
         # With noise, all estimates since the last disturbance may be averaged but the first
         # (the period right after the filter's first correction).
         longest = len(usable) - 1 if noisy else 2 + (periods - _MIN_PERIODS) // 2
-        verdict = judge(usable, self._target_deg, self._tolerances(), longest, noisy,
-                        None if self._fit is None else self._fit.x_std)
+        self._accept(tt, uu, judge(usable, self._target_deg, self._tolerances(), longest, noisy,
+                                   None if self._fit is None else self._fit.x_std))
+
+    def _judge_half(self) -> None:
+        """At a falling switch of a quiet, noise-free run: stop if the period ending here agrees with the last.
+
+        The period between two falling crossings overlaps the latest rising
+        one by half; when the two agree the cycle has settled, half a period
+        before the next rising crossing would say so. (With noise the
+        overlapping windows are not independent estimates: only the rising
+        ones are averaged.)
+        """
+        periods = len(self._rising) - 1
+        if self._fit is not None or periods < _MIN_PERIODS or len(self._falls) < 3 or self._noisy():
+            return
+        ta, tb = self._falls[-2], self._falls[-1]
+        since = max(self._discard_before, self._changed_at)
+        usable = self._usable()
+        if ta < since or not usable:
+            return
+        tt, uu, yy = np.asarray(self._t), np.asarray(self._u), np.asarray(self._y)
+        detrended = yy - self._drift(tt, yy, self._falls[-3:])
+        candidates = [*usable, self._period_point(tt, uu, detrended, self._falls[-3:])]
+        longest = 2 + (periods - _MIN_PERIODS) // 2
+        c = self.config
+        tol = Tolerances(c.phase_tol_deg, c.gain_tol * _HALF_TOL, c.static_tol * _HALF_TOL, c.noise_tol)
+        self._accept(tt, uu, judge(candidates, self._target_deg, tol, longest, False))
+
+    def _accept(self, tt: np.ndarray, uu: np.ndarray, verdict: Verdict | None) -> None:
         if verdict is None:
             return
         # Before accepting a quiet result, make sure the record holds no
@@ -967,6 +993,29 @@ class RelayExperiment:
         if self._fit is None and self._look_for_disturbance(tt, uu, np.asarray(self._y)):
             return
         self._succeed(verdict.point, self._fit.x if self._fit is not None else verdict.inverse_gain)
+
+    def _period_point(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray, bounds: list[float]) -> tuple[Point, float]:
+        """The point over the last whole period of ``bounds`` (crossing times, s) and |F|/K0 over the last two.
+
+        ``yy`` is the PV detrended. The static ratio takes the means over two
+        periods where there are two (the noise of a mean falls with its
+        length), with the MV's as the slow lag has passed it on.
+        """
+        ta, tb = bounds[-2], bounds[-1]
+        # One whole period, rectangular: a Hann window over a single period
+        # would mix the fundamental with the mean and the second harmonic.
+        omega = 2.0 * math.pi / (tb - ta)
+        value = self._estimate(tt, uu, yy, ta, tb, omega, hann=False)
+        point = Point(omega, value)
+        if self._fit is not None:
+            return point, self._fit.x
+        start = bounds[0]
+        du = held_coefficient(tt, uu - self.mv0, start, tb, 0.0, hann=False).real
+        dy = sampled_coefficient(tt, np.asarray(self._y) - self._sp, start, tb, 0.0, hann=False).real
+        # Compare estimates through |F|/K0, which stays bounded as K0 grows.
+        plain = self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
+        return point, settled_ratio(tt[: len(uu)], uu - self.mv0, self._sign * dy, plain, point.gain, omega,
+                                    self._lag(value), start, tb)
 
     def _wide_inverse(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> float:
         """|F|/K0 over the last two whole periods with a Hann window (the mean weighted to their middle)."""
@@ -1045,7 +1094,9 @@ class RelayExperiment:
         """
         target = math.radians(self._target_deg)
         offset = math.pi - lag - self._filter.phase(omega)
-        if self._last is not None:
+        # Not from the first whole period: its lag still carries the start's transient (133° where the cycle
+        # lags 140°), and a secant through it can even have the wrong sign.
+        if self._last is not None and len(self._lags) > 2:
             w_prev, lag_prev = self._last
             dlog = math.log(omega / w_prev)
             if abs(dlog) > 0.005:
