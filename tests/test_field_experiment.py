@@ -133,6 +133,23 @@ def test_a_quiet_run_ends_within_five_periods_with_its_point_and_static_gain_exa
     assert ident.static_gain == pytest.approx(process.static_gain(), rel=0.01)
 
 
+@pytest.mark.parametrize("expr", ["exp(-s)/(2*s+1)", "2*exp(-0.5*s)/((2*s+1)*(0.5*s+1))"])
+def test_a_start_while_the_pv_still_settles_gives_the_static_gain_and_says_so(expr: str) -> None:
+    # A load step of 0.2 × amp half a period before TUNE: the plain ratio of the means read K0 3.8
+    # (first process) and 96 (second, true 2) — the settling PV added to the relay's response.
+    process = parse_process(expr)
+    point = exact_point(process, 135.0)
+    period = 2.0 * math.pi / point.omega
+    sim = PlantSim(process, period / 100.0, loads=[(0.0, 0.2)])
+    for _ in range(50):
+        sim.advance(sim.mv0)
+    experiment, _ = run_experiment(sim, RelayConfig(amp=1.0, time_limit=200.0 * period))
+    assert experiment.code is Code.OK, experiment.message
+    ident = experiment.result
+    assert ident.disturbance
+    assert ident.static_gain == pytest.approx(process.static_gain(), rel=0.15)
+
+
 def test_noise_out_of_reach_is_refused_saying_how_much_to_raise_amp() -> None:
     experiment, _, _ = _run("exp(-5*s)/(s+1)", noise=0.05, seed=1, max_periods=8, noise_tol=0.0005)
     assert experiment.code is Code.NOISE_TOO_HIGH

@@ -797,7 +797,11 @@ class LoopManager:
                 if intended is not None and gains_after is None:  # unknown whether the write happened: ask later
                     self._reconcilers.append(asyncio.create_task(self._reconcile(
                         {"id": sid, "loop": loop.config.id, "gains_intent": {"gains": intended.as_json()}})))
-                self._refresh_latest(loop)
+                refreshed = self._refresh_latest(loop)
+                if not self._stopping:
+                    # Awaited (bounded) before the loop shows idle: a client that sees TBSY fall reads this
+                    # session as the last one (last_outcome, pending_gains), not the one before it.
+                    await waited(refreshed)
                 if loop.saved is not None and pending is None:  # what the session left: its mode, the gains
                     loop.mode, loop.gains = Mode(loop.saved.mode), gains_after
                     loop.sp = loop.saved.sp

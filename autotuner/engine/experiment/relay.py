@@ -207,6 +207,8 @@ _UNSTABLE_MARGIN = 0.4
 # ρ/(1 − ρ) × the difference of disjoint windows, but by √ρ/(1 − √ρ) × that of windows half a period apart —
 # 2.4–2.9 times more for ρ = 0.5–0.3.
 _HALF_TOL = 1.0 / 3.0
+# A PV slope over the noise stage beyond this many of its standard errors is a PV still settling at TUNE.
+_SETTLING_EVIDENCE = 5.0
 # Highest phase target (the RelayConfig's upper bound).
 _MAX_TARGET_DEG = 170.0
 # The relay's low level in its first half period, as a share of amp (see RelayExperiment.__init__):
@@ -295,6 +297,7 @@ class RelayExperiment:
         # The lag over every whole period, radians (also those before the first estimate is judged).
         self._lags: list[float] = []
         self._disturbance_seen = False
+        self._settling = (0.0, 0.0)  # (PV slope at the start, sign-corrected PV units per s; its time, s)
         self._last: tuple[float, float] | None = None
         self._slope = 1.0
         self._relay_start = 0
@@ -418,6 +421,13 @@ class RelayExperiment:
         residual = y - (offset + slope * (t - t[0]))
         self._noise = float(np.std(residual, ddof=2))
         self._sp = float(np.mean(y))
+        # A PV still moving when TUNE came (a load step just before, a set point change): the lag's free
+        # response, which the static ratio takes out (settled_ratio). Noise alone gives a slope within
+        # a few of its standard errors.
+        centred = t - float(np.mean(t))
+        slope_std = self._noise / math.sqrt(float(centred @ centred)) if np.any(centred) else math.inf
+        if abs(slope) > _SETTLING_EVIDENCE * slope_std:
+            self._settling = (self._sign * float(slope), float(np.mean(t)))
         h = self.config.hysteresis
         self._dt = float(t[-1] - t[0]) / (len(t) - 1)
         self._eps = 3.0 * self._noise if h is None else h
@@ -727,8 +737,7 @@ class RelayExperiment:
         # A sampling gap (a link that stalled: the MV reached the plant late)
         # makes the record disagree with what the plant got; the fit would
         # call that a load. No fit while the last three periods hold one.
-        recent = np.diff(tt[tt >= self._crossings[-4]])
-        if len(recent) and recent.max() > _GAP * float(np.median(np.diff(tt))):
+        if self._gap_since(tt, self._crossings[-4]):
             self._candidate = None
             return None
         point = self._estimates[-1][0]
@@ -736,6 +745,12 @@ class RelayExperiment:
         scale = point.gain * self.config.amp
         return LoadFitter(tt[:n], self._sign * (yy[:n] - self._sp), uu[:n], self.mv0, self._relay_start,
                           point.omega, point.gain, self._lag(point.value), scale)
+
+    @staticmethod
+    def _gap_since(tt: np.ndarray, start: float) -> bool:
+        """True when a sample interval since ``start`` (s) is a gap: ``_GAP`` times the usual one or more."""
+        recent = np.diff(tt[tt >= start])
+        return bool(len(recent)) and float(recent.max()) > _GAP * float(np.median(np.diff(tt)))
 
     def _resonant(self) -> bool:
         """True when |F(jω)| reads above the static gain: a resonance, which no first-order model describes.
@@ -978,6 +993,10 @@ class RelayExperiment:
         if ta < since or not usable:
             return
         tt, uu, yy = np.asarray(self._t), np.asarray(self._u), np.asarray(self._y)
+        # A sampling gap (a stalled link) in the overlap biases both windows alike, so they agree: only the
+        # disjoint rising windows may judge such a record.
+        if self._gap_since(tt, self._crossings[-2]):
+            return
         detrended = yy - self._drift(tt, yy, self._falls[-3:])
         candidates = [*usable, self._period_point(tt, uu, detrended, self._falls[-3:])]
         longest = 2 + (periods - _MIN_PERIODS) // 2
@@ -1015,7 +1034,7 @@ class RelayExperiment:
         # Compare estimates through |F|/K0, which stays bounded as K0 grows.
         plain = self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
         return point, settled_ratio(tt[: len(uu)], uu - self.mv0, self._sign * dy, plain, point.gain, omega,
-                                    self._lag(value), start, tb)
+                                    self._lag(value), start, tb, *self._settling)
 
     def _wide_inverse(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> float:
         """|F|/K0 over the last two whole periods with a Hann window (the mean weighted to their middle)."""
@@ -1063,11 +1082,22 @@ class RelayExperiment:
             phase_target_deg=self._target_deg,
             phase_moved=self._target_deg != self.config.phase_deg,
             static_gain_std=static_std,
-            disturbance=fit is not None,
+            disturbance=fit is not None or self._unsettled_start(point, inverse_gain),
             periods_discarded=discarded,
             load_estimate=0.0 if fit is None else fit.load_at(self._t[-1], self._t[0]),
         )
         self._finish(Code.OK, MESSAGES[Code.OK])
+
+    def _unsettled_start(self, point: Point, x: float) -> bool:
+        """True when the PV was still settling at TUNE by more than a load worth following (_LOAD_FRACTION).
+
+        The free response the static ratio took out is ``slope·T`` at the start (T of the model ``x`` fixes).
+        """
+        slope = self._settling[0]
+        if slope == 0.0 or not 0.0 < x < 1.0:
+            return False
+        tc = math.sqrt(1.0 / (x * x) - 1.0) / point.omega
+        return abs(slope) * tc >= _LOAD_FRACTION * point.gain * self.config.amp
 
     # -- helpers ----------------------------------------------------------
 
