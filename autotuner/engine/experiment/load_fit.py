@@ -54,7 +54,7 @@ _POINTS_PER_PERIOD = 2.0
 # Averaged residuals within this fraction of the PV oscillation amplitude are
 # the model's own mismatch (harmonics, a process that is not first order).
 _RESOLUTION = 0.01
-# Refinements of x in LoadFitter.settled_ratio (from the plain ratio of the means, 3–4 settle it to 1e-3).
+# Refinements of x in settled_ratio from the plain ratio of the means (3–4 settle it to 1e-3).
 _SETTLE_ITERATIONS = 4
 # settled_ratio's lag is summed over chunks of at most this many time constants (e^300 stays finite).
 _CHUNK = 300.0

@@ -20,9 +20,12 @@ The point ``F(jω)`` is the ratio of the Fourier coefficients of PV and MV over
 the last whole period (between two rising crossings, so the window holds
 exactly one period of the cycle; the MV integrated exactly as a held signal),
 and the static gain the ratio of their mean deviations from the operating
-point. The experiment stops when the phase is within tolerance and
-consecutive estimates agree (or, when noise makes them scatter, when the
-mean of more of them is settled).
+point (the MV's mean as the process's slow lag has passed it on,
+load_fit.settled_ratio). The experiment stops when the phase is within
+tolerance and consecutive estimates agree (or, when noise makes them
+scatter, when the mean of more of them is settled); on a quiet run a
+period between falling crossings that agrees with the latest within a
+third of the tolerances stops it half a period sooner.
 """
 
 from __future__ import annotations
