@@ -58,6 +58,14 @@ def test_a_small_load_step_against_the_bias_is_not_taken_for_a_resonance(expr: s
     assert experiment.result.disturbance
 
 
+def test_a_load_that_cancels_the_bias_on_a_dead_time_process_is_not_taken_for_a_resonance() -> None:
+    # −0.2 × amp cancels the relay's mean: |F|/K0 ran away above 1 (1.1, 1.8, 2.9, 5.9, …) with |F|
+    # unchanged, the load fit was skipped as "a resonance" and the run ended with ite 11.
+    experiment, _, process = _run("exp(-s)/(0.05*s+1)^2", loads=[(3.3, -0.2)])
+    _assert_accurate(experiment, process, 0.05)
+    assert experiment.result.disturbance
+
+
 @pytest.mark.parametrize("expr", ["exp(-s)/(2*s+1)", "2*exp(-0.5*s)/((2*s+1)*(0.5*s+1))"])
 def test_an_early_load_step_is_not_taken_for_an_unstable_process(expr: str) -> None:
     # +0.2 × amp at 1.5 periods makes the first mean ratios negative, as an unstable process's are;

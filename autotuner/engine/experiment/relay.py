@@ -761,13 +761,16 @@ class RelayExperiment:
         The fit would invent loads there. But a load step against the relay's
         bias makes a plain lag's ratio |F|/K0 read above 1 too (−0.1 × amp on
         ``exp(-s)/(2*s+1)``: 0.37, then 1.4): there an earlier estimate of about
-        the same |F| (within 10 %) read below 1. A resonance builds |F| up with
+        the same |F| (within 10 %) read below 1, or a ratio a third away — one
+        that cancels the bias runs away (1.1, 1.8, 2.9, 5.9 on
+        ``exp(-s)/(0.05*s+1)^2`` at −0.2 × amp). A resonance builds |F| up with
         its ratio (0.49 at 0.13 … 1.68 at 1.68 on ``exp(-0.1*s)/(s^2+0.4*s+1)``).
         """
         latest, x = self._estimates[-1]
         if x <= 1.0:
             return False
-        return not any(i < 1.0 and abs(p.gain - latest.gain) <= 0.1 * latest.gain for p, i in self._estimates[1:-1])
+        return not any((i < 1.0 or abs(i - x) > x / 3.0) and abs(p.gain - latest.gain) <= 0.1 * latest.gain
+                       for p, i in self._estimates[1:-1])
 
     def _look_for_disturbance(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
         """Fit the slow part of the record; True (and the disturbed mode on) if it needed a disturbance."""
