@@ -160,15 +160,14 @@ def settled_ratio(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float
     away: both are taken out of ``dy`` (a load step half a period before TUNE
     made ``exp(-s)/(2*s+1)`` read ``|F|/K0`` 0.10 instead of 0.39).
     """
-    if not 0.0 < x < _X_MAX or dy == 0.0:
+    # The dead time of the model is at most lag/ω (x → 1): the window must start after the delayed MV does.
+    if not 0.0 < x < _X_MAX or dy == 0.0 or t[0] + lag / omega > ta:
         return x
 
-    def mismatch(v: float) -> float | None:
+    def mismatch(v: float) -> float:
         """``v`` × the PV's mean response less ``|F|`` × the MV's mean as model ``v`` has passed it on."""
         _, tc, delay = _model(v, gain, omega, lag)
         seen = _lagged_mean(t + delay, u, tc, ta, tb)
-        if seen is None:
-            return None
         left = tc / (tb - ta) * (math.exp(-(ta - t0) / tc) - math.exp(-(tb - t0) / tc))
         return v * (dy - slope * tc * (1.0 - left)) - gain * seen
 
@@ -177,31 +176,25 @@ def settled_ratio(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float
         for _ in range(_SETTLE_ITERATIONS):
             if not 0.0 < x < _X_MAX:
                 return x
-            rest = mismatch(x)
-            if rest is None:
-                return x
-            x -= rest / dy
+            x -= mismatch(x) / dy
         return x
     # A free response to take out moves the mean far more as x changes (through T) than the plain
     # ratio's refinement can follow: the root of the mismatch within (0, 1), bracketed.
     lo, hi = _X_MAX * 1e-3, _X_MAX
-    ends = mismatch(lo), mismatch(hi)
-    if ends[0] is None or ends[1] is None or ends[0] * ends[1] > 0.0:
+    if mismatch(lo) * mismatch(hi) > 0.0:
         return x
-    return float(scipy.optimize.brentq(lambda v: mismatch(v) or 0.0, lo, hi, xtol=1e-5))
+    return float(scipy.optimize.brentq(mismatch, lo, hi, xtol=1e-5))
 
 
-def _lagged_mean(s: np.ndarray, u: np.ndarray, tc: float, ta: float, tb: float) -> float | None:
+def _lagged_mean(s: np.ndarray, u: np.ndarray, tc: float, ta: float, tb: float) -> float:
     """Mean over ``[ta, tb]`` of ``u`` (held from the times ``s``, zero before) through ``1/(tc·s + 1)``.
 
     Exact for any spacing of ``s`` (a link samples unevenly): the lag ``z``
     obeys ``z = u − tc·z'``, so its mean is the input's less ``tc`` times its
     change over the window, and ``z`` at the window's ends follows from its
     values at the switch times, a product of exponentials (summed in chunks
-    short enough not to overflow). None when the window starts before ``s``.
+    short enough not to overflow). The window starts at ``s[0]`` or later.
     """
-    if not s[0] <= ta < tb:
-        return None
     z = np.zeros(len(s))
     decay = np.exp(-np.diff(s) / tc)
     k = 0

@@ -31,7 +31,7 @@ third of the tolerances stops it half a period sooner.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 
 import numpy as np
@@ -41,7 +41,7 @@ from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
 from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter, settled_ratio
 from autotuner.engine.experiment.point import Point
-from autotuner.engine.experiment.stopping import Tolerances, Verdict, amp_factor, judge
+from autotuner.engine.experiment.stopping import Tolerances, Verdict, amp_factor, judge, slow_memory
 from autotuner.engine.experiment.phase_filter import PhaseFilter
 
 
@@ -1007,7 +1007,7 @@ class RelayExperiment:
         candidates = [*usable, self._period_point(tt, uu, detrended, self._falls[-3:])]
         longest = 2 + (periods - _MIN_PERIODS) // 2
         c = self.config
-        tol = Tolerances(c.phase_tol_deg, c.gain_tol * _HALF_TOL, c.static_tol * _HALF_TOL, c.noise_tol)
+        tol = replace(self._tolerances(), gain_tol=c.gain_tol * _HALF_TOL, static_tol=c.static_tol * _HALF_TOL)
         self._accept(tt, uu, judge(candidates, self._target_deg, tol, longest, False))
 
     def _accept(self, tt: np.ndarray, uu: np.ndarray, verdict: Verdict | None) -> None:
@@ -1102,7 +1102,7 @@ class RelayExperiment:
         slope = self._settling[0]
         if slope == 0.0 or not 0.0 < x < 1.0:
             return False
-        tc = math.sqrt(1.0 / (x * x) - 1.0) / point.omega
+        tc = slow_memory(x) * 2.0 * math.pi / point.omega
         return abs(slope) * tc >= _LOAD_FRACTION * point.gain * self.config.amp
 
     # -- helpers ----------------------------------------------------------
