@@ -50,7 +50,12 @@ def safe_gains(process: Process) -> Gains:
 
 @dataclass
 class SimulatedPlc:
-    """Process ``process`` sampled every ``ts`` seconds (plant time) under a PID unit, starting steady in AUTO."""
+    """Process ``process`` sampled every ``ts`` seconds (plant time) under a PID unit, starting steady in AUTO.
+
+    ``loads``: (T, SIZE) load steps at the process input, SIZE MV units, T
+    plant seconds after the PLC first ticks in MAN (a tuner taking the loop
+    over): a disturbance during an experiment over the link.
+    """
 
     process: Process
     ts: float = 0.0
@@ -64,6 +69,7 @@ class SimulatedPlc:
     nan_pv: bool = False
     heartbeat: int = 0
     fallbacks: int = 0
+    loads: tuple[tuple[float, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.ts <= 0.0:
@@ -80,6 +86,11 @@ class SimulatedPlc:
         self._watchdog = Watchdog()
         self._beat = (self.heartbeat, self.sim.t)  # the last heartbeat value seen and when it changed
         self._falling_back = False
+        for time, size in self.loads:
+            if not (math.isfinite(time) and time >= 0.0 and math.isfinite(size)):
+                raise ValueError(f"load step ({time}, {size}) must be T ≥ 0 plant seconds and a finite size")
+        self._pending = sorted(self.loads, reverse=True)  # next step last
+        self._taken_at: float | None = None  # plant time of the first tick in MAN
 
     @property
     def watchdog(self) -> Watchdog:
@@ -127,10 +138,17 @@ class SimulatedPlc:
             self.mode = Mode.MAN
             self.hv = self._watchdog.mv
 
+    def _apply_loads(self, man: bool) -> None:
+        if man and self._taken_at is None:
+            self._taken_at = self.sim.t
+        while self._pending and self._taken_at is not None and self.sim.t - self._taken_at >= self._pending[-1][0]:
+            self.sim.step_load(self._pending.pop()[1])
+
     def tick(self) -> None:
         """One sample: controller output from the current PV, then the plant advances ``ts``."""
         self._check_watchdog()
         man = self.mode is Mode.MAN
+        self._apply_loads(man)
         self.mv = self.pid.step(self.sim.t, self.sp, self.pv, man=man, hv=self.hv if man else None)
         if not man:
             self.hv = self.mv  # the manual value follows, so a switch to MAN is bumpless too

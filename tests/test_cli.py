@@ -68,8 +68,10 @@ def check_contract(doc: dict, controller: str = "PI") -> None:
     assert isinstance(doc["static_gain"], float)
     assert set(doc["gains"]) == {"pk", "pti", "ptd", "pnd", "pb", "pc"}
     assert all(isinstance(v, float) for v in doc["gains"].values())
-    assert set(doc["experiment"]) == {"duration", "periods", "samples", "phase_target_deg", "phase_moved"}
+    assert set(doc["experiment"]) == {"duration", "periods", "samples", "phase_target_deg", "phase_moved",
+                                      "disturbance", "load_estimate"}
     assert doc["experiment"]["phase_target_deg"] == 135.0 and doc["experiment"]["phase_moved"] is False
+    assert doc["experiment"]["disturbance"] is False and doc["experiment"]["load_estimate"] == 0.0
     assert isinstance(doc["experiment"]["duration"], float) and doc["experiment"]["duration"] > 0
     assert isinstance(doc["experiment"]["periods"], (int, float)) and doc["experiment"]["periods"] > 0
     assert isinstance(doc["experiment"]["samples"], int) and doc["experiment"]["samples"] > 0
@@ -248,6 +250,16 @@ def test_tune_via_modbus_tunes_through_the_real_protocol_stack() -> None:
     assert point["phase_deg"] == pytest.approx(math.degrees(np.angle(true)), abs=3.0)
 
 
+def test_tune_via_can_with_a_load_step_made_by_the_plc() -> None:
+    # --load with --via: the simulated PLC steps its load 12 s after the session takes the loop over.
+    result = _invoke("tune", "--plant", PLANT, "--via", "can", "--load", "12:-0.3", "--json")
+    assert result.exit_code == 0, result.output
+    doc = _last_json(result.stdout)
+    assert doc["ite"] == 0 and doc["experiment"]["disturbance"] is True
+    assert doc["experiment"]["load_estimate"] == pytest.approx(-0.3, abs=0.05)
+    assert doc["static_gain"] == pytest.approx(1.0, rel=0.05)
+
+
 def test_unreachable_link_fails_with_code_7_not_a_traceback() -> None:
     result = _invoke("tune", "--link", "modbus://127.0.0.1:1/1", "--ts", "0.1", "--json")
     assert result.exit_code == 1
@@ -308,7 +320,7 @@ def test_bad_load_exits_2(value: str) -> None:
 @pytest.mark.parametrize(("args", "words"), [
     (["--quantum", "-0.1"], "--quantum"),
     (["--drift", "x"], "--drift"),
-    (["--link", "modbus://127.0.0.1:1/1", "--ts", "0.1", "--load", "1:1"], "in-process --plant only"),
+    (["--link", "modbus://127.0.0.1:1/1", "--ts", "0.1", "--load", "1:1"], "simulated --plant only"),
     (["--via", "modbus", "--drift", "0.1"], "in-process --plant only"),
 ])
 def test_bad_field_options_exit_2(args: list[str], words: str) -> None:

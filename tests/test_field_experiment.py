@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from autotuner.engine.design.process_data import exact_point
-from autotuner.engine.experiment.relay import RelayConfig
+from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.simulated_tuning import run_experiment
+from autotuner.service.remote_tuning import field_config
 
 PLANT = "exp(-s)/(s+1)"
 
@@ -174,3 +176,69 @@ def test_ite_is_positive_from_the_first_sample_and_progress_never_goes_back() ->
     assert all(b >= a for a, b in zip(progress, progress[1:]))
     # The first estimate is within a factor of two of the real length.
     assert 0.5 * trace.t[-1] < running[0].ite < 2.0 * trace.t[-1]
+
+
+def _stalling_session(expr: str, seed: int, loads=(), stalls=(0.01, 2, 6), sub: int = 10):
+    """The experiment as a field session runs it: 50 samples per period taken with ±30 % jitter, and at
+    a share of the samples a stall (``stalls``: share, shortest and longest in samples) between the PV's
+    read and the MV's write (a busy machine, a slow link) — the process holds the previous MV meanwhile,
+    and the session says when the write landed (``applied``). Loads in (periods, MV units). The plant
+    runs ``sub`` ticks per sample."""
+    process = parse_process(expr)
+    period = 2.0 * math.pi / exact_point(process, 135.0).omega
+    ts = period / 50.0
+    sim = PlantSim(process, ts / sub, loads=[(k * period, size) for k, size in loads])
+    rng = np.random.default_rng(seed)
+    config = field_config(RelayConfig(amp=1.0, time_limit=200.0 * period))
+    experiment = RelayExperiment(config, mv0=0.0)
+    mv = 0.0
+    while not experiment.done:
+        new = experiment.step(sim.t, sim.measure())
+        share, shortest, longest = stalls
+        stall = int(rng.integers(shortest * sub, longest * sub)) if rng.random() < share else 0
+        for _ in range(stall):
+            sim.advance(mv)
+        mv = new
+        experiment.applied(sim.t)
+        for _ in range(sub + int(rng.integers(-3, 4))):
+            sim.advance(mv)
+    return experiment, process
+
+
+@pytest.mark.parametrize(("expr", "seed", "stalls"), [
+    ("exp(-s)/(2*s+1)", 0, (0.01, 2, 6)), ("exp(-s)/(2*s+1)", 1, (0.01, 2, 6)), ("exp(-s)/(2*s+1)", 2, (0.01, 2, 6)),
+    # Stalls of 20–50 % of a period: recorded as if the writes had landed on time, this record made the
+    # fit find a load of −0.19 and K0 3.9 times too small, reported "ok".
+    ("exp(-0.3*s)/(2*s+1)^2", 3, (0.006, 10, 25)),
+    # An estimate whose windows held such a stall was judged like any other: this one ended "ok" with K0 18 %
+    # low (no load fitted). Such estimates are left out now.
+    ("exp(-0.3*s)/(2*s+1)^2", 1, (0.006, 10, 25)),
+])
+def test_a_stalling_session_invents_no_load(expr: str, seed: int, stalls: tuple[float, int, int]) -> None:
+    # A write held up by a stall looks, in a record that says it landed on time, like a load step (why load
+    # following was off over links). With the writes' times the record is what the process got.
+    experiment, process = _stalling_session(expr, seed, stalls=stalls)
+    assert experiment.code is Code.OK, experiment.message
+    assert not experiment.result.disturbance
+    assert experiment.result.static_gain == pytest.approx(process.static_gain(), rel=0.03)
+
+
+@pytest.mark.parametrize(("seed", "size"), [(0, 0.2), (1, 0.2), (2, -0.3)])
+def test_a_load_step_is_estimated_through_while_the_session_stalls(seed: int, size: float) -> None:
+    # Load following on over a link: the step is found and followed, K0 comes through it. Without load
+    # following (as over links before) the +0.2 records ended "ok" with K0 −2.3 and −2.1 (true 1), the
+    # −0.3 one with code 4.
+    experiment, process = _stalling_session("exp(-s)/(2*s+1)", seed, loads=[(3.5, size)])
+    assert experiment.code is Code.OK, experiment.message
+    ident = experiment.result
+    assert ident.disturbance and ident.load_estimate == pytest.approx(size, abs=0.03)
+    assert ident.static_gain == pytest.approx(process.static_gain(), rel=0.05)
+
+
+def test_a_session_that_stalls_every_period_is_refused_saying_so() -> None:
+    # Stalls of 16–24 % of a period at 5 % of the samples: hardly an estimate without one. The refusal names
+    # the stalls, not the process ("out of reach of this process?" was the message).
+    experiment, _ = _stalling_session("exp(-s)/(2*s+1)", 0, stalls=(0.05, 8, 12))
+    assert experiment.code is Code.NOT_CONVERGED
+    assert "without samples" in experiment.message and "too slow for this sample time" in experiment.message
+    assert "out of reach" not in experiment.message

@@ -45,6 +45,19 @@ def test_same_point_and_gains_as_the_direct_simulation(transport, direct):
     assert result.design.gains.ki == pytest.approx(direct.design.gains.ki, rel=0.1)
 
 
+@pytest.mark.parametrize(("transport", "size"), [("modbus", 1.0), ("modbus", -1.5), ("can", 1.0)])
+def test_a_load_step_during_the_experiment_is_estimated_through(transport, size):
+    # 0.2 and −0.3 × amp at the process input, about two periods in, made by the PLC itself. Load following
+    # was off over links: the relay took the load's response for its own and K0 came out of the wrong sign.
+    result = asyncio.run(tune_via(PLANT, transport, CONFIG, TS, speed=SPEED, loads=[(12.0, size)]))
+    assert result.ok, result.message
+    ident = result.identification
+    assert ident.disturbance and ident.load_estimate == pytest.approx(size, abs=0.15)
+    assert ident.static_gain == pytest.approx(PLANT.static_gain(), rel=0.05)
+    true = complex(PLANT.freqresp(ident.point.omega))
+    assert abs(ident.point.value - true) / abs(true) < 0.03
+
+
 async def _faulted(transport: str, inject, heal=None, after: float = 1.0, outage: float = 0.5):
     """Tune through ``transport``; ``inject(plc, server)`` after ``after`` wall seconds, ``heal`` ``outage`` s later."""
     plc = SimulatedPlc(PLANT, ts=TS / 5)

@@ -91,13 +91,15 @@ def test_result_json_shape_on_success_and_failure():
     assert ok["design"]["notes"] == [] and ok["design"]["ms_model"] == pytest.approx(1.4, abs=0.01)
     assert ok["te"] is False and ok["ite"] == 0 and ok["tbsy"] is False
     assert set(ok["gains"]) == {"pk", "pti", "ptd", "pnd", "pb", "pc"}
-    assert set(ok["experiment"]) == {"duration", "periods", "samples", "phase_target_deg", "phase_moved"}
+    assert set(ok["experiment"]) == {"duration", "periods", "samples", "phase_target_deg", "phase_moved",
+                                      "disturbance", "load_estimate"}
     assert ok["experiment"]["samples"] > 0 and ok["experiment"]["duration"] > 0
 
     failed = tune(PlantSim(process, ts), RelayConfig(amp=1.0, pv_limits=(-0.1, 0.1))).as_json()
     assert failed["te"] is True and failed["ite"] == int(Code.PV_OUT_OF_LIMITS)
     assert failed["gains"] is None and failed["design"] is None and failed["forms"] is None
     assert failed["experiment"]["phase_target_deg"] is None and failed["experiment"]["phase_moved"] is None
+    assert failed["experiment"]["disturbance"] is None and failed["experiment"]["load_estimate"] is None
     assert "limits" in failed["message"]
 
 

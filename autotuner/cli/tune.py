@@ -213,7 +213,8 @@ def tune_command(
     seed: Annotated[int, typer.Option(help="Seed of the noise.")] = 0,
     load: Annotated[list[str] | None, typer.Option("--load", help="Load step T:SIZE at the process input (plant "
                                                    "seconds from the start of the experiment : MV units); "
-                                                   "repeat for several.")] = None,
+                                                   "repeat for several. With --via the simulated PLC makes "
+                                                   "it, T from when the session takes the loop over.")] = None,
     drift: Annotated[float, typer.Option(help="Load ramp at the process input from the start, MV units per "
                                          "second.")] = 0.0,
     quantum: Annotated[float, typer.Option(min=0.0, help="PV resolution (the sensor rounds to multiples of it), "
@@ -252,9 +253,12 @@ def tune_command(
         bad_input("--config and --loop go together")
     field = [name for name, given in (("--load", bool(load)), ("--drift", drift != 0.0), ("--quantum", quantum != 0.0))
              if given]
-    if field and (config_file is not None or link is not None or via is not None):
-        bad_input(f"{', '.join(field)} simulate field conditions on the in-process --plant only "
-                  "(not with --config, --link or --via)")
+    if field and (config_file is not None or link is not None):
+        bad_input(f"{', '.join(field)} simulate field conditions on a simulated --plant only "
+                  "(not with --config or --link)")
+    if via is not None and (drift != 0.0 or quantum != 0.0):
+        bad_input("--drift and --quantum simulate field conditions on the in-process --plant only (with --via: "
+                  "--load, the PLC's load steps from when the tuner takes the loop)")
     steps = _loads(load)
     if config_file is not None:
         from autotuner.service.configured_loop import cli_user, tune_configured
@@ -303,7 +307,7 @@ def tune_command(
 
         def start(on_status: Callable[[Status], None] | None) -> Coroutine[Any, Any, TuneResult]:
             return tune_via(sim.process, via.value, config, sim.ts, controller.value, ms, via_speed, noise, seed,
-                            on_status)
+                            on_status, loads=steps)
     else:
         from autotuner.engine.simulated_tuning import tune
 

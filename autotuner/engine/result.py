@@ -152,6 +152,11 @@ class ExperimentRecord:
                                         "unstable process (null: nothing identified)")
     phase_moved: bool | None = _o("true when the phase target was moved from the requested one (null: nothing "
                                   "identified)")
+    disturbance: bool | None = _o("true when a load step, a drift or a PV still settling at the start was "
+                                  "detected and the static gain estimated through it (null: nothing identified)")
+    load_estimate: float | None = _o("the load at the process input at the end relative to the start, MV units, "
+                                     "as the experiment estimated and followed it (0: none; null: nothing "
+                                     "identified)")
 
 
 @dataclass(frozen=True)
@@ -186,7 +191,9 @@ class ResultRecord:
             experiment=ExperimentRecord(float(t[-1] - t[0]) if len(t) else 0.0,
                                         None if ident is None else round(ident.periods, 2), len(t),
                                         None if ident is None else float(ident.phase_target_deg),
-                                        None if ident is None else bool(ident.phase_moved)),
+                                        None if ident is None else bool(ident.phase_moved),
+                                        None if ident is None else bool(ident.disturbance),
+                                        None if ident is None else float(ident.load_estimate)),
             design=None if des is None else DesignRecord.of(des),
             forms=None if des is None else forms_json(des.gains),
         )

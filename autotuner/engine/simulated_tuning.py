@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 
@@ -80,9 +79,6 @@ def run_experiment(
     status_every: int = 50,
 ) -> tuple[RelayExperiment, Trace]:
     """Drive the experiment against the simulation until it ends; the MV starts at the plant's ``mv0``."""
-    if config.follow_loads is None:
-        # A simulated plant is sampled exactly: the load fit can be trusted.
-        config = replace(config, follow_loads=True)
     experiment = RelayExperiment(config, mv0=sim.mv0)
     ts, pvs, mvs = [], [], []
     n = 0

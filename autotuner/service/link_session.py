@@ -3,7 +3,8 @@
 The session owns the clock. It saves the loop (mode, MV, gains), takes it
 over in MAN, samples it on a deadline schedule (sample k is due at
 ``start + k·ts``, so delays do not accumulate), feeds the experiment the
-*measured* sample times (jitter then does not bias the identified point),
+*measured* sample times and the times its writes reached the device
+(jitter and a stalled write then do not bias the identified point),
 and whatever way the experiment ends — success, TBRK, PV limits, link loss,
 cancellation (Ctrl-C, SIGTERM) — hands the loop back (:func:`hand_back`):
 the saved MV is written, read back from the device until the PID unit has
@@ -277,10 +278,20 @@ async def tune_link(
             mv = experiment.step(t, pv)
             if experiment.done:
                 break
+            before = time.monotonic()
             await link.write_mv(mv)
+            # When the MV reached the device: a write the link or a busy machine delayed left the previous MV
+            # on the process meanwhile, and the estimates must integrate the MV as the process held it.
+            experiment.applied((0.5 * (before + time.monotonic()) - start) * speed)
             times.append(t)
             pvs.append(pv)
             mvs.append(mv)
+            if experiment.analysis_pending:
+                # A period ended: its analysis (a load fit: tens of ms of CPU) runs off the event loop, so the
+                # daemon's other loops, the handshake and an in-process simulated PLC keep their time.
+                await asyncio.to_thread(experiment.analyse)
+                if experiment.done:
+                    break
             status = experiment.status()
             if on_status is not None:
                 on_status(status)

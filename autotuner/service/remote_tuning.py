@@ -14,7 +14,7 @@ import asyncio
 import contextlib
 import os
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -154,9 +154,14 @@ async def tune_via(
     noise: float = 0.0,
     seed: int = 0,
     on_status: Callable[[Status], None] | None = None,
+    loads: Sequence[tuple[float, float]] = (),
 ) -> TuneResult:
-    """Serve ``process`` over ``transport`` ("modbus" or "can") and tune it through the real link."""
-    plc = SimulatedPlc(process, ts=ts / PLANT_TICKS_PER_SAMPLE, noise_std=noise, seed=seed)
+    """Serve ``process`` over ``transport`` ("modbus" or "can") and tune it through the real link.
+
+    ``loads``: (T, SIZE) load steps at the process input (plant seconds after the session takes the loop,
+    MV units), made by the simulated PLC.
+    """
+    plc = SimulatedPlc(process, ts=ts / PLANT_TICKS_PER_SAMPLE, noise_std=noise, seed=seed, loads=tuple(loads))
     async with served(plc, transport, speed) as (url, _):
         return await tune_opened(open_link(url), controller, lambda link: tune_link(
             link, field_config(config), ts, controller, ms, speed=speed, on_status=on_status))

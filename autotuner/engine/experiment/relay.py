@@ -31,6 +31,7 @@ third of the tolerances stops it half a period sooner.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from enum import Enum
 
@@ -82,10 +83,12 @@ class RelayConfig:
         share of the time limit).
     follow_loads: look for load steps and drift in the record (load_fit.py),
         estimate the static gain through them and let the relay's centre
-        follow them within ±amp; off, the experiment is the plain one. None
-        (the default) is on in simulation (simulated_tuning) and off over a
-        link for now: a session that stalls for seconds holds the MV late,
-        which the fit reads as load steps.
+        follow them within ±amp; off, the experiment is the plain one (which
+        takes a load's response for the relay's and reports a wrong static
+        gain). A session whose writes can be late (a link, a busy machine)
+        tells the experiment when each MV arrived (:meth:`RelayExperiment.applied`):
+        a stall recorded as if the MV had arrived on time is what a load step
+        looks like to the fit.
     """
 
     amp: float
@@ -104,7 +107,7 @@ class RelayConfig:
     static_tol: float = 0.02
     noise_tol: float = 0.004
     expected_period: float | None = None
-    follow_loads: bool | None = None
+    follow_loads: bool = True
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.amp) and self.amp > 0.0):
@@ -189,6 +192,10 @@ _JUMP = 0.05
 _X_STD_MAX = 0.1
 # A sample interval this many times the usual one is a gap in the record.
 _GAP = 3.0
+# A time without samples longer than this share of a period (and than _GAP sample intervals) in an estimate's
+# window (a link or a machine that stalled) leaves that estimate out of the stopping rule: the relay could not
+# switch meanwhile.
+_STALL = 0.1
 # Without an expected period, the time-left estimate starts from this share of the time limit.
 _LIMIT_SHARE = 200.0
 _SAMPLES_PER_PERIOD = 100.0
@@ -264,13 +271,20 @@ class RelayExperiment:
         self._discard_before = -math.inf
         self._flipped = False
         self._changed_at = -math.inf
+        self._stalled_until = -math.inf  # the end of the latest window that held a stall (_STALL)
+        self._stalls: list[float] = []  # the longest gap of each such window, s
         self._candidate: LoadFit | None = None
+        # The analysis of the period that ended at a switch, run after the switch is out (see analyse).
+        self._analyse: Callable[[], None] | None = None
         self._progress = 0.0
         self._follow_rate = 0.0
         self._follow_from = 0.0
         self._t: list[float] = []
         self._y: list[float] = []
         self._u: list[float] = []
+        # When each MV of ``_u`` reached the process (s): the sample's time unless the caller said it
+        # came later (``applied``: a write that a busy link or a stalled session delayed).
+        self._s: list[float] = []
         self.stage = Stage.NOISE
         self.code: Code | None = None
         self.message = ""
@@ -372,6 +386,9 @@ class RelayExperiment:
         if not lo <= pv <= hi:
             self._finish(Code.PV_OUT_OF_LIMITS, f"PV {pv:g} left the limits [{lo:g}, {hi:g}]")
             return self.mv0
+        self.analyse()
+        if self.done:
+            return self.mv0
         self._t.append(t)
         self._y.append(pv)
         if t - self._t[0] > self.config.time_limit:
@@ -381,15 +398,56 @@ class RelayExperiment:
             if len(self._y) >= self.config.noise_samples:
                 self._start_relay()
             else:
-                self._u.append(self.mv0)
+                self._hold(t, self.mv0)
                 return self.mv0
         mv = self._relay_step(t, pv)
         if self.done:
             return self.mv0
         step = self.config.mv_rate * (t - self._t[-2])
         mv = min(max(mv, self._u[-1] - step), self._u[-1] + step)
-        self._u.append(mv)
+        self._hold(t, mv)
         return mv
+
+    @property
+    def analysis_pending(self) -> bool:
+        """True when a period ended at the last sample and :meth:`analyse` has not run yet."""
+        return self._analyse is not None and not self.done
+
+    def analyse(self) -> None:
+        """Analyse the period that ended at the last sample's switch: its estimates, the stopping rule, the load fit.
+
+        The switch itself is in the MV the last :meth:`step` returned: a load
+        fit takes tens of milliseconds of CPU, and a switch waiting for it
+        would reach the process that much late. :meth:`step` runs it at the
+        next sample if the caller has not; a field session runs it after its
+        write, in a worker thread, so that its event loop (other loops, the
+        handshake) keeps time meanwhile. Nothing to do otherwise.
+        """
+        analyse, self._analyse = self._analyse, None
+        if analyse is not None and not self.done:
+            analyse()
+
+    def applied(self, t: float) -> None:
+        """The MV returned by the last :meth:`step` reached the process at ``t`` (seconds, the caller's clock).
+
+        A field session calls it after each write: a write that a busy link or
+        a stalled session delayed left the previous MV on the process longer
+        than the sample times say, and the estimates (the point's MV
+        coefficient, the static ratio, the load fit) integrate the MV as the
+        process really held it. Without a call the MV counts from its
+        sample's time. A time before that sample (clocks that disagree) is
+        taken as the sample's.
+        """
+        if self._s and len(self._s) == len(self._t) and math.isfinite(t):
+            self._s[-1] = max(t, self._t[-1])
+
+    def _hold(self, t: float, mv: float) -> None:
+        self._u.append(mv)
+        self._s.append(t)
+
+    def _held(self, n: int) -> np.ndarray:
+        """When the first ``n`` recorded MVs reached the process (s): the times their holds start from."""
+        return np.asarray(self._s[:n])
 
     def status(self) -> Status:
         """Stage, progress (0–1), ite and the live relay/filter state."""
@@ -450,11 +508,11 @@ class RelayExperiment:
         old = self._relay_mv()
         if self._relay > 0 and self._filtered < -self._eps:
             self._switch(-1, k, -self._eps, before, dt)
-            self._judge_half()
+            self._analyse = self._judge_half
         elif self._relay < 0 and self._filtered > self._eps:
             self._switch(1, k, self._eps, before, dt)
-            self._on_period()
-        if not self.done:
+            self._analyse = self._on_period
+        if not self.done and self._analyse is None:  # (the period's end is judged once it is analysed)
             self._check_oscillation(k)
         if not self.done and self._check_runaway(k):
             return self._relay_mv()
@@ -670,8 +728,7 @@ class RelayExperiment:
             theta = 0.0 if self._unstable else math.pi - math.radians(self._target_deg) - math.asin(ratio)
             self._set_filter(theta, omega)
             return
-        # The MV of this sample is not recorded yet; the windows need the MVs
-        # held before this sample only.
+        # (The switch's own MV, recorded already, holds from this sample on: after every window.)
         tt = np.asarray(t)
         uu = np.asarray(self._u)
         yy = np.asarray(self._y)
@@ -687,7 +744,7 @@ class RelayExperiment:
             detrended = yy - self._drift(tt, yy, self._crossings[-3:]) if len(self._crossings) >= 3 else yy
             if self._follow_rate and len(self._crossings) >= 3:
                 # The MV follows a drift: its ramp is slow too, not part of the oscillation.
-                uu = uu - self._drift(tt[: len(uu)], uu, self._crossings[-3:])
+                uu = uu - self._drift(self._held(len(uu)), uu, self._crossings[-3:])
         elif len(self._crossings) >= 3:
             detrended = yy - self._drift(tt, yy, self._crossings[-3:])
         else:
@@ -737,17 +794,11 @@ class RelayExperiment:
             return None
         if self._resonant():
             return None
-        # A sampling gap (a link that stalled: the MV reached the plant late)
-        # makes the record disagree with what the plant got; the fit would
-        # call that a load. No fit while the last three periods hold one.
-        if self._gap_since(tt, self._crossings[-4]):
-            self._candidate = None
-            return None
         point = self._estimates[-1][0]
         n = len(uu)
         scale = point.gain * self.config.amp
         return LoadFitter(tt[:n], self._sign * (yy[:n] - self._sp), uu[:n], self.mv0, self._relay_start,
-                          point.omega, point.gain, self._lag(point.value), scale)
+                          point.omega, point.gain, self._lag(point.value), scale, held_from=self._held(n))
 
     @staticmethod
     def _gap_since(tt: np.ndarray, start: float) -> bool:
@@ -774,7 +825,7 @@ class RelayExperiment:
 
     def _look_for_disturbance(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
         """Fit the slow part of the record; True (and the disturbed mode on) if it needed a disturbance."""
-        if self.config.follow_loads is not True:
+        if not self.config.follow_loads:
             return False
         fitter = self._fitter(tt, uu, yy)
         if fitter is None:
@@ -902,7 +953,7 @@ class RelayExperiment:
         is no stable model's response to a step, and a stable process's
         response to a load is no unstable model's.
         """
-        if self.config.follow_loads is not True:
+        if not self.config.follow_loads:
             return False
         fitter = self._fitter(tt, uu, yy)
         if fitter is None:
@@ -966,6 +1017,12 @@ class RelayExperiment:
         self._estimates.append((point, inverse_gain))
         self._windows.append(ta)
         self._wide.append(self._wide_inverse(tt, uu, yy) if self._fit is None else inverse_gain)
+        gap = self._longest_gap(tt, self._crossings[-3], tb)
+        if gap > max(_STALL * (tb - ta), _GAP * self._dt):
+            # No sample, so no switch, for that long: the cycle around it is no limit cycle. This estimate
+            # and those before it are left out, as after a change of the relay's levels.
+            self._stalled_until = tb
+            self._stalls.append(gap)
         periods = len(self._rising) - 1
         if periods < _MIN_PERIODS or len(self._estimates) < 2:
             return
@@ -994,9 +1051,8 @@ class RelayExperiment:
         if self._fit is not None or periods < _MIN_PERIODS or len(self._falls) < 3 or self._noisy():
             return
         ta, tb = self._falls[-2], self._falls[-1]
-        since = max(self._discard_before, self._changed_at)
         usable = self._usable()
-        if ta < since or not usable:
+        if ta < self._since() or not usable:
             return
         tt, uu, yy = np.asarray(self._t), np.asarray(self._u), np.asarray(self._y)
         # A sampling gap (a stalled link) in the overlap biases both windows alike, so they agree: only the
@@ -1035,18 +1091,18 @@ class RelayExperiment:
         if self._fit is not None:
             return point, self._fit.x
         start = bounds[0]
-        du = held_coefficient(tt, uu - self.mv0, start, tb, 0.0, hann=False).real
+        du = held_coefficient(self._held(len(uu)), uu - self.mv0, start, tb, 0.0, hann=False).real
         dy = sampled_coefficient(tt, np.asarray(self._y) - self._sp, start, tb, 0.0, hann=False).real
         # Compare estimates through |F|/K0, which stays bounded as K0 grows.
         plain = self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
-        return point, settled_ratio(tt[: len(uu)], uu - self.mv0, self._sign * dy, plain, point.gain, omega,
+        return point, settled_ratio(self._held(len(uu)), uu - self.mv0, self._sign * dy, plain, point.gain, omega,
                                     self._lag(value), start, tb, *self._settling)
 
     def _wide_inverse(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> float:
         """|F|/K0 over the last two whole periods with a Hann window (the mean weighted to their middle)."""
         ta, tb = self._crossings[-3], self._crossings[-1]
         value = self._estimate(tt, uu, yy, ta, tb, 4.0 * math.pi / (tb - ta), hann=True)
-        du = held_coefficient(tt, uu - self.mv0, ta, tb, 0.0).real
+        du = held_coefficient(self._held(len(uu)), uu - self.mv0, ta, tb, 0.0).real
         dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0).real
         return self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
 
@@ -1060,9 +1116,20 @@ class RelayExperiment:
             return False
         return self._noise > _NOISY * self._estimates[-1][0].gain * self.config.amp
 
+    def _since(self) -> float:
+        """Estimates whose window starts before this time (s) are not used: a load step, a change of the relay's
+        levels or a stall came after them."""
+        return max(self._discard_before, self._changed_at, self._stalled_until)
+
     def _usable(self) -> list[tuple[Point, float]]:
-        since = max(self._discard_before, self._changed_at)
+        since = self._since()
         return [e for e, start in zip(self._estimates, self._windows) if start >= since]
+
+    @staticmethod
+    def _longest_gap(tt: np.ndarray, start: float, end: float) -> float:
+        """The longest time without a sample within ``[start, end]`` (s)."""
+        inside = tt[(tt > start) & (tt < end)]
+        return float(np.max(np.diff(np.concatenate(([start], inside, [end])))))
 
     def _succeed(self, point: Point, inverse_gain: float) -> None:
         # Within the resolution of the mean MV shift, a vanishing |F|/K0 is an
@@ -1108,11 +1175,13 @@ class RelayExperiment:
     # -- helpers ----------------------------------------------------------
 
     def _estimate(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, ta: float, tb: float, omega: float, hann: bool) -> complex:
+        """F(jω) over ``[ta, tb]`` (s): the PV sampled at ``t``, the MV as the process held it (``applied``)."""
         # Means are removed first: over a window that is not exactly whole
         # periods they would leak into the coefficient.
-        u = u - held_coefficient(t, u, ta, tb, 0.0, hann).real
+        s = self._held(len(u))
+        u = u - held_coefficient(s, u, ta, tb, 0.0, hann).real
         y = y - sampled_coefficient(t, y, ta, tb, 0.0, hann).real
-        return self._sign * sampled_coefficient(t, y, ta, tb, omega, hann) / held_coefficient(t, u, ta, tb, omega, hann)
+        return self._sign * sampled_coefficient(t, y, ta, tb, omega, hann) / held_coefficient(s, u, ta, tb, omega, hann)
 
     @staticmethod
     def _lag(value: complex) -> float:
@@ -1210,7 +1279,12 @@ class RelayExperiment:
                 )
                 return
         text = f"no convergence {when}"
-        if self._estimates:
+        if self._stalls:
+            # Not the process's fault: say what kept the estimates out.
+            text += (f": {len(self._stalls)} estimates were left out because their windows held a time without "
+                     f"samples of more than {_STALL:.0%} of a period (the longest {max(self._stalls):.3g} s): the "
+                     "link or the machine is too slow for this sample time")
+        elif self._estimates:
             lag = -self._estimates[-1][0].phase_deg
             text += (
                 f": the process lags {lag:.1f}° where {self.config.phase_deg:g}° was requested"

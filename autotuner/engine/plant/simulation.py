@@ -133,6 +133,12 @@ class PlantSim:
             pv = math.floor(pv / self.quantum + 0.5) * self.quantum
         return pv
 
+    def step_load(self, size: float) -> None:
+        """A load step of ``size`` MV units at the process input from now on (from the next :meth:`advance`)."""
+        if not math.isfinite(size):
+            raise ValueError(f"load step must be a finite number of MV units, got {size}")
+        self._load += float(size)
+
     def advance(self, mv: float) -> float:
         """Hold mv over [t, t+ts) and advance t by ts; returns the MV applied after clipping.
 
