@@ -59,13 +59,13 @@ def wait_for(predicate: Callable[[], Any], timeout: float, what: str) -> Any:
 class Plc:
     """An `autotuner sim --modbus` process and a Modbus client of our own reading (and, as an operator, writing) it."""
 
-    def __init__(self, tmp: Path, speed: float = SPEED) -> None:
+    def __init__(self, tmp: Path, speed: float = SPEED, options: tuple[str, ...] = ()) -> None:
         self.port = free_port()
         self.speed = speed
         self.log_path = tmp / f"plc-{self.port}.log"
         self.log = open(self.log_path, "w")  # noqa: SIM115 - closed in close(); a file, never a pipe left unread
         self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "sim", "--modbus",
-                                      f"127.0.0.1:{self.port}", "--speed", str(speed), "--ts", str(PLC_TS)],
+                                      f"127.0.0.1:{self.port}", "--speed", str(speed), "--ts", str(PLC_TS), *options],
                                      stdout=self.log, stderr=subprocess.STDOUT, text=True)
         self.stopped = False
         self.client = ModbusTcpClient("127.0.0.1", port=self.port, timeout=1.0, retries=0)

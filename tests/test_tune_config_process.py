@@ -13,7 +13,7 @@ import pytest
 
 from autotuner.engine.outcome import Code
 from drivers.modbus_map import DEFAULT_MAP
-from test_handback import SAVED_MV, SPEED, Plc
+from test_handback import SAVED_MV, Plc
 
 # Holding registers 0..24 and coils 0..3 of the default map: SP, manual MV, gains, ite, mode, heartbeat, watchdog;
 # TUNE, TBRK, TBSY, TE.
@@ -35,7 +35,7 @@ def tune_config(tmp: Path, plc: Plc, pv_limits: list[float], *options: str) -> t
     """Run ``autotuner tune --config … --loop L1 --json`` on ``plc``; exit code, the JSON printed, stderr."""
     config = tmp / "daemon.yaml"
     config.write_text(json.dumps({"history": str(tmp / "history.sqlite"), "loops": [{
-        "id": "L1", "link": plc.url, "ts": 0.3, "speed": SPEED,
+        "id": "L1", "link": plc.url, "ts": 0.3, "speed": plc.speed,
         "tuning": {"controller": "PI", "amp": 5.0, "time_limit": 2000},
         "limits": {"pv": pv_limits, "mv": [0, 100]}}]}))
     done = subprocess.run([sys.executable, "-m", "autotuner.cli", "tune", "--config", str(config), "--loop", "L1",
@@ -72,3 +72,21 @@ def test_tune_config_on_an_offline_plc_is_refused_as_an_unhealthy_link(tmp_path)
     plc.close()  # its port now answers nothing
     code, out, _ = tune_config(tmp_path, plc, [0, 100])
     assert code == 1 and out["ite"] == int(Code.REFUSED_LINK), out
+
+
+def test_a_load_step_the_plc_makes_during_the_experiment_is_estimated_through(tmp_path):
+    # The external PLC steps its load by 0.2 × amp 45 plant seconds (about 2 periods) after the tuner takes the
+    # loop over. Load following was off over links: the relay took the load's response for its own.
+    # At 10× real time (30 ms of wall time per sample; at 20× a machine loaded beyond its cores refused with 11
+    # now and then: see test_hil's load test).
+    plc = Plc(tmp_path, speed=10.0, options=("--plant", "exp(-4*s)/(8*s+1)", "--load", "45:1"))
+    try:
+        code, out, err = tune_config(tmp_path, plc, [0, 100])
+        assert code == 0 and out["ite"] == 0, (out, err)
+        assert out["experiment"]["disturbance"] is True
+        assert out["experiment"]["load_estimate"] == pytest.approx(1.0, abs=0.15)
+        assert out["static_gain"] == pytest.approx(1.0, rel=0.05)
+        state = plc.read()  # handed back, as a separate client reads the PLC
+        assert state["mode"] == "AUTO" and state["tbsy"] is False and state["te"] is False
+    finally:
+        plc.close()

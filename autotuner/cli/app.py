@@ -87,6 +87,22 @@ def parse_plant(text: str, option: str = "--plant") -> Process:
         bad_input(f"bad {option} expression\n{exc}")
 
 
+def parse_loads(texts: list[str] | None, origin: str) -> list[tuple[float, float]]:
+    """``--load T:SIZE`` options as (plant seconds from ``origin``, MV units) load steps; bad input exits 2."""
+    steps = []
+    for text in texts or []:
+        when, sep, size = text.partition(":")
+        try:
+            step: tuple[float, float] | None = (float(when), float(size))
+        except ValueError:
+            step = None
+        if not sep or step is None or not all(math.isfinite(x) for x in step) or step[0] < 0.0:
+            bad_input(f"bad --load {text!r}: expected T:SIZE, T ≥ 0 plant seconds from {origin} and SIZE the "
+                      "step in MV units at the process input, e.g. --load 30:0.2")
+        steps.append(step)
+    return steps
+
+
 def fmt(x: float, unit: str = "") -> str:
     """A number for a table: 4 significant digits, ∞ for infinity."""
     return "∞" if math.isinf(x) else f"{x:.4g}{unit}"

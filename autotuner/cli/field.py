@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from autotuner.cli.app import DEMO_PLANT, Transport, app, bad_input, parse_plant, stdout
+from autotuner.cli.app import DEMO_PLANT, Transport, app, bad_input, parse_loads, parse_plant, stdout
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -39,6 +39,10 @@ def sim_command(
     seed: Annotated[int, typer.Option(help="Seed of the noise.")] = 0,
     duration: Annotated[float | None, typer.Option(help="Stop after this many wall seconds (default: run until "
                                                    "Ctrl-C or SIGTERM).")] = None,
+    load: Annotated[list[str] | None, typer.Option("--load", help="Load step T:SIZE at the process input (plant "
+                                                   "seconds from when a tuner first takes the loop over, i.e. "
+                                                   "the PLC's first cycle in MAN : MV units); repeat for "
+                                                   "several.")] = None,
 ) -> None:
     """Serve a simulated plant under a PID unit (a simulated PLC) over Modbus TCP and/or CAN."""
     from drivers.simplc import SimulatedPlc
@@ -52,10 +56,11 @@ def sim_command(
     if can_options and (can is None or interface != "udp_multicast"):
         bad_input("--can-port and --hop-limit are options of --can with --interface udp_multicast")
     process = parse_plant(plant)
+    steps = parse_loads(load, "when a tuner takes the loop over")
     address = None if modbus is None else _host_port(modbus)
     try:
         plc = SimulatedPlc(process, ts=(ts or default_sample_time(process) / PLANT_TICKS_PER_SAMPLE),
-                           noise_std=noise, seed=seed)
+                           noise_std=noise, seed=seed, loads=tuple(steps))
     except ValueError as exc:
         bad_input(str(exc))
 

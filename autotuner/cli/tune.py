@@ -21,7 +21,8 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from rich.table import Table
 
 from autotuner.cli.app import (
-    DEMO_PLANT, EXIT_FAILED, EXIT_OK, Controller, Transport, app, bad_input, gains_rows, parse_plant, stderr, stdout,
+    DEMO_PLANT, EXIT_FAILED, EXIT_OK, Controller, Transport, app, bad_input, gains_rows, parse_loads, parse_plant,
+    stderr, stdout,
 )
 
 if TYPE_CHECKING:
@@ -42,22 +43,6 @@ def _config(amp: float, hysteresis: float | None, phase: float, time_limit: floa
                            mv_limits=mv_limits)
     except ValueError as exc:
         bad_input(str(exc))
-
-
-def _loads(texts: list[str] | None) -> list[tuple[float, float]]:
-    """``--load T:SIZE`` options as (plant seconds, MV units) load steps; bad input exits with code 2."""
-    steps = []
-    for text in texts or []:
-        when, sep, size = text.partition(":")
-        try:
-            step: tuple[float, float] | None = (float(when), float(size))
-        except ValueError:
-            step = None
-        if not sep or step is None or not all(math.isfinite(x) for x in step) or step[0] < 0.0:
-            bad_input(f"bad --load {text!r}: expected T:SIZE, T ≥ 0 plant seconds from the start of the "
-                      "experiment and SIZE the step in MV units at the process input, e.g. --load 30:0.2")
-        steps.append(step)
-    return steps
 
 
 def _check_plant(process: Process, text: str) -> None:
@@ -259,7 +244,7 @@ def tune_command(
     if via is not None and (drift != 0.0 or quantum != 0.0):
         bad_input("--drift and --quantum simulate field conditions on the in-process --plant only (with --via: "
                   "--load, the PLC's load steps from when the tuner takes the loop)")
-    steps = _loads(load)
+    steps = parse_loads(load, "the start of the experiment")
     if config_file is not None:
         from autotuner.service.configured_loop import cli_user, tune_configured
         from autotuner.service.history import History
