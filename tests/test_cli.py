@@ -288,9 +288,10 @@ def test_bad_link_options_exit_2(args: list[str], words: str) -> None:
 
 
 def test_field_options_build_the_simulated_plant() -> None:
-    from autotuner.cli.tune import _loads, _prepare
+    from autotuner.cli.app import parse_loads
+    from autotuner.cli.tune import _prepare
 
-    steps = _loads(["20:0.2", "35.5:-0.1"])
+    steps = parse_loads(["20:0.2", "35.5:-0.1"], "the start of the experiment")
     assert steps == [(20.0, 0.2), (35.5, -0.1)]
     sim, _ = _prepare(PLANT, 0.05, 1.0, None, 135.0, 0.0, 0, 100.0, steps, 0.01, 0.002)
     assert sim.quantum == 0.002
