@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -302,6 +303,16 @@ def test_field_options_build_the_simulated_plant() -> None:
     # At 50 s: steps 0.2 − 0.1 plus the ramp 0.01·50 have passed the lag and the dead time.
     assert inputs[-1] == pytest.approx(0.2 - 0.1 + 0.01 * (50.0 - 1.0 - 2.0), abs=0.03)
     assert sim.measure() == pytest.approx(round(sim.true_pv() / 0.002) * 0.002, abs=1e-12)
+
+
+def test_the_table_names_a_detected_load() -> None:
+    quiet = _invoke("tune", "--plant", PLANT)
+    loaded = _invoke("tune", "--plant", PLANT, "--load", "15:0.2")
+    assert quiet.exit_code == 0 and loaded.exit_code == 0, loaded.output
+    assert "disturbance" not in quiet.stdout
+    found = re.search(r"disturbance\s*│ a load change of ([+-][0-9.]+) MV units", loaded.stdout)
+    assert found is not None, loaded.stdout
+    assert float(found.group(1)) == pytest.approx(0.2, abs=0.03)
 
 
 def test_load_step_option_reaches_the_experiment() -> None:

@@ -162,6 +162,10 @@ def _result_table(result: TuneResult, ts: float, plant: Process | None = None) -
     table.add_row("static gain", "integrating (∞)" if math.isinf(ident.static_gain) else f"{ident.static_gain:.4g}")
     table.add_row("experiment", f"{ident.duration:.4g} s, {ident.periods:.1f} periods, {ident.samples} samples "
                   f"(ts = {ts:.4g} s, hysteresis = {ident.hysteresis:.3g})")
+    if ident.disturbance:
+        table.add_row("disturbance", f"a load change of {ident.load_estimate:+.4g} MV units at the process input "
+                      "(or a PV still settling at the start) was detected and the static gain estimated through it"
+                      + (f"; {ident.periods_discarded} periods before it left out" if ident.periods_discarded else ""))
     if des is not None:
         for name, text in gains_rows(des.gains):
             table.add_row(name, text)
