@@ -800,12 +800,6 @@ class RelayExperiment:
         return LoadFitter(tt[:n], self._sign * (yy[:n] - self._sp), uu[:n], self.mv0, self._relay_start,
                           point.omega, point.gain, self._lag(point.value), scale, held_from=self._held(n))
 
-    @staticmethod
-    def _gap_since(tt: np.ndarray, start: float) -> bool:
-        """True when a sample interval since ``start`` (s) is a gap: ``_GAP`` times the usual one or more."""
-        recent = np.diff(tt[tt >= start])
-        return bool(len(recent)) and float(recent.max()) > _GAP * float(np.median(np.diff(tt)))
-
     def _resonant(self) -> bool:
         """True when |F(jω)| reads above the static gain: a resonance, which no first-order model describes.
 
@@ -1057,7 +1051,7 @@ class RelayExperiment:
         tt, uu, yy = np.asarray(self._t), np.asarray(self._u), np.asarray(self._y)
         # A sampling gap (a stalled link) in the overlap biases both windows alike, so they agree: only the
         # disjoint rising windows may judge such a record.
-        if self._gap_since(tt, self._crossings[-2]):
+        if self._longest_gap(tt, self._crossings[-2], tt[-1]) > _GAP * self._dt:
             return
         detrended = yy - self._drift(tt, yy, self._falls[-3:])
         candidates = [*usable, self._period_point(tt, uu, detrended, self._falls[-3:])]
