@@ -61,3 +61,22 @@ def test_estimates_scattered_about_the_curve_do_not_settle() -> None:
 
 def test_estimates_along_the_curve_whose_mean_lags_off_target_do_not_settle() -> None:
     assert judge(_along(shift_deg=2.0), 135.0, TOL, len(WANDER), noisy=False) is None
+
+
+def test_an_unstable_processs_static_ratio_must_settle_over_three_estimates() -> None:
+    # exp(-0.5*s)/(2*s-1) after its phase target moved: the point had settled, |F|/K0 was still converging
+    # (K0 read −0.91, −0.965; true −1). Two estimates agreed within static_tol and the run stopped with K0 3.5 %
+    # off, which made the design read D/T 0.257 and refuse PI (limit 0.25).
+    unstable = parse_process("exp(-0.5*s)/(2*s-1)")
+    point = Point(1.894, complex(unstable.freqresp(1.894)))  # where its cycle settled, lagging 159°
+    target = -point.phase_deg
+    true_x = -point.gain / abs(unstable.static_gain())
+    tol = Tolerances(1.0, 0.02, 0.02, 0.004)
+    converging = [(point, true_x * f) for f in (1.18, 1.09, 1.037)]
+    assert stopping._stats(converging[-2:])[3] / math.sqrt(2) <= 0.5 * tol.static_tol  # two agree: the old rule
+    assert judge(converging, target, tol, 3, noisy=False) is None
+    settled = [*converging, (point, true_x * 1.004), (point, true_x * 1.001), (point, true_x)]
+    verdict = judge(settled, target, tol, 3, noisy=False)
+    assert verdict is not None and verdict.inverse_gain == pytest.approx(true_x, rel=0.005)
+    # A stable process's ratio at the same size keeps the two-estimate rule (the plain bench's periods).
+    assert judge([(p, -x) for p, x in converging], target, tol, 3, noisy=False) is not None

@@ -159,7 +159,8 @@ def run_field(rows: list[dict[str, str]], workers: int | None = None) -> list[Fi
 
 
 # Unstable processes with dead time up to half the unstable time constant (T = 2 s), PI and PID.
-UNSTABLE_CASES = tuple((f"exp(-{d:g}*s)/(2*s-1)", c) for d in (0.1, 0.2, 0.4, 0.5, 0.8, 1.0) for c in ("PI", "PID"))
+UNSTABLE_CASES = tuple((f"exp(-{d:g}*s)/(2*s-1)", c) for d in (0.1, 0.2, 0.4, 0.5, 0.55, 0.8, 1.0)
+                       for c in ("PI", "PID"))
 
 
 @dataclass(frozen=True)
@@ -206,10 +207,10 @@ def unstable_table(rows: list[UnstableRow]) -> str:
     for r in rows:
         d = parse_process(r.plant).delay / 2.0
         tuned = math.isfinite(r.ms_model)
-        lines.append(f"| `{r.plant}` | {d:.2f} | {r.controller} | {r.code} | "
+        lines.append(f"| `{r.plant}` | {d:.3g} | {r.controller} | {r.code} | "
                      f"{r.phase_deg:.1f}° | {r.ms_target:.2f} | {r.ms_model:.3f} | {_ms_text(r.ms_true)} | "
                      f"{r.ki:.3g} | {r.message if r.code else 'ok'} |" if tuned else
-                     f"| `{r.plant}` | {d:.2f} | {r.controller} | {r.code} | "
+                     f"| `{r.plant}` | {d:.3g} | {r.controller} | {r.code} | "
                      + (f"{r.phase_deg:.1f}°" if math.isfinite(r.phase_deg) else "—")
                      + f" | — | — | — | — | {r.message} |")
     return "\n".join(lines)

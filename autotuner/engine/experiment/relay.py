@@ -229,6 +229,17 @@ _FIRST_LOW = 0.4
 # first one still carries the start's transient); one whose ratio turns negative later is a load step or
 # noise, which the load fit and the stopping rule deal with.
 _HINT_ESTIMATES = 3
+# A first half period at the weak level longer than this many reaction times (_reaction): the level barely
+# held the PV, as on an unstable process whose dead time and lag are near what a relay holds; the
+# describing function's lag in the next period would let it run away beyond the full amp (seen at 9.3 on
+# exp(-0.3*s)/((s-1)*(0.1*s+1))). The batch's stable processes stay below 7.1.
+_SLOW_RETURN = 8.0
+# The mean ratio |F|/K0 over the first whole period below which the process may be open-loop unstable: the
+# filter then holds no lag until an estimate decides (_suspect). The start's transient takes a stable
+# process's first period down to −0.31 (the batch); an unstable one whose dead time the first weak level
+# does not reveal (D/T 0.25–0.34) shows −0.8 to −1.1, and the describing function's lag would make it run
+# away in the next period.
+_SUSPECT_RATIO = -0.5
 # How much lower (information criterion) the unstable load fit must score than the stable one to call a
 # process unstable: both ranges share x = 0, so an integrator with a load ties (differences of 1–3 seen);
 # unstable processes score 20–250 lower. 10 is "very strong" evidence on the usual BIC scale.
@@ -311,6 +322,7 @@ class RelayExperiment:
         # (_negative_ratio) read the sign of the static gain, which one period of the start-up
         # transient can invert on a stable lag-dominant process.
         self._wide: list[float] = []
+        self._wide_spans: list[tuple[float, float]] = []  # the window of each, s
         # The lag over every whole period, radians (also those before the first estimate is judged).
         self._lags: list[float] = []
         self._disturbance_seen = False
@@ -657,15 +669,21 @@ class RelayExperiment:
                 f"amplitude ({amp:g})")
         lag = max(self._lags, default=0.0)
         if lag > math.pi or reach < _REACH_ONE_POLE:
-            evidence = (f"the process lagged {math.degrees(lag):.0f}° (more than 180°) at the relay's frequency"
-                        if lag > math.pi else
-                        f"the relay's answer reached it within {reach:.2f} × the runaway's time constant (a relay "
-                        "holds a single unstable pole with so short a dead time)")
+            if lag > math.pi:
+                evidence = (f"the process lagged {math.degrees(lag):.0f}° (more than 180°) at the relay's frequency "
+                            "— an open-loop unstable process with more than one unstable pole")
+            else:
+                # A runaway this fast from a level the dead time alone would let a relay hold: more than one
+                # unstable pole, or stable lags that add to the dead time (the growth is then measured while
+                # the full level is still arriving through them).
+                evidence = (f"the relay's answer reached it within {reach:.2f} × the runaway's time constant (a "
+                            "relay holds a single unstable pole with so short a dead time) — an open-loop unstable "
+                            "process with more than one unstable pole, or lags that add to its dead time beyond "
+                            "what a relay holds")
             self._finish(
                 Code.NOT_STABILISABLE,
-                f"{MESSAGES[Code.NOT_STABILISABLE]}: {what}, and {evidence} — an open-loop unstable process with "
-                "more than one unstable pole: no relay holds it and no PI stabilises it, so no relay experiment "
-                "tunes it",
+                f"{MESSAGES[Code.NOT_STABILISABLE]}: {what}, and {evidence}: no relay holds it and no PI/PID "
+                "stabilises it robustly, so no relay experiment tunes it",
             )
             return
         self._finish(
@@ -724,6 +742,8 @@ class RelayExperiment:
             half = t[self._rising[0]] - t[self._switches[-2]]
             omega = math.pi / half
             ratio = min(1.0, self._eps / self._peak_error) if self._peak_error > 0 else 0.0
+            if self._react > _REACT_SAMPLES * self._dt and half > _SLOW_RETURN * self._react:
+                self._enter_unstable()  # as after a rescue, until the estimates say otherwise
             # A PV that already ran away once (unstable): no lag until an estimate says what is reachable.
             theta = 0.0 if self._unstable else math.pi - math.radians(self._target_deg) - math.asin(ratio)
             self._set_filter(theta, omega)
@@ -751,8 +771,13 @@ class RelayExperiment:
             detrended = yy
         ta, tb = self._crossings[-2], self._crossings[-1]
         omega = 2.0 * math.pi / (tb - ta)
-        lag = self._lag(self._estimate(tt, uu, yy, ta, tb, omega, hann=False))
+        value = self._estimate(tt, uu, yy, ta, tb, omega, hann=False)
+        lag = self._lag(value)
         self._lags.append(lag)
+        # (A PV still settling at TUNE makes any process's first ratio negative: the load fit judges that one.)
+        if len(self._lags) == 1 and not self._settling[0] and self._mean_ratio(tt, uu, yy, ta, tb, abs(value)) < _SUSPECT_RATIO:
+            self._enter_unstable()
+            self._set_filter(0.0, omega)
         # An open-loop unstable process shows a negative mean ratio from its first estimates on (or ran
         # away from a level already); one that turns negative later is a load step or noise, which the
         # load fit and the stopping rule deal with.
@@ -763,14 +788,14 @@ class RelayExperiment:
             # An open-loop unstable process: a weaker bias, and a phase it reaches.
             self._enter_unstable()
             self._move_target(self._estimates[-1][0], self._wide[-1])
-        elif self._estimates and not negative:
+        elif negative is False:
             self._unstable = False  # a rescued level (_check_runaway) on a process the estimates call stable
         # (A change of the levels made just now, at the end of the period, leaves the period clean.)
         clean = ta >= self._changed_at or self._changed_at >= self._t[-1]
         if clean and not (self._unstable and not self._aimed):
             # A period that saw the relay's levels change is a transient: the
-            # filter is not corrected from it (nor, on an unstable process, before
-            # an estimate has said which phase it reaches).
+            # filter is not corrected from it (nor, on a process that is or may be
+            # unstable, before an estimate has said which phase it reaches).
             self._adapt(omega, lag)
         if len(self._rising) >= 3:
             self._judge(tt, uu, detrended)
@@ -954,12 +979,17 @@ class RelayExperiment:
             return False
         return fitter.fit(unstable=True).score > fitter.fit(unstable=False).score - _UNSTABLE_EVIDENCE
 
-    def _negative_ratio(self) -> bool:
-        """True when the mean two-period ratio |F|/K0 of the latest two estimates is below −static_tol."""
-        if not self._wide:
-            return False
-        inverse = sum(self._wide[-2:]) / len(self._wide[-2:])
-        return inverse < -self.config.static_tol
+    def _negative_ratio(self) -> bool | None:
+        """True when the mean two-period ratio |F|/K0 of the latest two estimates is below −static_tol.
+
+        Estimates whose windows span the latest change of the relay's levels do not count (the transient
+        between two cycles); None while there is no other.
+        """
+        since = self._since()
+        wide = [x for x, (start, end) in zip(self._wide, self._wide_spans) if not start < since < end][-2:]
+        if not wide:
+            return None
+        return bool(sum(wide) / len(wide) < -self.config.static_tol)
 
     def _unstable_model(self, point: Point, x: float) -> tuple[float, float] | None:
         """(ω·T, D/T) of ``K·e^{−Ds}/(Ts − 1)`` through ``point`` with ``|F|/K0 = x < 0``, or None if none fits.
@@ -1011,6 +1041,7 @@ class RelayExperiment:
         self._estimates.append((point, inverse_gain))
         self._windows.append(ta)
         self._wide.append(self._wide_inverse(tt, uu, yy) if self._fit is None else inverse_gain)
+        self._wide_spans.append((self._crossings[-3], tb))
         gap = self._longest_gap(tt, self._crossings[-3], tb)
         if gap > max(_STALL * (tb - ta), _GAP * self._dt):
             # No sample, so no switch, for that long: the cycle around it is no limit cycle. This estimate
@@ -1096,9 +1127,14 @@ class RelayExperiment:
         """|F|/K0 over the last two whole periods with a Hann window (the mean weighted to their middle)."""
         ta, tb = self._crossings[-3], self._crossings[-1]
         value = self._estimate(tt, uu, yy, ta, tb, 4.0 * math.pi / (tb - ta), hann=True)
-        du = held_coefficient(self._held(len(uu)), uu - self.mv0, ta, tb, 0.0).real
-        dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0).real
-        return self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
+        return self._mean_ratio(tt, uu, yy, ta, tb, abs(value), hann=True)
+
+    def _mean_ratio(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray, ta: float, tb: float, gain: float,
+                    hann: bool = False) -> float:
+        """``gain`` (|F|, PV per MV unit) over the static ratio of the means over ``[ta, tb]`` (s): |F|/K0."""
+        du = held_coefficient(self._held(len(uu)), uu - self.mv0, ta, tb, 0.0, hann).real
+        dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0, hann).real
+        return self._sign * du / dy * gain if dy != 0.0 else 0.0
 
     def _tolerances(self) -> Tolerances:
         c = self.config

@@ -157,10 +157,13 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
         else:
             static_ok = inverse_spread / math.sqrt(k) <= 0.5 * tol.static_tol
         if not noisy:
-            if inverse_std is None and 1.0 < slow_memory(inverse) <= SLOW_MEMORY_MAX:
+            if inverse_std is None and (inverse < -tol.static_tol or 1.0 < slow_memory(inverse) <= SLOW_MEMORY_MAX):
                 # A slow mode remembers the relay's means of earlier periods: its |F|/K0 estimates converge
                 # more slowly than the point's, and two can agree by chance (100·e^{−20s}/(300s+1):
                 # 0.0805, 0.0803, then 0.0768; true 0.0771): three must agree, each within the bound.
+                # So must an unstable process's, whose design hangs on K0 (its pole is |F|/K0 of the
+                # point's gain at high ω): after its target moved, exp(-0.5*s)/(2*s-1) read K0 −0.80,
+                # −0.91, −0.965 (true −1), and two of them agreed within static_tol.
                 last = estimates[-max(k, STATIC_MIN):]
                 static_ok = static_ok and len(last) >= STATIC_MIN and _stats(last)[3] <= 0.5 * static_bound(
                     tol, inverse)
