@@ -163,3 +163,19 @@ def test_the_relay_holds_the_mv_only_at_the_levels_it_reports(expr: str) -> None
     if process.static_gain() < 0.0:
         # The rescue's full amp and the unstable bias's level were used, and are listed.
         assert min(held) == pytest.approx(8.0) and 8.4 in {round(mv, 9) for mv in held}
+
+
+@pytest.mark.parametrize(("expr", "seed"), [("exp(-0.55*s)/(2*s-1)", 2), ("exp(-0.8*s)/(2*s-1)", 2), ("exp(-1*s)/(2*s-1)", 1)])
+def test_unstable_processes_are_stabilised_through_noise(expr: str, seed: int) -> None:
+    # σ 0.002: about 1 % of |F|·amp at the point these reach. A PV creeping away near the weak level's
+    # equilibrium grew by less than the noise from sample to sample, so the rescue came when the PV was beyond
+    # the full amp's reach (17 "runs away" on all three before, the first two for one seed in two).
+    process = parse_process(expr)
+    ts = default_sample_time(process)
+    config = RelayConfig(amp=1.0, time_limit=default_time_limit(process, 135.0, ts))
+    result = tune(PlantSim(process, ts, noise_std=0.002, seed=seed), config, "PID")
+    out = result.as_json()
+    assert out["ite"] in (Code.OK, Code.ROBUSTNESS_MISSED), out["message"]
+    assert result.identification is not None and result.identification.phase_moved
+    assert _ms_true(process, out["gains"]) <= 2.2
+    assert float(np.max(np.abs(result.trace.pv))) < 2.0 * abs(process.static_gain())

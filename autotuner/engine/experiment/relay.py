@@ -590,30 +590,33 @@ class RelayExperiment:
         react = self._reaction(k)
         if not self._switches or react <= 0.0:
             return False
-        t, y = self._t, self._y
+        t = self._t
         # Since the last switch, or since the level was strengthened (its effect takes as long to arrive).
         last = max(self._switches[-1], self._rescued_at)
         m = max(int(round(_RUNAWAY_WINDOW * react / self._dt)), 2)  # samples per window
         # The dead time after the switch has passed, and three windows since (the PV accelerates
         # away during the dead time whatever the process).
-        if t[k] - t[last] < react + 3 * m * self._dt:
+        elapsed = t[k] - t[last] - react
+        if elapsed < 3 * m * self._dt:
             return False
-        # Equal windows of samples (a sampled ramp compared over unequal ones looks curved).
-        marks = [k - 3 * m, k - 2 * m, k - m, k]
-        away = [self._relay * self._sign * (self._sp - y[i]) for i in marks]
-        steps = np.diff(away)
-        floor = 3.0 * self._noise
-        if not (steps[0] > floor and steps[1] > steps[0] + floor and steps[2] > steps[1] + floor):
-            return False
-        # Growing steps alone are also a stable process's answer to a ramp (a drifting load), whose
-        # steps converge to the ramp's; an unstable pole's grow geometrically (s0·s2 = s1²).
-        if steps[0] * steps[2] < _GEOMETRIC * steps[1] ** 2 - floor * (steps[0] + steps[2]):
-            return False
-        if len(self._switches) >= 3 and away[-1] <= self._peak_away():
-            return False  # within the swing the cycle already had
         level = self._mv_high if self._relay > 0 else self._mv_low
         amp = self.config.amp
-        if abs(level - self._center) >= amp * (1.0 - 1e-9) or self._full_level:
+        full = abs(level - self._center) >= amp * (1.0 - 1e-9) or self._full_level
+        growth = self._runaway(k, m, samples=True)
+        if growth is None and not full and elapsed >= 4 * m * self._dt:
+            # Windows that grow with the time since, and the PV's mean over each: a runaway much slower
+            # than the reaction time (D/T 0.275 near a weak level's equilibrium) grows by less than the
+            # noise from window to window, and the short windows' samples saw it only once it was beyond
+            # the full amp's reach (exp(-0.55*s)/(2*s-1) with 1 % noise: 10 s late, refused with 17).
+            # (Not at full amp: there the short windows' growth rate tells one unstable pole from two.)
+            m = int(elapsed / (4.0 * self._dt))
+            growth = self._runaway(k, m, samples=False)
+        if growth is None:
+            return False
+        away, steps = growth
+        if len(self._switches) >= 3 and away[-1] <= self._peak_away():
+            return False  # within the swing the cycle already had
+        if full:
             # The runaway's growth rate (1/s) is an unstable pole's 1/T once the MV is held.
             self._runaway_at_full_amp(amp, react * math.log(steps[2] / steps[1]) / (m * self._dt))
             return False
@@ -628,6 +631,27 @@ class RelayExperiment:
         self._set_filter(0.0, self._omega or 1.0)
         self._last = None
         return True
+
+    def _runaway(self, k: int, m: int, samples: bool) -> tuple[list[float], np.ndarray] | None:
+        """(distances from the set point, their steps) when the PV moves away faster and faster, else None.
+
+        Over four marks ``m`` samples apart ending at sample ``k``: the PV at each (``samples``) or its mean
+        over the ``m`` samples up to each. Equal windows of samples (a sampled ramp compared over unequal
+        ones looks curved); the steps must grow by more than the noise, and geometrically: a stable
+        process's answer to a ramp (a drifting load) grows too, but its steps converge to the ramp's, and
+        an unstable pole's grow as ``s0·s2 = s1²``.
+        """
+        marks = (k - 3 * m, k - 2 * m, k - m, k)
+        y = self._y
+        values = [y[i] for i in marks] if samples else [sum(y[i - m + 1:i + 1]) / m for i in marks]
+        away = [self._relay * self._sign * (self._sp - v) for v in values]
+        steps = np.diff(away)
+        floor = 3.0 * self._noise / (1.0 if samples else math.sqrt(m))
+        if not (steps[0] > floor and steps[1] > steps[0] + floor and steps[2] > steps[1] + floor):
+            return None
+        if steps[0] * steps[2] < _GEOMETRIC * steps[1] ** 2 - floor * (steps[0] + steps[2]):
+            return None
+        return away, steps
 
     def _reaction(self, k: int) -> float:
         """Seconds the process takes to answer the relay: the runaway test's time scale (0 while unknown).
