@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from autotuner.engine.experiment.relay import RelayConfig
+from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment
 from autotuner.engine.outcome import Code
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.plant.process import Process
@@ -179,3 +179,26 @@ def test_unstable_processes_are_stabilised_through_noise(expr: str, seed: int) -
     assert result.identification is not None and result.identification.phase_moved
     assert _ms_true(process, out["gains"]) <= 2.2
     assert float(np.max(np.abs(result.trace.pv))) < 2.0 * abs(process.static_gain())
+
+
+def test_a_runaway_through_a_stall_of_the_samples_says_so() -> None:
+    # A relay switches only at a sample: a session that stalls for 1 s between a PV read and its MV write
+    # (half the unstable time constant) lets D/T 0.275 run away from the full amp. That is refused, and the
+    # refusal names the stall instead of blaming the process's dead time alone.
+    process = parse_process("exp(-0.55*s)/(2*s-1)")
+    ts, sub = default_sample_time(process), 10
+    sim = PlantSim(process, ts / sub)
+    experiment = RelayExperiment(RelayConfig(amp=1.0, time_limit=default_time_limit(process, 135.0, ts)), mv0=0.0)
+    mv, changes = 0.0, 0
+    while not experiment.done:
+        new = experiment.step(sim.t, sim.measure())
+        if new != mv:
+            changes += 1
+            for _ in range(int(1.0 / ts * sub) if changes == 8 else 0):
+                sim.advance(mv)  # the write is held up: the process keeps the old MV
+        mv = new
+        experiment.applied(sim.t)
+        for _ in range(sub):
+            sim.advance(mv)
+    assert experiment.code is Code.UNSTABLE_DEAD_TIME_TOO_LONG, experiment.message
+    assert "the samples stopped for up to 1 s" in experiment.message

@@ -707,15 +707,26 @@ class RelayExperiment:
             self._finish(
                 Code.NOT_STABILISABLE,
                 f"{MESSAGES[Code.NOT_STABILISABLE]}: {what}, and {evidence}: no relay holds it and no PI/PID "
-                "stabilises it robustly, so no relay experiment tunes it",
+                f"stabilises it robustly, so no relay experiment tunes it{self._stalled_note()}",
             )
             return
         self._finish(
             Code.UNSTABLE_DEAD_TIME_TOO_LONG,
             f"{MESSAGES[Code.UNSTABLE_DEAD_TIME_TOO_LONG]}: {what} — an open-loop unstable process whose dead time "
             f"is too long for a relay to hold it (about {reach:.2f} × the runaway's time constant; a relay holds up "
-            "to about 0.5–0.7), so too long for a PI/PID as well",
+            f"to about 0.5–0.7), so too long for a PI/PID as well{self._stalled_note()}",
         )
+
+    def _stalled_note(self) -> str:
+        """What a stall of the samples over the last period adds to a runaway's refusal ("" without one)."""
+        tt = np.asarray(self._t)
+        start = self._t[self._switches[-3]] if len(self._switches) >= 3 else self._t[self._relay_start]
+        gap = self._longest_gap(tt, start, float(tt[-1]))
+        if gap <= _GAP * self._dt:
+            return ""
+        # The relay cannot switch without a sample: on an unstable process a stall acts as extra dead time.
+        return (f"; but the samples stopped for up to {gap:.2g} s meanwhile (a slow link or a loaded machine), "
+                "which acts as extra dead time: retry where the tuner samples without stalls")
 
     def _peak_away(self) -> float:
         """Largest deviation of the PV from the set point over the last whole period before the current half (PV units)."""
