@@ -165,7 +165,8 @@ def test_the_relay_holds_the_mv_only_at_the_levels_it_reports(expr: str) -> None
         assert min(held) == pytest.approx(8.0) and 8.4 in {round(mv, 9) for mv in held}
 
 
-@pytest.mark.parametrize(("expr", "seed"), [("exp(-0.55*s)/(2*s-1)", 2), ("exp(-0.8*s)/(2*s-1)", 2), ("exp(-1*s)/(2*s-1)", 1)])
+@pytest.mark.parametrize(("expr", "seed"),
+                         [("exp(-0.55*s)/(2*s-1)", 2), ("exp(-0.8*s)/(2*s-1)", 2), ("exp(-1*s)/(2*s-1)", 1)])
 def test_unstable_processes_are_stabilised_through_noise(expr: str, seed: int) -> None:
     # σ 0.002: about 1 % of |F|·amp at the point these reach. A PV creeping away near the weak level's
     # equilibrium grew by less than the noise from sample to sample, so the rescue came when the PV was beyond

@@ -234,8 +234,8 @@ _HINT_ESTIMATES = 3
 # describing function's lag in the next period would let it run away beyond the full amp (seen at 9.3 on
 # exp(-0.3*s)/((s-1)*(0.1*s+1))). The batch's stable processes stay below 7.1.
 _SLOW_RETURN = 8.0
-# The mean ratio |F|/K0 over the first whole period below which the process may be open-loop unstable: the
-# filter then holds no lag until an estimate decides (_suspect). The start's transient takes a stable
+# The mean ratio |F|/K0 over the first whole period below which the process may be open-loop unstable: it is
+# then treated as unstable, as after a rescue, until the estimates decide. The start's transient takes a stable
 # process's first period down to −0.31 (the batch); an unstable one whose dead time the first weak level
 # does not reveal (D/T 0.25–0.34) shows −0.8 to −1.1, and the describing function's lag would make it run
 # away in the next period.
@@ -810,7 +810,8 @@ class RelayExperiment:
         lag = self._lag(value)
         self._lags.append(lag)
         # (A PV still settling at TUNE makes any process's first ratio negative: the load fit judges that one.)
-        if len(self._lags) == 1 and not self._settling[0] and self._mean_ratio(tt, uu, yy, ta, tb, abs(value)) < _SUSPECT_RATIO:
+        first = len(self._lags) == 1 and not self._settling[0]
+        if first and self._mean_ratio(tt, uu, yy, ta, tb, abs(value)) < _SUSPECT_RATIO:
             self._enter_unstable()
             self._set_filter(0.0, omega)
         # An open-loop unstable process shows a negative mean ratio from its first estimates on (or ran
