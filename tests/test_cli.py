@@ -386,3 +386,10 @@ def test_bench_field_runs_every_scenario_on_a_batch(tmp_path: Path) -> None:
     assert "ZN PI:" in result.stdout and "AH PID:" in result.stdout
     clean = next(line for line in result.stdout.splitlines() if line.startswith("| clean"))
     assert "| 1 | 1 | 1 (100.0 %) |" in clean  # the undisturbed run tunes and keeps Ms ≤ 1.6
+
+
+def test_a_warning_is_named_once_in_the_table() -> None:
+    result = _invoke("tune", "--plant", "exp(-0.8*s)/(2*s-1)", "--controller", "pid")
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.stdout.split())
+    assert "warning (ite = 19): the design misses its Ms target" in text and "warning: the design" not in text

@@ -147,7 +147,8 @@ def _result_table(result: TuneResult, ts: float, plant: Process | None = None) -
     elif int(result.code) == 0:
         outcome = "ok"
     else:  # a warning: gains usable, but the message names what was missed
-        outcome = f"[yellow]warning[/] (ite = {int(result.code)}): {escape(result.message)}"
+        # (The message opens with "warning: " itself.)
+        outcome = f"[yellow]warning[/] (ite = {int(result.code)}): {escape(result.message.removeprefix('warning: '))}"
     table.add_row("result", outcome)
     ident, des = result.identification, result.design
     if ident is None:
