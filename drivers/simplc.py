@@ -26,12 +26,15 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from autotuner.engine.design.point_design import design
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.control.pid import PidUnit
 from autotuner.engine.plant.process import Process
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.design.process_data import exact_point
+from autotuner.engine.experiment.point import Point
 from autotuner.engine.simulated_tuning import default_sample_time
 
 from autotuner.engine.outcome import Code
@@ -40,12 +43,31 @@ from .link import Mode, TuneFlags, Watchdog
 
 
 def safe_gains(process: Process) -> Gains:
-    """A cautious PI for the simulated plant's starting state (designed from the exact 135° point at Ms 1.2)."""
+    """A cautious PI for the simulated plant's starting state (designed from the exact 135° point at Ms 1.2).
+
+    An open-loop unstable process never lags as little as 135°: its PI is designed from the point of least
+    lag (a real loop's controller holds it; k = 0.1 would hold it only while it sits exactly at rest, and it
+    ran away the moment a tuner handed the loop back). A process no PI holds keeps k = 0.1.
+    """
     point = exact_point(process, 135.0)
+    if point is None and process.static_gain() < 0.0:
+        point = _least_lag_point(process)
     if point is None:
         return Gains(k=0.1, ti=10.0)
-    g = design(point, process.static_gain(), "PI", ms=1.2).gains
+    try:
+        g = design(point, process.static_gain(), "PI", ms=1.2).gains
+    except ValueError:  # (a Refusal too: no PI stabilises it)
+        return Gains(k=0.1, ti=10.0)
     return Gains(k=g.k, ti=g.ti, b=1.0)
+
+
+def _least_lag_point(process: Process) -> Point | None:
+    """The frequency response where an open-loop unstable process lags least (below 180°), or None."""
+    w = np.logspace(-3, 3, 4000)
+    f = np.array([complex(process.freqresp(x)) for x in w])
+    lag = np.unwrap(-np.angle(f))
+    i = int(np.argmin(lag))
+    return Point(float(w[i]), complex(f[i])) if 0 < i < len(w) - 1 and lag[i] < math.pi else None
 
 
 @dataclass

@@ -221,3 +221,19 @@ def test_non_finite_mv_is_rejected(bad):
 def test_invalid_settings_are_rejected(kwargs):
     with pytest.raises(ValueError):
         PlantSim(parse_process("1/(s+1)"), **kwargs)
+
+
+@pytest.mark.parametrize("expr", ["exp(-0.4*s)/(2*s-1)", "exp(-0.2*s)/(2*s-1)"])
+def test_a_simulated_plc_holds_an_unstable_plant_in_auto(expr: str) -> None:
+    # Its starting PI came from the 135° point, which an unstable process never reaches: k = 0.1 held the loop
+    # only while it sat exactly at rest, and after `tune --config` handed it back the PV ran away (48 → −14 in 6 s).
+    from drivers.simplc import SimulatedPlc
+
+    plc = SimulatedPlc(parse_process(expr), ts=0.01)
+    plc.sim.step_load(2.0)  # MV units at the process input
+    pvs = []
+    for _ in range(int(60.0 / plc.ts)):
+        plc.tick()
+        pvs.append(plc.pv)
+    assert max(abs(pv - 50.0) for pv in pvs) < 10.0
+    assert abs(pvs[-1] - 50.0) < 0.05
