@@ -26,15 +26,12 @@ import math
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from autotuner.engine.design.point_design import design
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.control.pid import PidUnit
 from autotuner.engine.plant.process import Process
 from autotuner.engine.plant.simulation import PlantSim
-from autotuner.engine.design.process_data import exact_point
-from autotuner.engine.experiment.point import Point
+from autotuner.engine.design.process_data import exact_point, least_lag_point
 from autotuner.engine.simulated_tuning import default_sample_time
 
 from autotuner.engine.outcome import Code
@@ -51,7 +48,7 @@ def safe_gains(process: Process) -> Gains:
     """
     point = exact_point(process, 135.0)
     if point is None and process.static_gain() < 0.0:
-        point = _least_lag_point(process)
+        point = least_lag_point(process)
     if point is None:
         return Gains(k=0.1, ti=10.0)
     try:
@@ -59,15 +56,6 @@ def safe_gains(process: Process) -> Gains:
     except ValueError:  # (a Refusal too: no PI stabilises it)
         return Gains(k=0.1, ti=10.0)
     return Gains(k=g.k, ti=g.ti, b=1.0)
-
-
-def _least_lag_point(process: Process) -> Point | None:
-    """The frequency response where an open-loop unstable process lags least (below 180°), or None."""
-    w = np.logspace(-3, 3, 4000)
-    f = np.array([complex(process.freqresp(x)) for x in w])
-    lag = np.unwrap(-np.angle(f))
-    i = int(np.argmin(lag))
-    return Point(float(w[i]), complex(f[i])) if 0 < i < len(w) - 1 and lag[i] < math.pi else None
 
 
 @dataclass

@@ -192,6 +192,20 @@ def exact_point(process: Process, lag_deg: float) -> Point | None:
     return Point(omega, complex(process.freqresp(omega)))
 
 
+def least_lag_point(process: Process) -> Point | None:
+    """The point where an open-loop unstable process lags least, below 180° (None if it never does).
+
+    Its lag falls from 180° at ω = 0 to a least value and rises after it, so
+    it may never lag as little as a requested phase (``exact_point`` None).
+    """
+    w = np.logspace(-6, 6, 12001)
+    lag = -np.unwrap(np.angle(process.freqresp(w)))
+    i = int(np.argmin(lag))
+    if not 0 < i < len(w) - 1 or lag[i] >= math.pi:
+        return None
+    return Point(float(w[i]), complex(process.freqresp(w[i])))
+
+
 # -- step response -------------------------------------------------------------
 
 

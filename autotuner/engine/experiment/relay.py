@@ -578,8 +578,9 @@ class RelayExperiment:
         """Keep an open-loop unstable process bounded: True when the relay's level was just strengthened.
 
         A PV that keeps moving away from the set point, faster and faster, long
-        after the relay turned against it (three half reaction times after the
-        time the process took to answer the relay's first step) is an unstable
+        after the relay turned against it (over three windows of 0.15 reaction
+        time after the process had time to answer, or, below full amp, over four
+        windows that split the whole time since: ``_runaway``) is an unstable
         process the level cannot hold: the weaker level of the biased relay
         has less authority than the overshoot the dead time gave. The level
         goes to the full amp at once, the bias drops to ``_UNSTABLE_BIAS`` and
