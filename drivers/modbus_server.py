@@ -5,8 +5,8 @@ The datastore is *live*: pymodbus 3.16 stores registers in a
 every request before it is served, with the table's register list to modify
 in place. The action here
 
-* on every request rewrites the whole table being accessed from the PLC
-  (``plc.read_pv()``, ``plc.mv``, ``plc.sp``, ``plc.hv``, ``plc.mode``,
+* on every request rewrites from the PLC the registers of the signals it
+  touches (``plc.read_pv()``, ``plc.mv``, ``plc.sp``, ``plc.hv``, ``plc.mode``,
   ``plc.gains``, ``plc.flags``), so a read returns the PLC's values at the
   moment it is answered; the PLC ticks in the same event loop, so one
   request is a consistent snapshot (all its registers from the same sample);
@@ -248,25 +248,29 @@ class ModbusPlcServer:
             return ExcCodes.ILLEGAL_FUNCTION
         if table in BIT_TABLES:
             # pymodbus keeps bits in 16-bit words, so the neighbours of a mapped bit would answer: the map's don't.
-            # (A read's bit count is checked before, in _refuse_unmapped_bit_reads: here it is in words.)
+            # (A read's bit count is checked before, in _guard_datastore: here it is in words.)
             bits = len(values) if values is not None else 1
             if not self._mapped_bits(table, address, bits):
                 return ExcCodes.ILLEGAL_ADDRESS
         writing = values is not None
         if self._fail is not None and (not writing or self._fail_writes):
             return self._fail
-        self._refresh(plc, table, start, registers)
+        self._refresh(plc, table, start, address, count, registers)
         if writing:
             return self._apply(plc, table, start, address, registers, list(values))  # type: ignore[arg-type]
         return None
 
-    def _refresh(self, plc: SimulatedPlc, table: str, start: int, registers: list[int]) -> None:
-        """Rewrite the table's registers from ``plc``."""
+    def _refresh(self, plc: SimulatedPlc, table: str, start: int, address: int, count: int,
+                 registers: list[int]) -> None:
+        """Rewrite from ``plc`` the registers of every signal a request of ``count`` registers from ``address``
+        touches (of a bit table: all its bits, a handful); the rest of the table is never answered by it."""
         if table in BIT_TABLES:
             for name, reg in self._by_table[table]:
                 _set_bit(registers, start, reg.address, bool(_plc_value(plc, name)))
-        else:
-            for name, reg in self._by_table[table]:
+            return
+        end = address + count
+        for name, reg in self._by_table[table]:
+            if reg.address < end and reg.end > address:
                 i = reg.address - start
                 registers[i:i + reg.size] = _raw(reg, _plc_value(plc, name))
 
