@@ -223,3 +223,13 @@ def test_the_sim_command_serves_every_loop_on_its_unit_id(tmp_path):
         proc.terminate()
         proc.wait(30)
     assert proc.returncode == 0, log.read_text()
+
+
+def test_the_cpu_benchmark_measures_a_plant_in_a_process_of_its_own():
+    from autotuner.benchmarks.plant_cpu import markdown, measure
+
+    row = asyncio.run(measure(3, 0.05, read_period=0.2, seconds=1.0))
+    assert (row.loops, row.ts, row.read_period) == (3, 0.05, 0.2)
+    assert row.cpu > 0.0  # the child ticked (no bound on how much: the machine is shared)
+    assert row.reads_per_s > 0.0  # every read answered without error, or measure raised
+    assert markdown([row]).splitlines()[-1].startswith("| 3 | 0.05 | every loop every 0.2 s |")
