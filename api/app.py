@@ -30,6 +30,7 @@ from autotuner.engine.design.analysis import analyse
 from autotuner.engine.outcome import MESSAGES, WARNINGS, Code
 from autotuner.service.config import DaemonConfig, Tuning, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
+from autotuner.service.daemon.sampler import SamplerField
 from autotuner.service.history import History
 
 from . import docs, errors
@@ -358,7 +359,8 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = History(config.history)
-        manager = LoopManager(config, store)
+        manager = LoopManager(config, store, None if config.samplers == 0 else SamplerField(config.loops,
+                                                                                              config.samplers))
         await manager.start()
         app.state.manager = manager
         opcua = None
@@ -369,7 +371,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
                 except StartError as exc:
                     app.state.startup_error = str(exc)
                     raise
-                app.state.opcua_url = opcua.url
+                app.state.opcua, app.state.opcua_url = opcua, opcua.url
             yield
         finally:
             if opcua is not None:  # first: no TUNE from OPC UA while the sessions are being aborted

@@ -25,17 +25,15 @@ releasing its port.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import logging
 import os
-import socket
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
+from autotuner.service.channel import log_levels, log_record, start_child
 from autotuner.service.config import OpcUaConfig, OpcUaUser, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
 
@@ -49,8 +47,6 @@ log = logging.getLogger("autotuner.api.opcua")
 START_WAIT, STOP_WAIT = 60.0, 20.0
 # The loggers whose levels the server process takes from the daemon's (its records come back to the daemon's log).
 LEVELS = ("", "asyncua", "autotuner")
-# The folder holding the ``api`` package (the server process imports it from there, as the daemon did).
-_SOURCE = Path(__file__).resolve().parents[2]
 
 
 class OpcUaProcess:
@@ -79,16 +75,7 @@ class OpcUaProcess:
     async def start(self) -> str:
         """Start the server process and wait until it listens; its endpoint URL. :class:`StartError` with the
         server's error (a port in use, an unreadable certificate) if it cannot start."""
-        ours, theirs = socket.socketpair()
-        try:
-            env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(_SOURCE),
-                                                                          os.environ.get("PYTHONPATH"))))}
-            # Popen, not an asyncio subprocess: it works from any thread's event loop (tests run the app in one).
-            self.process = subprocess.Popen([sys.executable, "-m", "api.opcua.server", str(theirs.fileno())],
-                                            pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL,
-                                            stdout=subprocess.DEVNULL, env=env)
-        finally:
-            theirs.close()
+        self.process, ours = start_child("api.opcua.server")
         self._channel = await Channel.open(ours)
         try:
             await asyncio.wait_for(self._handshake(), START_WAIT)
@@ -108,7 +95,7 @@ class OpcUaProcess:
         assert self._channel is not None
         statuses = [loop.as_json() for loop in self.manager.loops.values()]
         self._sent = {s["id"]: snapshot(s) for s in statuses}
-        levels = {name: logging.getLogger(name).getEffectiveLevel() for name in LEVELS}
+        levels = log_levels(LEVELS)
         self._channel.send("init", Init(self.config, self.users, self.url, self.cert_dir, levels, [
             (s, self.manager.loops[s["id"]].config.monitor_period) for s in statuses]))
         while True:
@@ -117,7 +104,7 @@ class OpcUaProcess:
                 raise StartError(f"the OPC UA server process ended (exit code {self._exit_code()}) before it "
                                  "listened")
             if message[0] == "log":
-                _log(*message[1:])
+                log_record(*message[1:])
             elif message[0] == "failed":
                 raise StartError(f"the OPC UA server could not start: {message[1]}")
             elif message[0] == "ready":
@@ -201,7 +188,7 @@ class OpcUaProcess:
             if message[0] == "call":
                 self._spawn(self._call(*message[1:]), self._calls)
             elif message[0] == "log":
-                _log(*message[1:])
+                log_record(*message[1:])
         if self._channel is not None:  # not stopping: it died
             log.error("the OPC UA server process ended (exit code %s); the REST API goes on without it",
                       await asyncio.to_thread(self.process.wait))  # type: ignore[union-attr]
@@ -231,11 +218,3 @@ class OpcUaProcess:
             reply = ("error", f"{type(exc).__name__}: {exc}")
         if self._channel is not None:
             self._channel.send("reply", call_id, reply)
-
-
-def _log(name: str, level: int, message: str) -> None:
-    """A record of the server process into the daemon's log, as if logged here."""
-    logger = logging.getLogger(name)
-    if logger.isEnabledFor(level):
-        with contextlib.suppress(Exception):  # a broken handler must not end the bridge
-            logger.log(level, "%s", message)
