@@ -244,7 +244,8 @@ def config_of(spec: LoadSpec, urls: list[str], viewer: str) -> DaemonConfig:
               "tuning": {"amp": spec.amp, "time_limit": spec.time_limit}} for i, url in enumerate(urls)]
     return DaemonConfig.model_validate({"history": ":memory:", "loops": loops, "samplers": spec.samplers,
                                         "tokens": [{"name": VIEWER_NAME, "role": "viewer",
-                                                    "sha256": token_hash(viewer)}]})
+                                                    "sha256": token_hash(viewer)}],
+                                        "opcua": {"port": _free_port()} if spec.opcua else None})
 
 
 async def run_load(spec: LoadSpec) -> LoadResult:
@@ -260,12 +261,9 @@ async def run_load(spec: LoadSpec) -> LoadResult:
         plant_conn, plant = children.start(_plant_main, (spec,), "plant")
         urls = await loop.run_in_executor(None, _receive, plant_conn, plant, "plant")
         viewer = secrets.token_urlsafe(24)
-        config = config_of(spec, urls, viewer)
-        if spec.opcua:
-            config = config.model_copy(update={"opcua": {"port": _free_port()}})
         operator = secrets.token_urlsafe(24)
         port = _free_port()
-        app = create_app(DaemonConfig.model_validate(config.model_dump()), env_token=operator)
+        app = create_app(config_of(spec, urls, viewer), env_token=operator)
         server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
         serving = asyncio.create_task(server.serve())
         while not server.started:
