@@ -27,13 +27,12 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
-import os
 import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any
 
-from autotuner.service.channel import log_levels, log_record, start_child
+from autotuner.service.channel import cpu_seconds, log_levels, log_record, start_child
 from autotuner.service.config import OpcUaConfig, OpcUaUser, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
 
@@ -69,6 +68,7 @@ class OpcUaProcess:
         self._tasks: set[asyncio.Task[Any]] = set()  # the listener and the publishers
         self._calls: set[asyncio.Task[Any]] = set()  # the method calls under way
         self._sent: dict[str, dict[str, Any]] = {}
+        self.sessions = 0  # client sessions open (the server says when it changes)
 
     # -- life cycle ---------------------------------------------------------------------------------------------
 
@@ -137,12 +137,7 @@ class OpcUaProcess:
 
     def cpu_time(self) -> float | None:
         """CPU seconds (user + system) the server's process has used so far; None where /proc is missing."""
-        try:
-            stat = Path(f"/proc/{self.process.pid}/stat").read_text()  # type: ignore[union-attr]
-        except (AttributeError, OSError):
-            return None
-        utime, stime = stat.rpartition(")")[2].split()[11:13]  # fields 14 and 15 of proc(5)
-        return (int(utime) + int(stime)) / os.sysconf("SC_CLK_TCK")
+        return None if self.process is None else cpu_seconds(self.process.pid)
 
     def _exit_code(self) -> int | None:
         return None if self.process is None else self.process.poll()
@@ -189,6 +184,8 @@ class OpcUaProcess:
                 self._spawn(self._call(*message[1:]), self._calls)
             elif message[0] == "log":
                 log_record(*message[1:])
+            elif message[0] == "sessions":
+                self.sessions = message[1]
         if self._channel is not None:  # not stopping: it died
             log.error("the OPC UA server process ended (exit code %s); the REST API goes on without it",
                       await asyncio.to_thread(self.process.wait))  # type: ignore[union-attr]

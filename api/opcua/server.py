@@ -160,6 +160,24 @@ class OpcUaServer:
         finally:
             await server.stop()
 
+    def _count_sessions(self, server: Server) -> None:
+        """Tell the daemon how many client sessions are open whenever one opens or closes (its metrics)."""
+        iserver = server.iserver
+        sessions: set[Any] = set()
+        register, unregister = iserver.register_external_session, iserver.unregister_external_session
+
+        def registered(session: Any) -> None:
+            register(session)
+            sessions.add(session.auth_token)
+            self.channel.send("sessions", len(sessions))
+
+        def unregistered(session: Any) -> None:
+            unregister(session)
+            sessions.discard(session.auth_token)
+            self.channel.send("sessions", len(sessions))
+
+        iserver.register_external_session, iserver.unregister_external_session = registered, unregistered
+
     async def _build(self) -> Server:
         trusted = None
         if self.config.trusted_clients is not None:
@@ -167,6 +185,7 @@ class OpcUaServer:
             await trusted.load()
         server = Server(user_manager=Users(self.init.users, trusted))
         await server.init()
+        self._count_sessions(server)
         if trusted is not None:
             server.set_certificate_validator(trusted)
         server.set_endpoint(self.init.url)

@@ -10,7 +10,8 @@ server → daemon
     ``("ready",)`` or ``("failed", message)`` once, after the init;
     ``("call", call_id, loop_id, action, body, user)`` a method (action tune,
     abort or apply; body the validated TUNE body for tune, else None);
-    ``("log", logger, level, message)`` a log record for the daemon's log.
+    ``("log", logger, level, message)`` a log record for the daemon's log;
+    ``("sessions", n)`` how many client sessions are open (when it changes).
 """
 
 from __future__ import annotations

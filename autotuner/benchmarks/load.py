@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import asyncio
 import multiprocessing
-import os
 import resource
 import secrets
 import socket
@@ -37,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from autotuner.engine.plant.expression import parse_process
+from autotuner.service.channel import cpu_seconds
 from autotuner.service.config import DaemonConfig, TuneRequest
 from autotuner.service.design_pool import design_cpu
 
@@ -194,16 +194,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _cpu_seconds(pid: int) -> float:
-    """CPU seconds (user + system) of process ``pid`` so far (0 where /proc is missing)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return 0.0
-    utime, stime = stat.rpartition(")")[2].split()[11:13]  # fields 14 and 15 of proc(5)
-    return (int(utime) + int(stime)) / os.sysconf("SC_CLK_TCK")
-
-
 def _peak_rss_mb(pid: int) -> float:
     """Peak resident memory of process ``pid`` (VmHWM), MB (0 where /proc is missing)."""
     try:
@@ -298,7 +288,7 @@ async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: 
                                              spec.monitor_period), "OPC UA client")
         await loop.run_in_executor(None, _receive, *scada, "OPC UA client")
     pids = getattr(manager.field, "pids", [])
-    cpu0 = time.process_time() + design_cpu() + sum(_cpu_seconds(pid) for pid in pids)
+    cpu0 = time.process_time() + design_cpu() + sum(cpu_seconds(pid) or 0.0 for pid in pids)
     wall0 = time.monotonic()
     opcua = getattr(app.state, "opcua", None)
     opcua0 = None if opcua is None else opcua.cpu_time()
@@ -306,7 +296,7 @@ async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: 
                                    return_exceptions=True)
     await asyncio.gather(*(manager.wait(loop_id) for loop_id in tuned))
     wall = time.monotonic() - wall0
-    cpu = 100.0 * (time.process_time() + design_cpu() + sum(_cpu_seconds(pid) for pid in pids) - cpu0) / wall
+    cpu = 100.0 * (time.process_time() + design_cpu() + sum(cpu_seconds(pid) or 0.0 for pid in pids) - cpu0) / wall
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0 + sum(_peak_rss_mb(pid) for pid in pids)
     out: dict[str, Any] = {}
     if opcua is not None and opcua0 is not None:

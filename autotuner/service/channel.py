@@ -93,6 +93,16 @@ def start_child(module: str) -> tuple[subprocess.Popen[bytes], socket.socket]:
     return process, ours
 
 
+def cpu_seconds(pid: int) -> float | None:
+    """CPU seconds (user + system) process ``pid`` has used so far; None where /proc is missing or it is gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    utime, stime = stat.rpartition(")")[2].split()[11:13]  # fields 14 and 15 of proc(5)
+    return (int(utime) + int(stime)) / os.sysconf("SC_CLK_TCK")
+
+
 class Forward(logging.Handler):
     """Sends every record to the daemon's log over ``channel`` (the traceback, if any, in the message)."""
 

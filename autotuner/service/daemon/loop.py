@@ -72,6 +72,7 @@ class Loop:
     pending: Pending | None = None
     restorer: asyncio.Task[None] | None = None
     events: LoopEvents = field(default_factory=LoopEvents)
+    link_errors: int = 0  # failures of its watch's link and sessions ended by a link fault, since the start
 
     @property
     def busy(self) -> bool:

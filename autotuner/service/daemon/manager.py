@@ -43,6 +43,7 @@ import logging
 import math
 import time
 import uuid
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -118,6 +119,7 @@ class LoopManager:
         self._reconcilers: list[asyncio.Task[None]] = []
         self.max_sessions = config.max_sessions
         self.sampling = Sampling()
+        self.outcomes: Counter[int] = Counter()  # sessions ended since the start, by code
         self._overloaded_until = -math.inf
         self.field.bind(self)
 
@@ -437,6 +439,9 @@ class LoopManager:
                     trace, applied_by, intended = downsample(outcome.result.trace), outcome.applied_by, \
                         outcome.intended
                 loop.result = result
+                self.outcomes[result.ite] += 1
+                if result.ite == Code.LINK_FAULT:
+                    loop.link_errors += 1
                 if restore_error and running.saved is not None:  # shown with the idle loop, not while still busy
                     pending = Pending(sid, running.saved, running.mv_range or mv_hull(running.saved.mv,
                                                                                       *running.levels),
@@ -540,6 +545,7 @@ class LoopManager:
     def link_failed(self, loop_id: str, error: str) -> None:
         """The watch's link failed: logged once per outage, kept as ``monitor_error``; the mode is unknown."""
         loop = self.loops[loop_id]
+        loop.link_errors += 1
         if loop.monitor_error is None:
             log.warning("loop %s: %s link failed (%s); retrying", loop_id, _watching(loop), error)
         changed = loop.monitor_error != error or loop.mode is not None

@@ -43,7 +43,8 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.experiment.relay import Status
 from autotuner.engine.outcome import Code
 from autotuner.engine.simulated_tuning import DesignJob
-from autotuner.service.channel import Channel, Peer, PeerLost, forward_logs, log_levels, log_record, start_child
+from autotuner.service.channel import (Channel, Peer, PeerLost, cpu_seconds, forward_logs, log_levels, log_record,
+                                       start_child)
 from autotuner.service.config import LoopConfig
 from autotuner.service.daemon.field import FieldSink, LocalField
 from autotuner.service.daemon.refused import Refused
@@ -311,6 +312,11 @@ class SamplerField:
     def pids(self) -> list[int]:
         """The sampler processes running now."""
         return [s.process.pid for s in self._shards if s.process is not None and s.process.poll() is None]
+
+    def cpu_seconds(self) -> dict[int, float]:
+        """CPU seconds (user + system) each running sampler process has used, by its number."""
+        running = {s.number: cpu_seconds(s.process.pid) for s in self._shards if s.process is not None}
+        return {number: seconds for number, seconds in running.items() if seconds is not None}
 
     def bind(self, sink: FieldSink) -> None:
         self._sink = sink
