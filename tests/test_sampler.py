@@ -20,7 +20,7 @@ import pytest
 
 from autotuner.engine.outcome import Code
 from autotuner.service.config import DaemonConfig, TuneRequest
-from autotuner.service.daemon import LoopManager
+from autotuner.service.daemon import LoopManager, Refused
 from autotuner.service.daemon.sampler import device_of, shards_of
 from autotuner.service.history import History
 from helpers import until
@@ -177,3 +177,24 @@ def test_tune_is_refused_up_front_while_the_daemon_is_at_its_max_sessions():
     code, message, ite, again = asyncio.run(scenario())
     assert code == "overloaded" and "max_sessions" in message and ite == Code.REFUSED_OVERLOADED
     assert again
+
+
+def test_tune_is_refused_up_front_when_its_sampler_would_need_more_than_its_share_of_a_core():
+    async def scenario() -> tuple[Exception, float]:
+        loops = [{"id": "A", "sim": {"plant": PLANT}, "ts": 0.05, "speed": 5.0, "tuning": {"amp": 1.0}}]
+        # 100 samples a second at the assumed 400 µs each: 4 % of a core, beyond a budget of 1 %.
+        config = DaemonConfig.model_validate({"history": ":memory:", "samplers": 0, "sampler_load": 0.01,
+                                              "loops": loops})
+        manager = LoopManager(config, History(":memory:"))
+        await manager.start()
+        try:
+            with pytest.raises(Refused) as refused:
+                await manager.request_tune("A", TuneRequest(), "test")
+            return refused.value, manager.field.load("A")
+        finally:
+            await manager.stop()
+
+    refused, idle = asyncio.run(scenario())
+    assert refused.code == "overloaded" and refused.ite == Code.REFUSED_OVERLOADED
+    assert "would need 4 % of a core" in refused.message.replace("4%", "4 %") and "sampler_load 1%" in refused.message
+    assert idle < 0.01  # the monitor alone: one reading a second

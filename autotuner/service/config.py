@@ -332,6 +332,8 @@ class DaemonConfig(Strict):
     (0: in the API's process, which clients can then slow down; docs/daemon.md,
     "A plant"). ``max_sessions``: most loops tuned at once; a TUNE beyond is
     refused (``overloaded``); None: as many as the samplers keep on time.
+    ``sampler_load``: the share of a core a sampler may be predicted to need
+    with a new session before that TUNE is refused (``overloaded``).
     """
 
     history: str = "autotuner-history.db"
@@ -341,6 +343,7 @@ class DaemonConfig(Strict):
     handback: HandBackConfig = HandBackConfig()
     samplers: Annotated[int, Field(ge=0, le=64)] = 1
     max_sessions: Annotated[int, Field(ge=1, le=100000)] | None = None
+    sampler_load: Annotated[float, Field(gt=0.0, le=1.0)] = 0.6
 
     @field_validator("history")
     @classmethod

@@ -34,6 +34,7 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.experiment.relay import Status
 from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.config import LoopConfig
+from autotuner.service.daemon.capacity import Cost
 from autotuner.service.daemon.reach import connector, fresh_check, simulated_plc
 from autotuner.service.daemon.restore import Pending, Restored, restore_once
 from autotuner.service.daemon.timing import FLUSH_PERIOD, TimingBatch, Timings
@@ -88,6 +89,10 @@ class Field(Protocol):
     def abort(self, loop_id: str) -> None:
         """TBRK: abort the loop's running session (nothing if none runs)."""
 
+    def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
+        """The share of a core the loop's sampler is predicted to need (:mod:`~autotuner.service.daemon.capacity`),
+        with a session of ``plan`` on the loop added (None: as it runs now)."""
+
     def cap(self, seconds: float) -> None:
         """No hand-back try of a running session starts later than ``seconds`` wall seconds from now."""
 
@@ -105,6 +110,15 @@ class Field(Protocol):
 
     async def stop(self) -> None:
         """End everything: the watches, then the simulated plants (after the sessions have ended)."""
+
+
+def nominal_rate(loops: list[LoopConfig], sessions: dict[str, SessionPlan]) -> float:
+    """Samples per second (wall) of ``sessions`` (by loop id) and of the monitor of the other ``loops``."""
+    rate = 0.0
+    for loop in loops:
+        plan = sessions.get(loop.id)
+        rate += 1.0 / loop.monitor_period if plan is None else plan.speed / plan.ts
+    return rate
 
 
 @dataclass
@@ -138,6 +152,7 @@ class LocalField:
         self._sink: FieldSink | None = None
         self._timings = Timings()
         self._flusher: asyncio.Task[None] | None = None
+        self.cost = Cost()
 
     def bind(self, sink: FieldSink) -> None:
         self._sink = sink
@@ -153,7 +168,8 @@ class LocalField:
         assert sink is not None, "the field is not started"
         for loop_id, reach in self.reaches.items():
             # The reach's connector is read at each use: a test may replace it.
-            watch = Watch(reach.config, lambda r=reach: r.connect(), sink, self._idle[loop_id], self._halt)
+            watch = Watch(reach.config, lambda r=reach: r.connect(), sink, self._idle[loop_id], self._halt,
+                          self._timings.read)
             self._watches.append(asyncio.create_task(watch.run()))
 
     async def check(self, loop_id: str) -> None:
@@ -186,6 +202,12 @@ class LocalField:
     def running(self) -> list[str]:
         """The loops whose session runs now."""
         return list(self._sessions)
+
+    def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
+        sessions = {loop: p for loop, (_, p) in self._sessions.items()}
+        if plan is not None:
+            sessions[loop_id] = plan
+        return self.cost.load(nominal_rate([r.config for r in self.reaches.values()], sessions))
 
     def abort(self, loop_id: str) -> None:
         if loop_id in self._sessions:
@@ -237,7 +259,9 @@ class LocalField:
         while True:
             await asyncio.sleep(FLUSH_PERIOD)
             batch = self._timings.take()
-            if batch is not None and self._sink is not None:
+            self.cost.update(batch.cpu, batch.late.count + batch.readings)
+            batch.cost = self.cost.per_sample
+            if self._sink is not None:
                 self._sink.timings(batch)
 
     async def stop(self) -> None:

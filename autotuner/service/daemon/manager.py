@@ -66,7 +66,7 @@ from autotuner.service.daemon.timing import Histogram, TimingBatch
 from autotuner.service.daemon.watch import Reading
 from autotuner.service.design_pool import Outcome, close_design_pool, designed
 from autotuner.service.history import History, downsample, state_of
-from autotuner.service.link_session import NotTracking
+from autotuner.service.link_session import NotTracking, SessionPlan
 from autotuner.service.session_record import mv_hull, same_gains, waited
 from autotuner.service.session_runner import SessionOutcome
 
@@ -117,7 +117,7 @@ class LoopManager:
         self._shutdown: asyncio.Task[list[str]] | None = None
         self._streams_closed = False
         self._reconcilers: list[asyncio.Task[None]] = []
-        self.max_sessions = config.max_sessions
+        self.max_sessions, self.sampler_load = config.max_sessions, config.sampler_load
         self.sampling = Sampling()
         self.outcomes: Counter[int] = Counter()  # sessions ended since the start, by code
         self._overloaded_until = -math.inf
@@ -266,26 +266,32 @@ class LoopManager:
                                           f"{loop.pending.error}")
         if loop.applying:
             raise Refused("busy", f"gains are being written to loop {loop_id!r}")
-        self._check_capacity(loop_id)
+        settings = settings_of(loop.config, request)
+        self._check_capacity(loop_id, plan_of(loop.config, settings))
         group = loop.config.group
         if group is not None:
             for other in self.loops.values():
                 if other.busy and other.config.group == group:
                     raise Refused("group_busy", f"loop {other.config.id!r} of exclusion group {group!r} is tuning",
                                   Code.GROUP_BUSY)
-        settings = settings_of(loop.config, request)
         if settings.amp > loop.config.max_amp:
             raise Refused("invalid", f"amp: {settings.amp:g} is above loop {loop_id!r}'s largest relay amplitude "
                           f"{loop.config.max_amp:g} MV units (the span of its MV limits, else its tuning.max_amp)")
         return settings
 
-    def _check_capacity(self, loop_id: str) -> None:
-        """Refused('overloaded') while the daemon tunes ``max_sessions`` loops, or while its samples are late by its
-        own fault (:data:`OVERLOAD_HOLD` seconds after the last such sample, while any session runs)."""
+    def _check_capacity(self, loop_id: str, plan: SessionPlan) -> None:
+        """Refused('overloaded') while the daemon tunes ``max_sessions`` loops, while the loop's sampler would need
+        more than ``sampler_load`` of a core with ``plan``'s session added (:mod:`~autotuner.service.daemon.capacity`),
+        or while its samples are late by its own fault (:data:`OVERLOAD_HOLD` seconds after the last such sample,
+        while any session runs)."""
         tuning = sum(loop.busy for loop in self.loops.values())
         if self.max_sessions is not None and tuning >= self.max_sessions:
             raise Refused("overloaded", f"loop {loop_id!r} not tuned: the daemon tunes {tuning} loops, its "
                           f"max_sessions; retry when one has ended", Code.REFUSED_OVERLOADED)
+        if (load := self.field.load(loop_id, plan)) > self.sampler_load:
+            raise Refused("overloaded", f"loop {loop_id!r} not tuned: with it, its sampler would need {load:.0%} of "
+                          f"a core, beyond its sampler_load {self.sampler_load:.0%} ({tuning} loops tuning); retry "
+                          "when fewer tune", Code.REFUSED_OVERLOADED)
         if tuning and time.monotonic() < self._overloaded_until:
             raise Refused("overloaded", f"loop {loop_id!r} not tuned: the daemon's samples of the {tuning} loops "
                           "it tunes are late by its own fault (a loaded machine); retry when fewer tune",

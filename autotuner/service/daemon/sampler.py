@@ -46,7 +46,8 @@ from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.channel import (Channel, Peer, PeerLost, cpu_seconds, forward_logs, log_levels, log_record,
                                        start_child)
 from autotuner.service.config import LoopConfig
-from autotuner.service.daemon.field import FieldSink, LocalField
+from autotuner.service.daemon.capacity import Cost
+from autotuner.service.daemon.field import FieldSink, LocalField, nominal_rate
 from autotuner.service.daemon.refused import Refused
 from autotuner.service.daemon.restore import Pending, Restored
 from autotuner.service.daemon.timing import TimingBatch
@@ -180,6 +181,8 @@ class _Shard:
 
     def __init__(self, number: int, loops: list[LoopConfig]) -> None:
         self.number, self.loops = number, loops
+        self.cost = Cost()  # the sampler's own estimate, from its timings
+        self.sessions: dict[str, SessionPlan] = {}  # running here, by loop id
         self.process: subprocess.Popen[bytes] | None = None
         self.peer: Peer | None = None
         self.watching = False
@@ -197,7 +200,7 @@ class _Shard:
             await channel.close()
             self._kill()
             raise
-        self.peer = Peer(channel, sink, FRONT_CALLS, FRONT_NOTES)
+        self.peer = Peer(channel, _FromSampler(self, sink), FRONT_CALLS, FRONT_NOTES)
         self._served = asyncio.create_task(self._serve(sink))
         await self.peer.call("start")
         if self.watching:
@@ -272,6 +275,20 @@ class _Shard:
             self.process.wait()
 
 
+class _FromSampler:
+    """What a sampler tells the daemon goes to its sink; its timings also update the shard's cost estimate."""
+
+    def __init__(self, shard: _Shard, sink: FieldSink) -> None:
+        self.shard, self.sink = shard, sink
+
+    def timings(self, batch: TimingBatch) -> None:
+        self.shard.cost.per_sample = batch.cost
+        self.sink.timings(batch)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.sink, name)
+
+
 def shards_of(loops: list[LoopConfig], count: int) -> list[list[LoopConfig]]:
     """``loops`` in ``count`` shards (fewer if there are fewer devices): a device's loops together, the shards as
     even in loops as whole devices allow (the largest device first into the emptiest shard)."""
@@ -339,7 +356,17 @@ class SamplerField:
             raise Refused("link_unhealthy", f"loop {loop_id!r} not tuned: {exc}", Code.REFUSED_LINK) from None
 
     async def run(self, loop_id: str, sid: str, user: str, plan: SessionPlan) -> SessionOutcome:
-        return await self._of[loop_id].call("run", loop_id, sid, user, plan)
+        shard = self._of[loop_id]
+        shard.sessions[loop_id] = plan
+        try:
+            return await shard.call("run", loop_id, sid, user, plan)
+        finally:
+            del shard.sessions[loop_id]
+
+    def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
+        shard = self._of[loop_id]
+        sessions = shard.sessions if plan is None else {**shard.sessions, loop_id: plan}
+        return shard.cost.load(nominal_rate(shard.loops, sessions))
 
     def abort(self, loop_id: str) -> None:
         self._of[loop_id].note("abort", loop_id)

@@ -67,12 +67,14 @@ class Watch:
     """The watch of loop ``config`` through links from ``connect``, reporting to ``sink``.
 
     ``idle``: set while no session runs on the loop; the watch ends when
-    ``halt`` is set (or it is cancelled).
+    ``halt`` is set (or it is cancelled); ``counted`` is called at each
+    monitor reading (the field's capacity counts them).
     """
 
     def __init__(self, config: LoopConfig, connect: Callable[[], Link], sink: WatchSink, idle: asyncio.Event,
-                 halt: asyncio.Event) -> None:
+                 halt: asyncio.Event, counted: Callable[[], None] = lambda: None) -> None:
         self.config, self.connect, self.sink, self.idle, self.halt = config, connect, sink, idle, halt
+        self.counted = counted
         self.failing = False
 
     async def run(self) -> None:
@@ -132,6 +134,7 @@ class Watch:
         """Read the idle loop's state and PV and report them (not if a session started meanwhile)."""
         state = await link.read_state()
         pv = await link.read_pv()
+        self.counted()
         if self.idle.is_set():
             self.sink.reading(self.config.id, Reading(state, pv, time.time()))
 
