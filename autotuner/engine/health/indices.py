@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -59,5 +60,5 @@ class Indices:
                                      "step never settled, or none)", 25.0)
 
     def to_json(self) -> dict[str, float | int | None]:
-        """The indices by name (null where not computed)."""
-        return asdict(self)
+        """The indices by name (null where not computed, or not finite)."""
+        return {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in asdict(self).items()}

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# Spacings within this fraction of the median count as even: no resampling.
-_EVEN = 1e-6
+# Spacings within 1 % of the sample time count as even (a historian's time stamps jitter): no resampling.
+_EVEN = 0.01
 
 
 def _array(name: str, values: Sequence[float] | np.ndarray, n: int | None) -> np.ndarray:

@@ -30,9 +30,9 @@ import numpy as np
 
 from autotuner.engine.health.signals import HalfCycles, half_cycles
 
-HORCH_ODD = 0.5  # ρ0 below this: odd, as a sticking valve makes
-SHAPE_TRIANGLE = 0.6  # SI above this: triangular (He et al.: > 0.6 stiction, < 0.4 none)
-SHAPE_SINE = 0.3  # SI below this: sinusoidal
+HORCH_EVEN = 0.93  # ρ0 from this on: even (MV and PV within 22° of phase opposition), the loop's own oscillation
+SHAPE_TRIANGLE = 0.65  # SI above this: triangular, a sticking valve's around an integrating process
+SHAPE_SINE = 0.35  # SI up to this: sinusoidal, an external disturbance's or the loop's own oscillation
 _PEAKS = np.linspace(0.1, 0.9, 17)  # where a fitted triangle may peak, share of the half-cycle
 _GRID = 32  # points each half-cycle is put on for the fits
 

@@ -16,7 +16,7 @@ from autotuner.engine.described import described
 from autotuner.engine.health.indices import Indices
 from autotuner.engine.health.oscillation import Oscillation
 from autotuner.engine.health.sluggish import OFFSET, SLOW_RECOVERY, SLUGGISH
-from autotuner.engine.health.stiction import HORCH_ODD, SHAPE_SINE, SHAPE_TRIANGLE
+from autotuner.engine.health.stiction import HORCH_EVEN, SHAPE_SINE, SHAPE_TRIANGLE
 
 FLAGS = ("manual", "saturated", "oscillating", "stiction", "sluggish", "noisy", "frozen_pv", "poor_tracking")
 RECOMMENDATIONS = ("retune", "check_valve", "check_sensor", "put_in_auto", "none")
@@ -67,14 +67,16 @@ class Context:
 
 
 def is_stiction(ind: Indices, integrating: bool | None) -> bool:
-    """The valve sticks: the PV's half-cycles are triangular (any process), or, around a process not known to
-    integrate, MV and PV correlate oddly (Horch) while the PV is not a sine (an external sinusoid also
-    correlates oddly when it is slow)."""
+    """The valve sticks. Around an integrating process (the model says so): the PV's half-cycles are
+    triangular (the shape test). Otherwise: MV and PV do not correlate evenly (Horch: the loop's own
+    oscillation through aggressive gains correlates evenly) and the PV is no sine (an external sinusoid, the
+    other cause of an uneven correlation, is)."""
     shape, horch = ind.shape_index, ind.ccf_zero_lag
     if shape is None:
         return False
-    odd = horch is not None and horch < HORCH_ODD and shape > SHAPE_SINE
-    return shape > SHAPE_TRIANGLE or (integrating is not True and odd)
+    if integrating:
+        return shape > SHAPE_TRIANGLE
+    return horch is not None and horch < HORCH_EVEN and shape > SHAPE_SINE
 
 
 def _n(x: float) -> str:
@@ -85,17 +87,18 @@ def _oscillation_reason(ind: Indices, ctx: Context, stiction: bool) -> str:
     unit = f" {ctx.pv_unit}" if ctx.pv_unit else ""
     head = (f"oscillates with period {_n(ind.oscillation_period or 0.0)} s and amplitude "
             f"{_n(ind.oscillation_amplitude or 0.0)}{unit}")
+    if stiction and ctx.integrating:
+        return f"{head}: PV half-cycles triangular (shape index {ind.shape_index:.2f}), as a sticking valve makes"
     if stiction:
-        why = []
-        if ind.shape_index is not None and ind.shape_index > SHAPE_TRIANGLE:
-            why.append(f"PV half-cycles triangular (shape index {ind.shape_index:.2f})")
-        if ind.ccf_zero_lag is not None and ind.ccf_zero_lag < HORCH_ODD:
-            why.append(f"MV and PV cross-correlation odd (ρ0 {ind.ccf_zero_lag:.2f})")
-        return f"{head}: {' and '.join(why)}, as a sticking valve makes"
+        return (f"{head}: MV and PV cross-correlation not even (ρ0 {ind.ccf_zero_lag:.2f}) and the PV no sine "
+                f"(shape index {ind.shape_index:.2f}), as a sticking valve makes")
+    if ind.ccf_zero_lag is not None and ind.ccf_zero_lag >= HORCH_EVEN:
+        return (f"{head}: MV and PV cross-correlation even (ρ0 {ind.ccf_zero_lag:.2f}), as aggressive tuning "
+                "makes")
     if ind.shape_index is None:
         return f"{head}: too few samples per cycle to tell a sticking valve from aggressive tuning"
-    return (f"{head}: PV sinusoidal (shape index {ind.shape_index:.2f}), as aggressive tuning or an external "
-            "disturbance makes")
+    return (f"{head}: PV sinusoidal (shape index {ind.shape_index:.2f}), as an external disturbance or aggressive "
+            "tuning makes")
 
 
 def flags(ind: Indices, osc: Oscillation | None, ctx: Context) -> list[Flag]:
