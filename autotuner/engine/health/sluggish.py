@@ -30,6 +30,7 @@ import scipy.signal
 from autotuner.engine.health.signals import HalfCycles
 
 SLUGGISH = 0.4  # Ii above this: sluggish
+MAX_RECOVERIES = 100  # the latest load disturbances whose recovery times are taken
 RECOVERED = 0.25  # a disturbance has passed once the error is back within this share of its peak
 SLOW_RECOVERY = 10.0
 OFFSET = 2.0  # a mean error beyond this many significant deviations: sluggish (integral action removes it)  # load disturbances recovered over more ultimate periods than this: sluggish
@@ -46,32 +47,37 @@ def _lowpass(x: np.ndarray, samples: float) -> np.ndarray:
 @dataclass(frozen=True)
 class Sluggishness:
     """``idle``: Hägglund's Ii (None: fewer than two load disturbances); ``recovery``: the median time the
-    error spends beyond a quarter of its peak in their half-cycles, s (None: likewise)."""
+    error spends beyond a quarter of its peak in their half-cycles (the latest 100), s (None: likewise)."""
 
     idle: float | None
     recovery: float | None
 
 
-def load_cycles(e: np.ndarray, sp: np.ndarray, cycles: HalfCycles, detected: np.ndarray, a: float) -> np.ndarray:
-    """Indices of the half-cycles of the error ``e`` that are load disturbances: counted by Hägglund's
-    detector (``detected``), reaching beyond the significant deviation ``a`` (a slow wander of noise can pile
-    up an IAE too), and neither started nor crossed by a set-point change in ``sp`` (that is a set-point
-    response)."""
+def _set_point_free(sp: np.ndarray, cycles: HalfCycles) -> np.ndarray:
+    """Which half-cycles no set-point change in ``sp`` starts or crosses (those are set-point responses)."""
     changes = np.concatenate(([0], np.cumsum(np.diff(sp) != 0.0)))  # set-point changes up to each sample
-    steady = changes[cycles.end] == changes[np.maximum(cycles.start - 1, 0)]
-    peak = np.maximum.reduceat(np.abs(e), cycles.start) if len(cycles) else np.zeros(0)
-    return np.flatnonzero(detected & steady & (peak > a))
+    return changes[cycles.end] == changes[np.maximum(cycles.start - 1, 0)]
 
 
 def sluggishness(u: np.ndarray, y: np.ndarray, sp: np.ndarray, cycles: HalfCycles, detected: np.ndarray,
                  a: float, sign: int, ts: float) -> Sluggishness:
     """Hägglund's Ii and the recovery time over the load disturbances among the error's half-cycles
-    ``cycles`` (:func:`load_cycles`, ``a`` the significant deviation), from the MV ``u``, PV ``y`` and set
-    point ``sp`` sampled every ``ts`` seconds; ``sign``: the process gain's sign."""
-    chosen = load_cycles(sp - y, sp, cycles, detected, a)
+    ``cycles``, from the MV ``u``, PV ``y`` and set point ``sp`` sampled every ``ts`` seconds; ``sign``: the
+    process gain's sign.
+
+    The load disturbances: the half-cycles Hägglund's detector counted (``detected``), no set-point response,
+    whose filtered error reaches beyond the significant deviation ``a`` (a slow wander of noise can pile up an
+    IAE too, but not a filtered peak).
+    """
+    candidates = np.flatnonzero(detected & _set_point_free(sp, cycles))
+    if len(candidates) < MIN_DISTURBANCES:
+        return Sluggishness(None, None)
+    tau = 0.1 * float(np.median(cycles.end[candidates] - cycles.start[candidates]))
+    deviation = np.abs(_lowpass(sp - y, tau))
+    peaks = np.maximum.reduceat(deviation, cycles.start)[candidates]
+    chosen = candidates[peaks > a]
     if len(chosen) < MIN_DISTURBANCES:
         return Sluggishness(None, None)
-    tau = 0.1 * float(np.median(cycles.end[chosen] - cycles.start[chosen]))
     product = sign * np.diff(_lowpass(u, tau)) * np.diff(_lowpass(y, tau))  # product[k]: from sample k to k+1
     inside = np.zeros(len(u) + 1, dtype=np.int64)  # +1 at each chosen start, -1 at its end: a running count
     np.add.at(inside, cycles.start[chosen], 1)
@@ -80,9 +86,9 @@ def sluggishness(u: np.ndarray, y: np.ndarray, sp: np.ndarray, cycles: HalfCycle
     t_pos = int(np.count_nonzero(product[mask] > 0.0))
     t_neg = int(np.count_nonzero(product[mask] < 0.0))
     idle = float((t_pos - t_neg) / (t_pos + t_neg)) if t_pos + t_neg else None
-    deviation = np.abs(_lowpass(sp - y, tau))
+    latest = chosen[-MAX_RECOVERIES:]  # as telling as all of them, for a bounded cost
     return Sluggishness(idle, ts * float(np.median([_recovery(deviation[a:b])
-                                                    for a, b in zip(cycles.start[chosen], cycles.end[chosen])])))
+                                                    for a, b in zip(cycles.start[latest], cycles.end[latest])])))
 
 
 def _recovery(deviation: np.ndarray) -> int:

@@ -35,6 +35,7 @@ SHAPE_TRIANGLE = 0.65  # SI above this: triangular, a sticking valve's around an
 SHAPE_SINE = 0.35  # SI up to this: sinusoidal, an external disturbance's or the loop's own oscillation
 _PEAKS = np.linspace(0.1, 0.9, 17)  # where a fitted triangle may peak, share of the half-cycle
 _GRID = 32  # points each half-cycle is put on for the fits
+MAX_CYCLES = 100  # the latest this many (half-)cycles tell the shape and the band as well as all of them
 
 
 @dataclass(frozen=True)
@@ -66,9 +67,10 @@ def ccf_zero_lag(u: np.ndarray, y: np.ndarray, half_period: int) -> float | None
 def shape_index(y: np.ndarray, cycles: HalfCycles) -> float | None:
     """He et al.'s SI over the half-cycles of ``y`` (its mean removed) that ``cycles`` delimits: each half-cycle
     of at least 8 samples, put on a grid of 32 points, fitted with the best half sine and the best triangle
-    (amplitude and peak fitted); SI from the summed mean squared errors (None: fewer than two half-cycles)."""
-    keep = (cycles.end - cycles.start) >= 8
-    if np.count_nonzero(keep) < 2:
+    (amplitude and peak fitted); SI from the summed mean squared errors over the latest 100 (None: fewer than
+    two half-cycles)."""
+    keep = np.flatnonzero((cycles.end - cycles.start) >= 8)[-MAX_CYCLES:]
+    if len(keep) < 2:
         return None
     s = (np.arange(_GRID) + 0.5) / _GRID
     rows = np.stack([np.interp(s, (np.arange(b - a) + 0.5) / (b - a), y[a:b])
@@ -84,13 +86,13 @@ def shape_index(y: np.ndarray, cycles: HalfCycles) -> float | None:
 
 
 def band(u: np.ndarray, cycles: HalfCycles, smooth: int) -> float | None:
-    """The median over the cycles delimited by ``cycles`` (the PV's) of the peak-to-peak of ``u`` (MV units),
-    ``u`` first averaged over ``smooth`` samples (None: no complete cycle)."""
+    """The median over the latest 100 cycles delimited by ``cycles`` (the PV's) of the peak-to-peak of ``u`` (MV
+    units), ``u`` first averaged over ``smooth`` samples (None: no complete cycle)."""
     if len(cycles) < 2:
         return None
     width = max(1, smooth)
     smoothed = np.convolve(u, np.ones(width) / width, mode="same")
-    starts = cycles.start[::2]
+    starts = cycles.start[::2][-MAX_CYCLES:]
     swings = [np.ptp(smoothed[a:b]) for a, b in zip(starts[:-1], starts[1:]) if b > a]
     return float(np.median(swings)) if swings else None
 
