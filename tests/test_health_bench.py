@@ -44,15 +44,17 @@ def test_the_tables_count_detections_and_false_alarms() -> None:
     sticky, aggressive = FAULTS[0], FAULTS[1]
     outcomes = [
         Outcome(Case(sticky.name, "moderate", "stable", "", 1, sticky.expected),
-                frozenset({"oscillating", "stiction"}), "check_valve", 3.3),
-        Outcome(Case(sticky.name, "moderate", "stable", "", 2, sticky.expected), frozenset(), "none", None),
+                frozenset({"oscillating", "stiction"}), "check_valve", 3.3, 0.5, 0.6),
+        Outcome(Case(sticky.name, "moderate", "stable", "", 2, sticky.expected), frozenset(), "none", None, None,
+                None),
         Outcome(Case(aggressive.name, "moderate", "stable", "", 3, aggressive.expected),
-                frozenset({"oscillating"}), "retune", None),
-        Outcome(Case(HEALTHY[0].name, "", "stable", "", 4), frozenset({"sluggish"}), "retune", None),
-        Outcome(Case(HEALTHY[0].name, "", "stable", "", 5), frozenset(), "none", None),
+                frozenset({"oscillating"}), "retune", None, 0.98, 0.2),
+        Outcome(Case(HEALTHY[0].name, "", "stable", "", 4), frozenset({"sluggish"}), "retune", None, None, None),
+        Outcome(Case(HEALTHY[0].name, "", "stable", "", 5), frozenset(), "none", None, None, None),
     ]
     text = table(outcomes)
     assert f"| {sticky.name} | `stiction` | – | 50 % (1/2) | – |" in text
     assert "| `sluggish` | 50 % (1/2) |" in text and "| any | 50 % (1/2) |" in text
     assert "stiction told apart from aggressive tuning in 100 % (2/2)" in text
     assert "median 1.10, from 1.10 to 1.10" in text  # 3.3 against S = 3
+    assert f"| {aggressive.name} | stable | 0.98–0.98 | 0.20–0.20 |" in text

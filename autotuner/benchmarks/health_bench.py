@@ -144,6 +144,8 @@ class Outcome:
     flags: frozenset[str]
     recommendation: str
     band: float | None
+    ccf_zero_lag: float | None
+    shape_index: float | None
 
 
 def healthy_gains(process: Process) -> Gains:
@@ -219,7 +221,9 @@ def run_case(case: Case) -> Outcome:
     tu = ultimate_period(process)
     assert tu is not None
     result = assess(simulate(make(tu), process, case.seed), LIMITS, process, window=math.inf)
-    return Outcome(case, frozenset(f.name for f in result.flags), result.recommendation, result.indices.stiction_band)
+    ind = result.indices
+    return Outcome(case, frozenset(f.name for f in result.flags), result.recommendation, ind.stiction_band,
+                   ind.ccf_zero_lag, ind.shape_index)
 
 
 def cases(repeats: int) -> list[Case]:
@@ -264,7 +268,8 @@ def table(outcomes: list[Outcome]) -> str:
     for flag in ("manual", "saturated", "oscillating", "stiction", "sluggish", "noisy", "frozen_pv", "poor_tracking"):
         lines.append(f"| `{flag}` | {_pct(sum(flag in o.flags for o in healthy), len(healthy))} |")
     lines.append(f"| any | {_pct(sum(bool(o.flags) for o in healthy), len(healthy))} |")
-    lines += ["", _told_apart(outcomes), "", _band(outcomes), "", _recommendations(outcomes)]
+    lines += ["", _told_apart(outcomes), "", _band(outcomes), "", _stiction_tests(outcomes), "",
+              _recommendations(outcomes)]
     return "\n".join(lines)
 
 
@@ -291,6 +296,23 @@ def _told_apart(outcomes: list[Outcome]) -> str:
             f"loops of both (sticky valve: {_pct(sum('stiction' in o.flags for o in per[sticky]), len(per[sticky]))}"
             f" flagged stiction; aggressive: {_pct(sum('stiction' in o.flags for o in per[aggressive]), len(per[aggressive]))}"
             " flagged stiction)")
+
+
+def _span(values: list[float]) -> str:
+    return f"{min(values):.2f}–{max(values):.2f}" if values else "–"
+
+
+def _stiction_tests(outcomes: list[Outcome]) -> str:
+    """The two stiction tests' values on the oscillating loops of the three oscillating faults, per process."""
+    lines = ["| oscillating loops of | process | ρ0 (Horch) | SI (shape) |", "|---|---|---|---|"]
+    for scenario in FAULTS[:3]:
+        for name, _ in PROCESSES:
+            group = [o for o in outcomes if o.case.scenario == scenario.name and o.case.process == name
+                     and "oscillating" in o.flags]
+            lines.append(f"| {scenario.name} | {name} | "
+                         f"{_span([o.ccf_zero_lag for o in group if o.ccf_zero_lag is not None])} | "
+                         f"{_span([o.shape_index for o in group if o.shape_index is not None])} |")
+    return "\n".join(lines)
 
 
 def _recommendations(outcomes: list[Outcome]) -> str:

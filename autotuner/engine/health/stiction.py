@@ -3,16 +3,19 @@
 Horch (1999), "A simple method for detection of stiction in control valves", Control Engineering Practice
 7(10):1221–1231: in a loop around a self-regulating process, a sticking valve makes the cross-correlation of
 the controller output u and the process output y an odd function of the lag (zero at lag 0: the integral
-action ramps u while the valve, stuck, holds y), while an oscillation from aggressive tuning or an external
-disturbance makes it even (an extremum at lag 0). The index here is the correlation at lag 0 relative to its
-largest magnitude within half a period, ρ0 = |r_uy(0)| / max|r_uy(τ)|: 0 for an odd function, 1 for an even
-one (for two sines shifted by φ, |cos φ|).
+action ramps u while the valve, stuck, holds y), while the loop's own oscillation through aggressive gains makes
+it even (an extremum at lag 0: u and y in phase opposition). The index here is the correlation at lag 0
+relative to its largest magnitude within half a period, ρ0 = |r_uy(0)| / max|r_uy(τ)|: 0 for an odd
+function, 1 for an even one (for two sines shifted by φ, |cos φ|). A slow external sinusoid correlates
+unevenly too (the integral action lags the PV by up to 90°): the shape test tells it apart.
 
 He, Wang, Pottmann and Qin (2007), "A curve fitting method for detecting valve stiction in oscillating control
 loops", Ind. Eng. Chem. Res. 46:4549–4560: around an integrating process a sticking valve (steps of the valve
-position) makes the PV a triangular wave, an aggressive loop a sinusoidal one. Each half-cycle of the PV is
-fitted with a half sine and with a triangle (its peak anywhere); the stiction index SI = MSE_sine /
-(MSE_sine + MSE_triangle) is above 0.5 when the triangle fits better.
+position) makes the PV a triangular wave, an aggressive loop a sinusoidal one; around a self-regulating
+process a sticking valve's PV is no sine either (square-ish or triangular), an external sinusoid's is. Each
+half-cycle of the PV is fitted with a half sine and with a triangle (its peak anywhere); the stiction index
+SI = MSE_sine / (MSE_sine + MSE_triangle) is above 0.5 when the triangle fits better. How the verdict combines
+the two tests: :func:`autotuner.engine.health.verdict.is_stiction`.
 
 The band: for the valve to move after a reversal the controller output must travel the valve's deadband plus
 stickband S, so in a stiction limit cycle the MV swings at least S per cycle (Choudhury, Shah and Thornhill
