@@ -9,6 +9,8 @@ import math
 import numpy as np
 import pytest
 import scipy.optimize
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from autotuner.benchmarks.health_bench import healthy_gains, margin_gains
 from autotuner.engine.health.assessment import Assessment, assess
@@ -160,3 +162,21 @@ def test_too_short_a_window_is_refused() -> None:
     record = LoopRecord.of(np.arange(10.0), np.zeros(10), np.zeros(10), np.zeros(10))
     with pytest.raises(ValueError, match="10 samples in the window: an assessment needs at least 20"):
         assess(record)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(40, 400), st.integers(0, 2 ** 32 - 1), st.sampled_from(["noise", "steps", "constant", "mixed"]))
+def test_any_valid_record_gets_an_assessment_in_strict_json(n: int, seed: int, kind: str) -> None:
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.5, 1.5, n)) if kind == "mixed" else np.arange(n, dtype=float)
+    signals = {
+        "noise": lambda: 50 + rng.standard_normal(n),
+        "steps": lambda: np.repeat(rng.uniform(0, 100, n // 10 + 1), 10)[:n],
+        "constant": lambda: np.full(n, 42.0),
+        "mixed": lambda: 50 + np.cumsum(rng.standard_normal(n)),
+    }[kind]
+    auto = rng.random(n) > 0.2 if kind == "mixed" else None
+    model = parse_process(STABLE) if seed % 2 else None
+    result = assess(LoopRecord.of(t, signals(), signals(), signals(), auto), LIMITS, model)
+    out = json.loads(json.dumps(result.to_json(), allow_nan=False))
+    assert set(out["flags"]) <= set(FLAGS) and out["recommendation"] in RECOMMENDATIONS

@@ -5,13 +5,16 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.markup import escape
 from rich.table import Table
 
 from autotuner.cli.app import app, bad_input, fmt, parse_plant, stdout
+
+if TYPE_CHECKING:  # only for annotations: the command imports the engine when it runs
+    from autotuner.engine.health.assessment import Assessment
 
 
 def _range(text: str, option: str) -> tuple[float, float]:
@@ -68,11 +71,10 @@ def health_command(
     _render(result)
 
 
-def _render(result: object) -> None:
-    from autotuner.engine.health.assessment import Assessment
+def _render(result: Assessment) -> None:
+    """The flags and the indices as two tables."""
     from autotuner.engine.health.indices import Indices
 
-    assert isinstance(result, Assessment)
     flags = Table(title=f"loop health: {result.samples} samples of {fmt(result.ts, ' s')}, "
                         f"{fmt(result.end - result.start, ' s')}; recommendation: {result.recommendation}",
                   title_justify="left")
