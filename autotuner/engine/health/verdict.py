@@ -111,25 +111,31 @@ def flags(ind: Indices, osc: Oscillation | None, ctx: Context) -> list[Flag]:
         out.append(Flag("frozen_pv", _grade(ind.frozen_share, 0.5, 0.9),
                         f"the PV did not change at all for {ind.frozen_share * ctx.window:.0f} s "
                         f"({100.0 * ind.frozen_share:.0f} % of the window): a frozen sensor or transmission"))
-    if ind.saturation is not None and ind.saturation > SATURATED:
-        out.append(Flag("saturated", _grade(ind.saturation, 0.2, 0.5),
-                        f"the MV sat at a limit {100.0 * ind.saturation:.0f} % of the time in automatic"))
-    stiction = False
-    if osc is not None and osc.oscillating:
-        stiction = is_stiction(ind, ctx.integrating)
-        out.append(Flag("oscillating", _grade((ind.oscillation_amplitude or 0.0) / ctx.a, 3.0, 10.0),
-                        _oscillation_reason(ind, ctx, stiction)))
+    saturated = ind.saturation is not None and ind.saturation > SATURATED
+    if saturated:
+        out.append(Flag("saturated", _grade(ind.saturation or 0.0, 0.2, 0.5),
+                        f"the MV sat at a limit {100.0 * (ind.saturation or 0.0):.0f} % of the time in automatic"))
+    oscillating = osc is not None and osc.oscillating
+    if oscillating:
+        out += _oscillation(ind, ctx)
+    else:
+        if not saturated:  # a saturated valve makes any loop slow: not the tuning's fault
+            out += _sluggish(ind, ctx)
+        out += _noisy(ind, ctx)  # (a fast oscillation's samples look like noise)
+    out += _tracking(ind, ctx)
+    return out
+
+
+def _oscillation(ind: Indices, ctx: Context) -> list[Flag]:
+    """``oscillating``, and ``stiction`` when the valve is its cause."""
+    severity = _grade((ind.oscillation_amplitude or 0.0) / ctx.a, 3.0, 10.0)
+    stiction = is_stiction(ind, ctx.integrating)
+    out = [Flag("oscillating", severity, _oscillation_reason(ind, ctx, stiction))]
     if stiction:
         band = "" if ind.stiction_band is None else (
             f"; the MV swings {_n(ind.stiction_band)} ({100.0 * ind.stiction_band / ctx.mv_span:.2g} % of its "
             "span) per cycle, about the valve's deadband plus stickband")
-        out.append(Flag("stiction", _grade((ind.oscillation_amplitude or 0.0) / ctx.a, 3.0, 10.0),
-                        f"a sticking valve keeps the loop in a limit cycle{band}"))
-    if not (osc is not None and osc.oscillating) and not (ind.saturation is not None and ind.saturation > SATURATED):
-        out += _sluggish(ind, ctx)  # a saturated valve makes any loop slow: not the tuning's fault
-    if not (osc is not None and osc.oscillating):  # a fast oscillation's samples look like noise
-        out += _noisy(ind, ctx)
-    out += _tracking(ind, ctx)
+        out.append(Flag("stiction", severity, f"a sticking valve keeps the loop in a limit cycle{band}"))
     return out
 
 
