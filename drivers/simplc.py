@@ -20,14 +20,17 @@ the fallback MV, then the fallback mode, TBSY cleared, TE set and ite
 :attr:`Code.WATCHDOG_FALLBACK`, the watchdog disarmed.
 
 Time is the plant's: :meth:`tick` advances one sample; :func:`run` ticks in
-real time (or ``speed`` times faster), deadline-scheduled so it does not drift.
+real time (or ``speed`` times faster), deadline-scheduled so it does not drift;
+:func:`run_many` ticks many PLCs of one sample time from one task (a plant).
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from autotuner.engine.design.point_design import design
@@ -44,8 +47,12 @@ from autotuner.engine.outcome import Code
 from .link import Mode, TuneFlags, Watchdog
 
 
+@functools.lru_cache(maxsize=64)
 def safe_gains(process: Process) -> Gains:
     """A cautious PI for the simulated plant's starting state (designed from the exact 135° point at Ms 1.2).
+
+    Remembered per process (a Process and Gains are frozen): the design takes ~0.1 s, and a plant of many
+    loops of one process (:mod:`drivers.modbus_plant`) would make it once per loop.
 
     An open-loop unstable process never lags as little as 135°: its PI is designed from the point of least
     lag (a real loop's controller holds it; k = 0.1 would hold it only while it sits exactly at rest, and it
@@ -182,18 +189,32 @@ class SimulatedPlc:
 
 
 async def run(plc: SimulatedPlc, speed: float = 1.0, stop: asyncio.Event | None = None) -> None:
-    """Tick ``plc`` so its clock follows the wall clock ``speed`` times faster, until ``stop`` is set.
+    """Tick ``plc`` so its clock follows the wall clock ``speed`` times faster, until ``stop`` is set
+    (:func:`run_many` of one PLC)."""
+    await run_many([plc], speed, stop)
+
+
+async def run_many(plcs: Sequence[SimulatedPlc], speed: float = 1.0, stop: asyncio.Event | None = None) -> None:
+    """Tick every PLC of ``plcs`` (one sample time, seconds) so their clocks follow the wall clock ``speed`` times
+    faster, until ``stop`` is set, from this one task: one timer for the lot, however many there are.
 
     After a stall (a busy machine) the due ticks are made at once, before any
-    other task runs: whoever reads the PLC then sees the state of the present
-    moment, never a plant lagging behind the wall clock.
+    other task runs: whoever reads a PLC then sees the state of the present
+    moment, never a plant lagging behind the wall clock. The PLCs are
+    independent, so ticking them one after the other changes none of them.
+    ValueError if there are none or their sample times differ.
     """
-    period = plc.ts / speed
+    times = sorted({plc.ts for plc in plcs})
+    if len(times) != 1:
+        raise ValueError(f"run_many needs PLCs of one sample time, got sample times {times}")
+    period = plcs[0].ts / speed
     start = time.monotonic()
     done = 0
     while stop is None or not stop.is_set():
         due = int((time.monotonic() - start) / period)
-        while done < due:
-            plc.tick()
-            done += 1
+        if due > done:
+            for plc in plcs:
+                for _ in range(due - done):
+                    plc.tick()
+            done = due
         await asyncio.sleep(max(start + (done + 1) * period - time.monotonic(), 0.0))

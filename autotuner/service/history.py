@@ -42,7 +42,6 @@ from dataclasses import replace
 from datetime import UTC, datetime
 from typing import Any
 
-import numpy as np
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine, RowMapping
 from sqlalchemy.pool import StaticPool
@@ -51,10 +50,8 @@ from autotuner.engine.control.gains import Gains
 from drivers.link import LoopState, Mode
 
 from autotuner.engine.result import ResultRecord, Trace
+from autotuner.service.session_record import TRACE_POINTS
 
-# Largest number of points of a stored trace: a whole experiment at full resolution (the demo's take 300–1500
-# samples; a 2-hour experiment at 1 s is 7200), thinned evenly past that.
-TRACE_POINTS = 8000
 
 _META = sa.MetaData()
 _SESSIONS = sa.Table(
@@ -144,9 +141,7 @@ def state_of(data: dict[str, Any]) -> LoopState:
 
 def downsample(trace: Trace, points: int = TRACE_POINTS) -> dict[str, list[float]]:
     """At most ``points`` evenly spaced samples of ``trace`` (plant seconds, PV, MV), the last one included."""
-    n = len(trace.t)
-    index = np.unique(np.linspace(0, n - 1, min(n, points)).round().astype(int)) if n else np.zeros(0, int)
-    return {name: [float(x) for x in getattr(trace, name)[index]] for name in ("t", "pv", "mv")}
+    return trace.thinned(points)
 
 
 class History:

@@ -22,16 +22,12 @@ times back to plant seconds.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
-import multiprocessing
-import os
-import threading
-import time
 import math
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -40,17 +36,23 @@ from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags, Watchdog
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Status
 from autotuner.engine.result import Trace, TuneResult
-from autotuner.engine.simulated_tuning import result_of
+from autotuner.engine.simulated_tuning import DesignJob
+from autotuner.service.design_pool import Outcome, designed
 
 # Handshake bits (TBSY, ite) and the watchdog's heartbeat are written this often, wall seconds.
 FLAGS_PERIOD = 0.5
 # Pauses between read-backs while the device tracks the saved MV, wall seconds (growing from the first).
 TRACK_POLL = (0.01, 0.1)
-# How often a design worker checks that the process that started it still lives, seconds.
-PARENT_CHECK = 0.5
-# Worker processes of the design (see _designed), started on first use, and the CPU seconds they spent.
-_pool: ProcessPoolExecutor | None = None
-_design_cpu = 0.0
+# A sample the session itself takes this many sample times late (its event loop, its machine — not the link)
+# leaves a gap the experiment cannot use (its stall rule: 3 sample intervals without a sample).
+OVERLOAD_LATE = 2.0
+# More than OVERLOAD_COUNT such samples among the last OVERLOAD_WINDOW, or one OVERLOAD_STALL sample times late:
+# the session ends OVERLOADED (an isolated stall only costs the estimates around it).
+OVERLOAD_COUNT, OVERLOAD_WINDOW = 5, 100
+OVERLOAD_STALL = 10.0
+# Codes that blame the process (or its surroundings); after an overload the tuner's lateness may be the cause.
+BLAMES_PROCESS = frozenset({Code.NO_OSCILLATION, Code.NOT_CONVERGED, Code.DISTURBANCE, Code.NOISE_TOO_HIGH,
+                            Code.NOT_STABILISABLE, Code.UNSTABLE_DEAD_TIME_TOO_LONG})
 
 
 async def deadlines(period: float, stop: asyncio.Event | None = None,
@@ -198,50 +200,134 @@ def _ended(restore_error: str, code: Code, ok: bool = False) -> TuneFlags:
                      ite=float(Code.LOOP_NOT_RESTORED if restore_error else code))
 
 
-async def tune_link(
-    link: Link,
-    config: RelayConfig,
-    ts: float,
-    controller: str = "PI",
-    ms: float = 1.4,
-    apply: bool = False,
-    speed: float = 1.0,
-    stop: asyncio.Event | None = None,
-    on_status: Callable[[Status], None] | None = None,
-    handback: HandBack | None = None,
-    on_saved: Callable[[LoopState, tuple[float, ...]], Awaitable[str]] | None = None,
-    on_handed_back: Callable[[str], None] | None = None,
-) -> TuneResult:
-    """Run the experiment on the loop behind ``link`` every ``ts`` plant seconds and design ``controller``.
+@dataclass(frozen=True)
+class SessionPlan:
+    """What one session on a live loop runs: the experiment's settings, its clock and what is designed.
 
-    ``handback``: how the loop is handed back (default :class:`HandBack`());
-    its watchdog time is wall seconds, written to the device as ``speed``
-    times as many device seconds. ``on_saved(saved, relay_levels)`` is awaited
-    once the loop's state is read, before the loop is touched: it records the
-    saved state durably and returns '' — or why it could not, and the session
-    then ends without touching the loop (HISTORY_UNAVAILABLE): a loop taken
-    over without its saved state on record could not be restored after a
-    crash. A ``stop`` set by then also ends it untouched (ABORTED).
+    ``relay``: the experiment (with the loop's limits and the field
+    tolerances); ``ts``: sample time, plant seconds; ``controller`` "PI" or
+    "PID" designed for maximum sensitivity ``ms``; ``apply``: write the gains
+    on success; ``speed``: plant seconds per wall second (a simulated plant
+    runs faster); ``handback``: how the loop is handed back (its watchdog time
+    is wall seconds, written to the device as ``speed`` times as many device
+    seconds).
     """
-    handback = HandBack() if handback is None else handback
-    if not ts > 0.0 or not speed > 0.0:
-        raise ValueError(f"sample time and speed must be positive, got ts={ts}, speed={speed}")
+
+    relay: RelayConfig
+    ts: float
+    controller: str = "PI"
+    ms: float = 1.4
+    apply: bool = False
+    speed: float = 1.0
+    handback: HandBack = field(default_factory=HandBack)
+
+    def __post_init__(self) -> None:
+        if not self.ts > 0.0 or not self.speed > 0.0:
+            raise ValueError(f"sample time and speed must be positive, got ts={self.ts}, speed={self.speed}")
+
+
+@dataclass
+class SessionHooks:
+    """How a session reports to whoever runs it; every member optional.
+
+    ``stop``: set to abort (TBRK), at once. ``on_status(status)``: after each
+    sample. ``on_saved(saved, relay_levels)``: awaited once the loop's state
+    is read, before it is touched; it records the saved state durably and
+    returns '' — or why it could not, and the session then ends without
+    touching the loop (HISTORY_UNAVAILABLE): a loop taken over without its
+    saved state on record could not be restored after a crash.
+    ``on_handed_back(error)``: once the hand-back is over ('' or why not).
+    ``on_timing(late, own)``: per sample, wall seconds its PV read completed
+    behind its due time, and the part of that the session's own process caused
+    (not the link: the event loop, the analysis, a starved CPU).
+    ``on_analysis(cpu)``: per period, the CPU seconds its analysis took.
+    ``design(job)``: the design of the ended experiment (default: the design
+    pool of this process).
+    """
+
+    stop: asyncio.Event | None = None
+    on_status: Callable[[Status], None] | None = None
+    on_saved: Callable[[LoopState, tuple[float, ...]], Awaitable[str]] | None = None
+    on_handed_back: Callable[[str], None] | None = None
+    on_timing: Callable[[float, float], None] | None = None
+    on_analysis: Callable[[float], None] | None = None
+    design: Callable[[DesignJob], Awaitable[Outcome]] = designed
+
+
+class Overload:
+    """The session's own lateness, sample by sample, judged against what the experiment tolerates.
+
+    ``period``: the sample time, wall seconds. A sample whose read the
+    session started more than :data:`OVERLOAD_LATE` sample times late for
+    reasons of its own (not waiting on the link) is late by the session's
+    fault; the session can no longer keep its schedule when more than
+    :data:`OVERLOAD_COUNT` of the last :data:`OVERLOAD_WINDOW` samples are, or
+    one is :data:`OVERLOAD_STALL` sample times late. ``count``: such samples
+    so far; ``worst``: the longest such delay, wall seconds.
+    """
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self.count = 0
+        self.worst = 0.0
+        self.io_end = -math.inf  # when the session's last link call ended (monotonic)
+        self._samples = 0
+        self._late: collections.deque[int] = collections.deque()  # the numbers of the late samples in the window
+
+    def sample(self, due: float, read_start: float) -> float:
+        """The session's own part of the lateness of the read started at ``read_start`` for ``due``."""
+        self._samples += 1
+        own = max(read_start - max(due, self.io_end), 0.0)
+        if own > OVERLOAD_LATE * self.period:
+            self.count += 1
+            self.worst = max(self.worst, own)
+            self._late.append(self._samples)
+        while self._late and self._late[0] <= self._samples - OVERLOAD_WINDOW:
+            self._late.popleft()
+        return own
+
+    @property
+    def exceeded(self) -> bool:
+        """True when the session can no longer keep its schedule within the experiment's tolerance."""
+        return len(self._late) > OVERLOAD_COUNT or self.worst > OVERLOAD_STALL * self.period
+
+    def message(self, speed: float) -> str:
+        """The overload's message (what the experiment saw, in plant seconds)."""
+        return (f"{MESSAGES[Code.OVERLOADED]}: {self.count} samples were taken more than {OVERLOAD_LATE:g} sample "
+                f"times late by the tuner itself (the longest {self.worst * speed:.3g} s, not the link's "
+                "delay): its machine or process is loaded beyond what the experiment tolerates; the loop was "
+                "handed back — retry when fewer loops tune at once")
+
+
+async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = None) -> TuneResult:
+    """Run the experiment of ``plan`` on the loop behind ``link``, hand the loop back, design; the result.
+
+    The loop is sampled every ``plan.ts`` plant seconds (``plan.ts /
+    plan.speed`` wall seconds); ``hooks`` report and abort (:class:`SessionHooks`).
+    A session whose own lateness exceeds what the experiment tolerates
+    (:class:`Overload`) ends with OVERLOADED, and a verdict about the process
+    reached after such lateness (no oscillation, a disturbance, an unstable
+    process, …) is reported as OVERLOADED too: the tuner's lateness, not the
+    process, may be its cause.
+    """
+    hooks = SessionHooks() if hooks is None else hooks
+    controller, handback, speed = plan.controller, plan.handback, plan.speed
     try:
         saved = await link.read_state()
     except LinkError as exc:
         return TuneResult.failed(Code.LINK_FAULT, f"cannot read the loop: {exc}", controller)
 
-    experiment = RelayExperiment(config, mv0=saved.mv)
-    if on_saved is not None and (why := await on_saved(saved, experiment.levels)):
+    experiment = RelayExperiment(plan.relay, mv0=saved.mv)
+    if hooks.on_saved is not None and (why := await hooks.on_saved(saved, experiment.levels)):
         return TuneResult.failed(Code.HISTORY_UNAVAILABLE, f"{MESSAGES[Code.HISTORY_UNAVAILABLE]}: {why}", controller)
+    stop = hooks.stop
     if stop is not None and stop.is_set():
         return TuneResult.failed(Code.ABORTED, f"{MESSAGES[Code.ABORTED]} before the loop was touched", controller)
     if experiment.done:  # refused before it starts (the relay cannot move the MV): the loop is not touched
         await _publish(link, _ended("", experiment.code))
         return TuneResult.failed(experiment.code, experiment.message, controller)
-    times: list[float] = []
-    pvs: list[float] = []
-    mvs: list[float] = []
+    record = _Record()
+    overload = Overload(plan.ts / speed)
     failed = False
     beats = 0
     try:
@@ -260,8 +346,9 @@ async def tune_link(
                 beats += 1  # the heartbeat only feeds an armed watchdog: no extra request otherwise
                 await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite),
                                beats if handback.watchdog > 0.0 else None)
+                overload.io_end = time.monotonic()
 
-        async for due in deadlines(ts / speed, stop, FLAGS_PERIOD):
+        async for due in deadlines(plan.ts / speed, stop, FLAGS_PERIOD):
             if stop is not None and stop.is_set():
                 experiment.abort()
                 break
@@ -269,32 +356,40 @@ async def tune_link(
                 await handshake(experiment.status())
                 continue
             before = time.monotonic()
+            own = overload.sample(due, before)
             pv = await link.read_pv()
             after = time.monotonic()
+            if hooks.on_timing is not None:
+                hooks.on_timing(after - due, own)
+            if overload.exceeded:
+                experiment.fail(Code.OVERLOADED, overload.message(speed))
+                break
             age = link.pv_age
             t = ((0.5 * (before + after) if age is None else after - age) - start) * speed
-            if times and t <= times[-1]:
+            if record.t and t <= record.t[-1]:
+                overload.io_end = time.monotonic()
                 continue  # the same time-stamped value again: nothing new to act on
             mv = experiment.step(t, pv)
             if experiment.done:
                 break
             before = time.monotonic()
             await link.write_mv(mv)
+            overload.io_end = time.monotonic()
             # When the MV reached the device: a write the link or a busy machine delayed left the previous MV
             # on the process meanwhile, and the estimates must integrate the MV as the process held it.
-            experiment.applied((0.5 * (before + time.monotonic()) - start) * speed)
-            times.append(t)
-            pvs.append(pv)
-            mvs.append(mv)
+            experiment.applied((0.5 * (before + overload.io_end) - start) * speed)
+            record.add(t, pv, mv)
             if experiment.analysis_pending:
-                # A period ended: its analysis (a load fit: tens of ms of CPU) runs off the event loop, so the
-                # daemon's other loops, the handshake and an in-process simulated PLC keep their time.
-                await asyncio.to_thread(experiment.analyse)
+                # A period ended: its analysis runs off the event loop, so the other loops of this process and
+                # the handshake keep their time.
+                cpu = await asyncio.to_thread(_analysed, experiment)
+                if hooks.on_analysis is not None:
+                    hooks.on_analysis(cpu)
                 if experiment.done:
                     break
             status = experiment.status()
-            if on_status is not None:
-                on_status(status)
+            if hooks.on_status is not None:
+                hooks.on_status(status)
             await handshake(status)
     except LinkError as exc:
         experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
@@ -304,86 +399,63 @@ async def tune_link(
         raise
     finally:
         restore_error = await hand_back(link, saved, handback)
-        if on_handed_back is not None:
-            on_handed_back(restore_error)
+        if hooks.on_handed_back is not None:
+            hooks.on_handed_back(restore_error)
         if failed:  # no result follows to end the handshake with
             await _publish(link, _ended(restore_error, Code.ABORTED))
-    result = await _designed(experiment, controller, ms, _trace(times, pvs, mvs), restore_error)
-    if result.ok and apply:
+    job = DesignJob.of(experiment, controller, plan.ms)
+    if overload.count and job.code in BLAMES_PROCESS:
+        job = DesignJob(None, Code.OVERLOADED, f"{overload.message(speed)} (the experiment had ended: "
+                        f"{job.message})", controller, plan.ms, plan.relay.amp)
+    result = _restored(await _result(hooks, job, record.trace()), restore_error)
+    if result.ok and plan.apply:
         try:
             await link.write_gains(result.design.gains)
         except LinkError as exc:
             result = TuneResult(Code.LINK_FAULT, f"gains not written: {exc}", controller,
                                 result.identification, result.design, result.trace)
     await _publish(link, _ended(restore_error, result.code, result.ok))
-    if on_status is not None:
-        on_status(experiment.status())
+    if hooks.on_status is not None:
+        hooks.on_status(experiment.status())
     return result
 
 
-async def _designed(experiment: RelayExperiment, controller: str, ms: float, trace: Trace,
-                    restore_error: str) -> TuneResult:
-    """The result with its design, computed in a worker process.
-
-    The design takes 0.1 s (PI) to 0.4 s (PID) of CPU. In a thread it would
-    hold the GIL most of that time, and many sessions of a daemon ending
-    together would stall every other loop's sampling.
-    """
-    global _pool, _design_cpu
-    args = (experiment, controller, ms, trace, restore_error)
-    if experiment.result is None:  # nothing identified, nothing to design: no worker needed
-        return _result(*args)
-    if _pool is None:
-        # spawn: a worker inherits none of the daemon's sockets or its event loop; one core left for sampling.
-        _pool = ProcessPoolExecutor(max(1, (os.cpu_count() or 2) - 1), mp_context=multiprocessing.get_context("spawn"),
-                                    initializer=_follow_parent, initargs=(os.getpid(),))
-    try:
-        result, cpu = await asyncio.get_running_loop().run_in_executor(_pool, _timed_result, *args)
-    except BrokenProcessPool:  # a worker was killed: the result still comes, from a thread
-        _pool = None
-        return await asyncio.to_thread(_result, *args)
-    _design_cpu += cpu
-    return result
+def _analysed(experiment: RelayExperiment) -> float:
+    """Run the pending analysis of ``experiment`` (in a worker thread); the CPU seconds it took."""
+    start = time.thread_time()
+    experiment.analyse()
+    return time.thread_time() - start
 
 
-def _follow_parent(parent: int) -> None:
-    """In a design worker: exit when the daemon is gone (killed by a signal, it never shuts its pool down)."""
+class _Record:
+    """The samples a session took: times (plant s), PV and the MV held from each."""
 
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(PARENT_CHECK)
-        os._exit(0)
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.pv: list[float] = []
+        self.mv: list[float] = []
 
-    threading.Thread(target=watch, name="follow-parent", daemon=True).start()
+    def add(self, t: float, pv: float, mv: float) -> None:
+        self.t.append(t)
+        self.pv.append(pv)
+        self.mv.append(mv)
 
-
-def close_design_pool() -> None:
-    """Stop the design's worker processes (a daemon that stops; the next design starts them again)."""
-    global _pool
-    if _pool is not None:
-        _pool.shutdown(wait=True)
-        _pool = None
-
-
-def design_cpu() -> float:
-    """CPU seconds the design's worker processes have spent in this process's sessions so far."""
-    return _design_cpu
+    def trace(self) -> Trace:
+        return Trace(np.asarray(self.t, dtype=float), np.asarray(self.pv, dtype=float),
+                     np.asarray(self.mv, dtype=float))
 
 
-def _timed_result(experiment: RelayExperiment, controller: str, ms: float, trace: Trace,
-                  restore_error: str) -> tuple[TuneResult, float]:
-    cpu0 = time.process_time()
-    return _result(experiment, controller, ms, trace, restore_error), time.process_time() - cpu0
+async def _result(hooks: SessionHooks, job: DesignJob, trace: Trace) -> TuneResult:
+    """The experiment's result with its design (``hooks.design``: a worker process; nothing to design without an
+    identification)."""
+    code, message, design = job.run() if job.identification is None else await hooks.design(job)
+    return TuneResult(code, message, job.controller, job.identification, design, trace)
 
 
-def _trace(t: list[float], pv: list[float], mv: list[float]) -> Trace:
-    return Trace(np.asarray(t, dtype=float), np.asarray(pv, dtype=float), np.asarray(mv, dtype=float))
-
-
-def _result(experiment: RelayExperiment, controller: str, ms: float, trace: Trace, restore_error: str) -> TuneResult:
-    result = result_of(experiment, trace, controller, ms)
+def _restored(result: TuneResult, restore_error: str) -> TuneResult:
+    """``result`` as the hand-back leaves it: a loop not handed back is a failure (LINK_FAULT if it was ok)."""
     if not restore_error:
         return result
     code = Code.LINK_FAULT if result.code is Code.OK else result.code
-    return TuneResult(code, f"{result.message}; {restore_error}", controller, result.identification,
-                      result.design, trace)
+    return TuneResult(code, f"{result.message}; {restore_error}", result.controller, result.identification,
+                      result.design, result.trace)
