@@ -25,10 +25,20 @@ def bench(
     field: Annotated[bool, typer.Option("--field", help="Field conditions: every process under load steps, "
                                         "drift, noise, quantisation and a non-steady start "
                                         "(docs/field-benchmark.md).")] = False,
+    health: Annotated[bool, typer.Option("--health", help="The loop-health monitor instead: simulated loops with "
+                                         "and without faults, detection and false-alarm rates per flag "
+                                         "(docs/health.md).")] = False,
+    repeats: Annotated[int, typer.Option(min=1, max=100, help="With --health: loops per fault, severity and "
+                                         "process (healthy ones 3× as many).")] = 5,
 ) -> None:
     """Benchmark the experiment and the design on every process of a batch against the usual relay tuners."""
     if field and design_only:
         bad_input("--field and --design-only exclude each other")
+    if health:
+        if field or design_only or batch is not None:
+            bad_input("--health takes no batch, --field or --design-only")
+        _health_bench(repeats, workers, output)
+        return
     from autotuner.benchmarks.design_bench import default_batch, format_table, load_batch, run_batch
     from autotuner.engine.plant.expression import parse_process
 
@@ -59,6 +69,18 @@ def bench(
     if output is not None:
         output.write_text(table + "\n")
     stderr.print(f"{len(rows)} processes in {time.perf_counter() - start:.1f} s wall time", highlight=False)
+
+
+def _health_bench(repeats: int, workers: int | None, output: Path | None) -> None:
+    from autotuner.benchmarks.health_bench import run, table
+
+    start = time.perf_counter()
+    outcomes = run(repeats, workers)
+    text = table(outcomes)
+    print(text)
+    if output is not None:
+        output.write_text(text + "\n")
+    stderr.print(f"{len(outcomes)} loops in {time.perf_counter() - start:.1f} s wall time", highlight=False)
 
 
 @app.command("loadbench")
