@@ -198,3 +198,19 @@ def test_tune_is_refused_up_front_when_its_sampler_would_need_more_than_its_shar
     assert refused.code == "overloaded" and refused.ite == Code.REFUSED_OVERLOADED
     assert "would need 4 % of a core" in refused.message.replace("4%", "4 %") and "sampler_load 1%" in refused.message
     assert idle < 0.01  # the monitor alone: one reading a second
+
+
+def test_a_second_daemon_on_the_same_sqlite_history_exits_2_naming_the_file_and_the_first(tmp_path, plc):
+    import subprocess
+    import sys
+
+    with daemon(tmp_path, plc) as first:
+        done = subprocess.run([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(first.config),
+                               "--port", "1"], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2, (done.stdout, done.stderr)
+        assert str(first.history) in done.stderr and f"process {first.proc.pid}" in done.stderr, done.stderr
+        assert "Traceback" not in done.stderr
+        assert first.status()["tbsy"] is False  # the first one untouched: its loop is still its own
+    # The first one ended (even killed): the file is free again.
+    with daemon(tmp_path, plc) as again:
+        assert again.status()["id"] == "L1"
