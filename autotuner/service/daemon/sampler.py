@@ -28,12 +28,15 @@ are restored as after a crash of the daemon (docs/handback.md).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import os
 import signal
 import socket
 import subprocess
 import sys
 from collections.abc import Awaitable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -62,12 +65,23 @@ SAMPLER_CALLS = frozenset({"start", "check", "run", "write_gains", "read_gains",
 SAMPLER_NOTES = frozenset({"watch", "abort", "cap"})
 FRONT_CALLS = frozenset({"durable", "design", "edges"})
 FRONT_NOTES = frozenset({"status", "handed_back", "timings", "reading", "link_failed", "link_back"})
+# Threads a sampler analyses its sessions' periods in (one period's analysis is bounded: docs/experiment.md).
+ANALYSIS_THREADS = 2
 # How long a sampler whose daemon is gone may take to hand its loops back, wall seconds.
 LOST_HANDBACK = 20.0
 # How long the daemon waits for a sampler to start (imports, plants) and to stop, wall seconds.
 START_WAIT, STOP_WAIT = 60.0, 30.0
 # Pause before a sampler that died is started again, wall seconds.
 RESTART_PAUSE = 1.0
+# A sampler asks the kernel for real-time round-robin scheduling at this priority (1–99): it then runs as soon as it
+# wakes for a sample, before any ordinary process, however busy the machine (and whatever its sessions' groups:
+# nice values only count within one). Its analysis threads get a lower real-time priority: above every ordinary
+# process, so one holding the GIL is never starved while the event loop waits for it, below the event loop.
+# Without the privilege (CAP_SYS_NICE), nice PRIORITY_NICE, else nothing. (The kernel caps real-time tasks at 95 %
+# of a core each second by default, so a runaway sampler cannot freeze the machine.)
+RT_PRIORITY, ANALYSIS_RT_PRIORITY, PRIORITY_NICE = 20, 10, -5
+# The GIL's switch interval in a sampler, seconds: the event loop waits at most this for an analysis thread's GIL.
+SWITCH_INTERVAL = 0.001
 # The loggers whose levels a sampler takes from the daemon's.
 LEVELS = ("", "autotuner", "pymodbus", "can")
 log = logging.getLogger("autotuner.service.daemon")
@@ -149,6 +163,10 @@ async def serve(fd: int) -> None:
         return
     init: SamplerInit = message[1]
     forward_logs(channel, init.levels)
+    realtime = _raise_priority(init.shard)
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    asyncio.get_running_loop().set_default_executor(ThreadPoolExecutor(
+        ANALYSIS_THREADS, thread_name_prefix="analysis", initializer=_analysis_priority if realtime else None))
     field = LocalField(init.loops)
     sampler = _Sampler(field)
     peer = Peer(channel, sampler, SAMPLER_CALLS, SAMPLER_NOTES)
@@ -162,6 +180,30 @@ async def serve(fd: int) -> None:
         await peer.drain(LOST_HANDBACK + 5.0)
         await field.stop()
     await channel.close()
+
+
+def _raise_priority(shard: int) -> bool:
+    """Real-time scheduling for this (the event loop's) thread, else a higher nice value, else nothing (said once);
+    True with real time."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(RT_PRIORITY))
+        log.info("sampler %d runs with real-time priority (SCHED_RR %d)", shard, RT_PRIORITY)
+        return True
+    except (PermissionError, OSError):
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, PRIORITY_NICE)
+        log.info("sampler %d runs at nice %d (no real-time priority: it needs CAP_SYS_NICE)", shard, PRIORITY_NICE)
+    except PermissionError:
+        log.info("sampler %d runs at the same priority as the API (a higher one needs CAP_SYS_NICE): a machine "
+                 "busy with other programs can delay its samples", shard)
+    return False
+
+
+def _analysis_priority() -> None:
+    """In an analysis thread of a real-time sampler: a lower real-time priority than the event loop's."""
+    with contextlib.suppress(PermissionError, OSError):
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(ANALYSIS_RT_PRIORITY))
 
 
 def main(argv: list[str]) -> int:
