@@ -39,9 +39,9 @@ def test_merged_histograms_count_every_value_and_an_empty_one_has_no_quantile():
 
 def test_timings_name_the_loops_late_by_the_fields_own_fault_and_hand_over_once():
     t = Timings()
-    t.add("A", 0.004, 0.001, overload=0.02)
-    t.add("B", 0.090, 0.050, overload=0.02)
-    t.add("B", 0.060, 0.030, overload=0.02)
+    t.add("A", 0.004, 0.001, tolerance=0.02)
+    t.add("B", 0.090, 0.050, tolerance=0.02)
+    t.add("B", 0.060, 0.030, tolerance=0.02)
     t.analysed(0.002)
     batch = t.take()
     assert batch.late.count == 3 and batch.analysis.count == 1

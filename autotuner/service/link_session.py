@@ -43,13 +43,13 @@ from autotuner.service.design_pool import Outcome, designed
 FLAGS_PERIOD = 0.5
 # Pauses between read-backs while the device tracks the saved MV, wall seconds (growing from the first).
 TRACK_POLL = (0.01, 0.1)
-# A sample the session itself takes this many sample times late (its event loop, its machine — not the link)
-# leaves a gap the experiment cannot use (its stall rule: 3 sample intervals without a sample).
-OVERLOAD_LATE = 2.0
-# More than OVERLOAD_COUNT such samples among the last OVERLOAD_WINDOW, or one OVERLOAD_STALL sample times late:
-# the session ends OVERLOADED (an isolated stall only costs the estimates around it).
+# A sample the session itself starts late (its event loop, its machine — not the link) by more than what the
+# experiment tolerates (RelayExperiment.stall_tolerance: a tenth of a period, at least 3 sample intervals) leaves
+# a gap its estimates cannot use. More than OVERLOAD_COUNT such samples among the last OVERLOAD_WINDOW, or one
+# OVERLOAD_STALL times that tolerance late: the session ends OVERLOADED (an isolated one only costs the estimates
+# around it).
 OVERLOAD_COUNT, OVERLOAD_WINDOW = 5, 100
-OVERLOAD_STALL = 10.0
+OVERLOAD_STALL = 4.0
 # Codes that blame the process (or its surroundings); after an overload the tuner's lateness may be the cause.
 BLAMES_PROCESS = frozenset({Code.NO_OSCILLATION, Code.NOT_CONVERGED, Code.DISTURBANCE, Code.NOISE_TOO_HIGH,
                             Code.NOT_STABILISABLE, Code.UNSTABLE_DEAD_TIME_TOO_LONG})
@@ -243,9 +243,10 @@ class SessionHooks:
     touching the loop (HISTORY_UNAVAILABLE): a loop taken over without its
     saved state on record could not be restored after a crash.
     ``on_handed_back(error)``: once the hand-back is over ('' or why not).
-    ``on_timing(late, own)``: per sample, wall seconds its PV read completed
-    behind its due time, and the part of that the session's own process caused
-    (not the link: the event loop, the analysis, a starved CPU).
+    ``on_timing(late, own, tolerance)``: per sample, wall seconds its PV read
+    completed behind its due time, the part of that the session's own process
+    caused (not the link: the event loop, the analysis, a starved CPU), and the
+    own lateness the experiment tolerates now (:class:`Overload`).
     ``on_analysis(cpu)``: per period, the CPU seconds its analysis took.
     ``design(job)``: the design of the ended experiment (default: the design
     pool of this process).
@@ -255,7 +256,7 @@ class SessionHooks:
     on_status: Callable[[Status], None] | None = None
     on_saved: Callable[[LoopState, tuple[float, ...]], Awaitable[str]] | None = None
     on_handed_back: Callable[[str], None] | None = None
-    on_timing: Callable[[float, float], None] | None = None
+    on_timing: Callable[[float, float, float], None] | None = None
     on_analysis: Callable[[float], None] | None = None
     design: Callable[[DesignJob], Awaitable[Outcome]] = designed
 
@@ -263,46 +264,49 @@ class SessionHooks:
 class Overload:
     """The session's own lateness, sample by sample, judged against what the experiment tolerates.
 
-    ``period``: the sample time, wall seconds. A sample whose read the
-    session started more than :data:`OVERLOAD_LATE` sample times late for
-    reasons of its own (not waiting on the link) is late by the session's
-    fault; the session can no longer keep its schedule when more than
-    :data:`OVERLOAD_COUNT` of the last :data:`OVERLOAD_WINDOW` samples are, or
-    one is :data:`OVERLOAD_STALL` sample times late. ``count``: such samples
-    so far; ``worst``: the longest such delay, wall seconds.
+    A sample whose read the session started late for reasons of its own (not
+    waiting on the link) by more than ``tolerance`` (wall seconds: the
+    experiment's stall tolerance) is late by the session's fault; the session
+    can no longer keep its schedule when more than :data:`OVERLOAD_COUNT` of
+    the last :data:`OVERLOAD_WINDOW` samples are, or one is
+    :data:`OVERLOAD_STALL` tolerances late. ``count``: such samples so far;
+    ``worst``: the longest such delay, wall seconds.
     """
 
-    def __init__(self, period: float) -> None:
-        self.period = period
+    def __init__(self) -> None:
         self.count = 0
         self.worst = 0.0
         self.io_end = -math.inf  # when the session's last link call ended (monotonic)
         self._samples = 0
         self._late: collections.deque[int] = collections.deque()  # the numbers of the late samples in the window
+        self._exceeded = False
 
-    def sample(self, due: float, read_start: float) -> float:
-        """The session's own part of the lateness of the read started at ``read_start`` for ``due``."""
+    def sample(self, due: float, read_start: float, tolerance: float) -> float:
+        """The session's own part of the lateness of the read started at ``read_start`` for ``due`` (monotonic
+        wall seconds), judged against ``tolerance`` (wall seconds)."""
         self._samples += 1
         own = max(read_start - max(due, self.io_end), 0.0)
-        if own > OVERLOAD_LATE * self.period:
+        if own > tolerance:
             self.count += 1
             self.worst = max(self.worst, own)
             self._late.append(self._samples)
+            self._exceeded = self._exceeded or own > OVERLOAD_STALL * tolerance
         while self._late and self._late[0] <= self._samples - OVERLOAD_WINDOW:
             self._late.popleft()
+        self._exceeded = self._exceeded or len(self._late) > OVERLOAD_COUNT
         return own
 
     @property
     def exceeded(self) -> bool:
         """True when the session can no longer keep its schedule within the experiment's tolerance."""
-        return len(self._late) > OVERLOAD_COUNT or self.worst > OVERLOAD_STALL * self.period
+        return self._exceeded
 
     def message(self, speed: float) -> str:
         """The overload's message (what the experiment saw, in plant seconds)."""
-        return (f"{MESSAGES[Code.OVERLOADED]}: {self.count} samples were taken more than {OVERLOAD_LATE:g} sample "
-                f"times late by the tuner itself (the longest {self.worst * speed:.3g} s, not the link's "
-                "delay): its machine or process is loaded beyond what the experiment tolerates; the loop was "
-                "handed back — retry when fewer loops tune at once")
+        return (f"{MESSAGES[Code.OVERLOADED]}: {self.count} samples were taken later than the experiment tolerates "
+                f"by the tuner itself (the longest {self.worst * speed:.3g} s late, not the link's delay): its "
+                "machine or process is loaded beyond what the experiment tolerates; the loop was handed back — "
+                "retry when fewer loops tune at once")
 
 
 async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = None) -> TuneResult:
@@ -379,7 +383,7 @@ class _Sampling:
         self.t: list[float] = []
         self.pv: list[float] = []
         self.mv: list[float] = []
-        self.overload = Overload(plan.ts / plan.speed)
+        self.overload = Overload()
         self._start = 0.0
         self._flags_due = 0.0
         self._beats = 0
@@ -404,11 +408,12 @@ class _Sampling:
         once the experiment has ended."""
         link, experiment, speed, hooks = self.link, self.experiment, self.plan.speed, self.hooks
         before = time.monotonic()
-        own = self.overload.sample(due, before)
+        tolerance = experiment.stall_tolerance / speed
+        own = self.overload.sample(due, before, tolerance)
         pv = await link.read_pv()
         after = time.monotonic()
         if hooks.on_timing is not None:
-            hooks.on_timing(after - due, own)
+            hooks.on_timing(after - due, own, tolerance)
         if self.overload.exceeded:
             experiment.fail(Code.OVERLOADED, self.overload.message(speed))
             return False

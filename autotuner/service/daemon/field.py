@@ -40,7 +40,7 @@ from autotuner.service.daemon.restore import Pending, Restored, restore_once
 from autotuner.service.daemon.timing import FLUSH_PERIOD, TimingBatch, Timings
 from autotuner.service.daemon.watch import Watch, WatchSink
 from autotuner.service.design_pool import Outcome
-from autotuner.service.link_session import OVERLOAD_LATE, SessionHooks, SessionPlan
+from autotuner.service.link_session import SessionHooks, SessionPlan
 from autotuner.service.session_record import SessionRecord, read_gains
 from autotuner.service.session_runner import SessionOutcome, run_session
 
@@ -189,10 +189,10 @@ class LocalField:
                 tap = record.tap
                 sink.status(loop_id, s, tap.pv if tap else float("nan"), tap.mv if tap else float("nan"))
 
-            overload = OVERLOAD_LATE * plan.ts / plan.speed
             hooks = SessionHooks(stop=stop, on_status=status,
                                  on_handed_back=lambda error: sink.handed_back(loop_id, error),
-                                 on_timing=lambda late, own: self._timings.add(loop_id, late, own, overload),
+                                 on_timing=lambda late, own, tolerance: self._timings.add(loop_id, late, own,
+                                                                                          tolerance),
                                  on_analysis=self._timings.analysed, design=sink.design)
             return await run_session(self.reaches[loop_id].connect, plan, record, hooks)
         finally:

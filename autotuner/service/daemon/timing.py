@@ -99,13 +99,13 @@ class Timings:
         self._batch = TimingBatch()
         self._cpu = time.process_time()
 
-    def add(self, loop_id: str, late: float, own: float, overload: float) -> None:
-        """A sample of ``loop_id``: ``late`` and ``own`` seconds; ``overload``: the own lateness (seconds) past
+    def add(self, loop_id: str, late: float, own: float, tolerance: float) -> None:
+        """A sample of ``loop_id``: ``late`` and ``own`` seconds; ``tolerance``: the own lateness (seconds) past
         which a sample hurts the experiment."""
         batch = self._batch
         batch.late.add(late)
         batch.own.add(own)
-        if own > overload:
+        if own > tolerance:
             batch.overloaded += 1
             batch.worst[loop_id] = max(own, batch.worst.get(loop_id, 0.0))
 
