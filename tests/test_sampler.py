@@ -151,8 +151,9 @@ async def hogged(plant: str, hog: float, every: float) -> dict:
 
 @pytest.mark.parametrize("plant", [PLANT, "exp(-0.5*s)/(2*s-1)"])
 def test_a_session_late_by_its_own_fault_ends_overloaded_never_blaming_the_process(plant):
-    # 0.05 s blocked every 0.15 s at 10 ms per sample: 5 samples late each time, beyond the experiment's tolerance.
-    status = asyncio.run(hogged(plant, 0.05, 0.15))
+    # 0.1 s blocked every 0.12 s at 10 ms per sample: 10 samples late each time, beyond the experiment's tolerance
+    # (a tenth of a period of 0.5–0.6 s wall).
+    status = asyncio.run(hogged(plant, 0.1, 0.12))
     assert status["ite"] == float(Code.OVERLOADED) and status["te"] is True, status["message"]
     assert "by the tuner itself" in status["message"] and "not the link" in status["message"]
     assert status["overloaded"] >= 3

@@ -45,11 +45,9 @@ FLAGS_PERIOD = 0.5
 TRACK_POLL = (0.01, 0.1)
 # A sample the session itself starts late (its event loop, its machine — not the link) by more than what the
 # experiment tolerates (RelayExperiment.stall_tolerance: a tenth of a period, at least 3 sample intervals) leaves
-# a gap its estimates cannot use. More than OVERLOAD_COUNT such samples among the last OVERLOAD_WINDOW, or one
-# OVERLOAD_STALL times that tolerance late: the session ends OVERLOADED (an isolated one only costs the estimates
-# around it).
+# a gap its estimates cannot use. More than OVERLOAD_COUNT such samples among the last OVERLOAD_WINDOW: the session
+# ends OVERLOADED (an isolated one only costs the estimates around it).
 OVERLOAD_COUNT, OVERLOAD_WINDOW = 5, 100
-OVERLOAD_STALL = 4.0
 # Codes that blame the process (or its surroundings); after an overload the tuner's lateness may be the cause.
 BLAMES_PROCESS = frozenset({Code.NO_OSCILLATION, Code.NOT_CONVERGED, Code.DISTURBANCE, Code.NOISE_TOO_HIGH,
                             Code.NOT_STABILISABLE, Code.UNSTABLE_DEAD_TIME_TOO_LONG})
@@ -268,9 +266,8 @@ class Overload:
     waiting on the link) by more than ``tolerance`` (wall seconds: the
     experiment's stall tolerance) is late by the session's fault; the session
     can no longer keep its schedule when more than :data:`OVERLOAD_COUNT` of
-    the last :data:`OVERLOAD_WINDOW` samples are, or one is
-    :data:`OVERLOAD_STALL` tolerances late. ``count``: such samples so far;
-    ``worst``: the longest such delay, wall seconds.
+    the last :data:`OVERLOAD_WINDOW` samples are. ``count``: such samples so
+    far; ``worst``: the longest such delay, wall seconds.
     """
 
     def __init__(self) -> None:
@@ -279,7 +276,6 @@ class Overload:
         self.io_end = -math.inf  # when the session's last link call ended (monotonic)
         self._samples = 0
         self._late: collections.deque[int] = collections.deque()  # the numbers of the late samples in the window
-        self._exceeded = False
 
     def sample(self, due: float, read_start: float, tolerance: float) -> float:
         """The session's own part of the lateness of the read started at ``read_start`` for ``due`` (monotonic
@@ -290,16 +286,14 @@ class Overload:
             self.count += 1
             self.worst = max(self.worst, own)
             self._late.append(self._samples)
-            self._exceeded = self._exceeded or own > OVERLOAD_STALL * tolerance
         while self._late and self._late[0] <= self._samples - OVERLOAD_WINDOW:
             self._late.popleft()
-        self._exceeded = self._exceeded or len(self._late) > OVERLOAD_COUNT
         return own
 
     @property
     def exceeded(self) -> bool:
         """True when the session can no longer keep its schedule within the experiment's tolerance."""
-        return self._exceeded
+        return len(self._late) > OVERLOAD_COUNT
 
     def message(self, speed: float) -> str:
         """The overload's message (what the experiment saw, in plant seconds)."""

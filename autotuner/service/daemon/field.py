@@ -86,8 +86,9 @@ class Field(Protocol):
     async def run(self, loop_id: str, sid: str, user: str, plan: SessionPlan) -> SessionOutcome:
         """Session ``sid`` asked by ``user``: the loop taken over, sampled, handed back; its outcome."""
 
-    def abort(self, loop_id: str) -> None:
-        """TBRK: abort the loop's running session (nothing if none runs)."""
+    def abort(self, loop_id: str, sid: str) -> None:
+        """TBRK: abort session ``sid`` of the loop, at once or as soon as it starts here (an abort may arrive
+        before the session's own start, never after its end matters)."""
 
     def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
         """The share of a core the loop's sampler is predicted to need (:mod:`~autotuner.service.daemon.capacity`),
@@ -145,6 +146,8 @@ class LocalField:
         for idle in self._idle.values():
             idle.set()
         self._sessions: dict[str, tuple[asyncio.Event, SessionPlan]] = {}
+        self._sids: dict[str, str] = {}  # the session id running on each loop
+        self._aborted: set[str] = set()  # sessions aborted before they started here
         self._halt = asyncio.Event()
         self._plants_halt = asyncio.Event()
         self._watches: list[asyncio.Task[None]] = []
@@ -180,7 +183,11 @@ class LocalField:
         sink = self._sink
         assert sink is not None, "the field is not started"
         stop = asyncio.Event()
+        if sid in self._aborted:
+            self._aborted.discard(sid)
+            stop.set()  # aborted before it started: it ends before it touches the loop
         self._sessions[loop_id] = (stop, plan)
+        self._sids[loop_id] = sid
         self._idle[loop_id].clear()
         try:
             record = SessionRecord(lambda name, *args: sink.durable(loop_id, name, *args), sid, loop_id, user)
@@ -197,11 +204,12 @@ class LocalField:
             return await run_session(self.reaches[loop_id].connect, plan, record, hooks)
         finally:
             del self._sessions[loop_id]
+            del self._sids[loop_id]
             self._idle[loop_id].set()
 
-    def running(self) -> list[str]:
-        """The loops whose session runs now."""
-        return list(self._sessions)
+    def running(self) -> dict[str, str]:
+        """The sessions running now: session id by loop id."""
+        return dict(self._sids)
 
     def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
         sessions = {loop: p for loop, (_, p) in self._sessions.items()}
@@ -209,9 +217,11 @@ class LocalField:
             sessions[loop_id] = plan
         return self.cost.load(nominal_rate([r.config for r in self.reaches.values()], sessions))
 
-    def abort(self, loop_id: str) -> None:
-        if loop_id in self._sessions:
+    def abort(self, loop_id: str, sid: str) -> None:
+        if self._sids.get(loop_id) == sid:
             self._sessions[loop_id][0].set()
+        else:
+            self._aborted.add(sid)
 
     def cap(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds

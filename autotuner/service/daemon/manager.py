@@ -168,8 +168,8 @@ class LoopManager:
             restorer.cancel()
         tasks = [loop.running.task for loop in self.loops.values() if loop.running and loop.running.task]
         for loop_id, loop in self.loops.items():
-            if loop.busy:
-                self.field.abort(loop_id)
+            if loop.running is not None:
+                self.field.abort(loop_id, loop.running.sid)
         self.field.cap(bound)  # no hand-back try of a session starts past the bound
         log.log(logging.WARNING if tasks or restorers else logging.INFO,
                 "stopping: %d experiment(s) aborted, every loop handed back first (at most %g s)", len(tasks), bound)
@@ -318,7 +318,7 @@ class LoopManager:
         loop = self.get(loop_id)
         if loop.running is None:
             raise Refused("idle", f"loop {loop_id!r} is not tuning")
-        self.field.abort(loop_id)
+        self.field.abort(loop_id, loop.running.sid)
         return loop.running.sid
 
     async def apply(self, loop_id: str, sid: str | None, user: str) -> dict[str, Any]:

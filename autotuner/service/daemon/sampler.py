@@ -174,8 +174,8 @@ async def serve(fd: int) -> None:
     channel.send("ready")
     await peer.serve()
     if not sampler.stopped.is_set():  # the daemon is gone: its sessions' loops are handed back before the end
-        for loop_id in field.running():
-            field.abort(loop_id)
+        for loop_id, sid in field.running().items():
+            field.abort(loop_id, sid)
         field.cap(LOST_HANDBACK)
         await peer.drain(LOST_HANDBACK + 5.0)
         await field.stop()
@@ -410,8 +410,8 @@ class SamplerField:
         sessions = shard.sessions if plan is None else {**shard.sessions, loop_id: plan}
         return shard.cost.load(nominal_rate(shard.loops, sessions))
 
-    def abort(self, loop_id: str) -> None:
-        self._of[loop_id].note("abort", loop_id)
+    def abort(self, loop_id: str, sid: str) -> None:
+        self._of[loop_id].note("abort", loop_id, sid)
 
     def cap(self, seconds: float) -> None:
         for shard in self._shards:
