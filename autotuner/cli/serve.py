@@ -109,7 +109,7 @@ def serve_command(
           f"{scheme}://{host}:{port}/); {len(daemon_config.loops)} loops: "
           f"{', '.join(loop.id for loop in daemon_config.loops)}", flush=True)
     # log_config=None: uvicorn's loggers go to the handler of logs.setup (same format, timestamps, masking).
-    status = serve(create_app(daemon_config, env_token=token or "", host=host), host=host, port=port,
+    status = serve(create_app(daemon_config, env_token=token or "", host=host, port=port), host=host, port=port,
                    log_level=log_level.value, log_config=None,
                    ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
                    ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))

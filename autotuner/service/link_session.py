@@ -108,6 +108,10 @@ class HandBack:
     cap: float = math.inf
 
 
+class Fenced(LinkError):
+    """This daemon no longer holds the loop's lease: nothing more may be written to it (its new owner restores it)."""
+
+
 class NotTracking(Exception):
     """The device does not take the saved MV (its actual MV does not read it back in time)."""
 
@@ -173,7 +177,8 @@ async def hand_back(link: Link, saved: LoopState, handback: HandBack) -> str:
 
     A loop left in MAN at a relay level is the worst outcome, so it keeps
     trying, with growing pauses, for ``handback.window`` seconds (and not
-    past ``handback.cap``).
+    past ``handback.cap``) — but not once the daemon is fenced off the loop
+    (:class:`Fenced`: its lease lost, the new owner restores it).
     """
     deadline = time.monotonic() + handback.window
     pause = 0.1
@@ -181,6 +186,8 @@ async def hand_back(link: Link, saved: LoopState, handback: HandBack) -> str:
         try:
             await hand_back_once(link, saved, handback.track_timeout)
             return ""
+        except Fenced as exc:  # not ours any more: the loop's new owner restores it, this daemon writes nothing
+            return f"not handed back: {exc}"
         except (LinkError, NotTracking) as exc:  # the cap is read each time: a shutdown may set it meanwhile
             if time.monotonic() + pause > min(deadline, handback.cap):
                 return not_restored(saved, str(exc))

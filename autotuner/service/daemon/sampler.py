@@ -11,7 +11,7 @@ sampler over a socket pair (:class:`~autotuner.service.channel.Peer`):
 front → sampler
     calls ``start``, ``check``, ``run``, ``write_gains``, ``read_gains``,
     ``restore``, ``halt_watches``, ``stop``; notifications ``watch``,
-    ``abort``, ``cap``.
+    ``serve``, ``grant``, ``unserve`` (a fleet's leases), ``abort``, ``cap``.
 sampler → front
     calls ``durable`` (a session's record in the history), ``design`` (in the
     daemon's worker pool), ``edges`` (the device's TUNE/TBRK bits changed);
@@ -62,7 +62,7 @@ from autotuner.service.session_runner import SessionOutcome
 MODULE = "autotuner.service.daemon.sampler"
 # What each side serves of the other's messages.
 SAMPLER_CALLS = frozenset({"start", "check", "run", "write_gains", "read_gains", "restore", "halt_watches", "stop"})
-SAMPLER_NOTES = frozenset({"watch", "abort", "cap"})
+SAMPLER_NOTES = frozenset({"watch", "serve", "grant", "unserve", "abort", "cap"})
 FRONT_CALLS = frozenset({"durable", "design", "edges"})
 FRONT_NOTES = frozenset({"status", "handed_back", "timings", "reading", "link_failed", "link_back"})
 # Threads a sampler analyses its sessions' periods in (one period's analysis is bounded: docs/experiment.md).
@@ -225,11 +225,12 @@ class _Shard:
         self.number, self.loops = number, loops
         self.cost = Cost()  # the sampler's own estimate, from its timings
         self.sessions: dict[str, SessionPlan] = {}  # running here, by loop id
+        self.served: dict[str, float] = {}  # a fleet's loops served here and until when they may be written
         self.process: subprocess.Popen[bytes] | None = None
         self.peer: Peer | None = None
         self.watching = False
         self.stopping = False
-        self._served: asyncio.Task[None] | None = None
+        self._serving: asyncio.Task[None] | None = None
 
     async def start(self, sink: FieldSink) -> None:
         """Start the process and its field (plants); back once it is ready."""
@@ -243,10 +244,12 @@ class _Shard:
             self._kill()
             raise
         self.peer = Peer(channel, _FromSampler(self, sink), FRONT_CALLS, FRONT_NOTES)
-        self._served = asyncio.create_task(self._serve(sink))
+        self._serving = asyncio.create_task(self._serve(sink))
         await self.peer.call("start")
-        if self.watching:
+        if self.watching:  # (a sampler started again: what the one before did)
             self.peer.note("watch")
+        for loop_id, until in self.served.items():
+            self.peer.note("serve", loop_id, until)
 
     async def _ready(self, channel: Channel) -> None:
         while (message := await channel.receive()) is not None:
@@ -297,8 +300,8 @@ class _Shard:
             log.warning("sampler %d did not stop cleanly: %s", self.number, exc)
         if self.peer is not None:
             await self.peer.channel.close()
-        if self._served is not None:
-            await asyncio.gather(self._served, return_exceptions=True)
+        if self._serving is not None:
+            await asyncio.gather(self._serving, return_exceptions=True)
         try:
             await asyncio.to_thread(self._wait, STOP_WAIT)
         except subprocess.TimeoutExpired:
@@ -390,6 +393,21 @@ class SamplerField:
         for shard in self._shards:
             shard.watching = True
             shard.note("watch")
+
+    def serve(self, loop_id: str, until: float) -> None:
+        shard = self._of[loop_id]
+        shard.served[loop_id] = until
+        shard.note("serve", loop_id, until)
+
+    def grant(self, loop_id: str, until: float) -> None:
+        shard = self._of[loop_id]
+        shard.served[loop_id] = until
+        shard.note("grant", loop_id, until)
+
+    def unserve(self, loop_id: str) -> None:
+        shard = self._of[loop_id]
+        shard.served.pop(loop_id, None)
+        shard.note("unserve", loop_id)
 
     async def check(self, loop_id: str) -> None:
         try:
