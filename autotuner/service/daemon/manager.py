@@ -399,6 +399,7 @@ class LoopManager:
         """TBRK: abort the running session (the loop is restored); its id. Refused('idle') if none runs."""
         loop = self.get(loop_id)
         if loop.running is None:
+            self._check_owner(loop)  # another daemon's session: asked of the wrong daemon
             raise Refused("idle", f"loop {loop_id!r} is not tuning")
         self.field.abort(loop_id, loop.running.sid)
         return loop.running.sid
