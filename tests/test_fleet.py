@@ -17,7 +17,6 @@ import subprocess
 import sys
 import threading
 import time
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ import sqlalchemy as sa
 from pymodbus.client import ModbusTcpClient
 
 from api.auth import token_hash
+from autotuner.benchmarks.postgres import new_database
 from drivers.modbus_map import DEFAULT_MAP
 from helpers import Daemon, free_port
 from test_history_db import postgres  # noqa: F401 - the module's PostgreSQL server fixture
@@ -85,12 +85,7 @@ class Plant:
 @pytest.fixture
 def database(postgres) -> str:  # noqa: F811 - the imported fixture
     """A fresh PostgreSQL database for one fleet's history."""
-    name = f"fleet_{uuid.uuid4().hex[:12]}"
-    engine = sa.create_engine(postgres, isolation_level="AUTOCOMMIT")
-    with engine.connect() as db:
-        db.execute(sa.text(f"CREATE DATABASE {name}"))
-    engine.dispose()
-    return postgres.rsplit("/", 1)[0] + "/" + name
+    return new_database(postgres)
 
 
 @pytest.fixture

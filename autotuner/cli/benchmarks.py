@@ -143,3 +143,36 @@ def loadbench_command(
         stdout.print(table)
     if any(r.tuned < r.spec.loops for r in results):
         raise typer.Exit(EXIT_FAILED)
+
+
+@app.command("failover")
+def failover_command(
+    daemons: Annotated[int, typer.Option(min=2, max=16, help="Daemons in the fleet.")] = 3,
+    loops: Annotated[int, typer.Option(min=2, max=2000, help="Loops they share.")] = 300,
+    tuning: Annotated[int, typer.Option(min=0, max=500, help="Loops of the killed daemon tuning when it dies.")] = 20,
+    lease: Annotated[float, typer.Option(min=2.0, max=600.0, help="Lease time, seconds.")] = 10.0,
+    database: Annotated[str | None, typer.Option(help="PostgreSQL URL (postgresql+psycopg://…) of an empty database. "
+                                                 "Default: a server of the benchmark's own (the distribution's "
+                                                 "PostgreSQL programs).")] = None,
+    as_markdown: Annotated[bool, typer.Option("--markdown", help="Print a markdown table.")] = False,
+) -> None:
+    """Benchmark: a fleet of daemons on one PostgreSQL, one killed while it tunes; how soon its loops have an owner
+    again and its sessions are recovered (docs/fleet.md). Real processes on this machine; a few minutes."""
+    from autotuner.benchmarks.failover import HEADERS, FailoverSpec, markdown, run_failover, table_rows
+
+    if tuning > loops // daemons:
+        bad_input(f"--tuning {tuning} is more than the killed daemon's share of the loops ({loops // daemons})")
+    try:
+        result = run_failover(FailoverSpec(daemons, loops, tuning, lease, database=database))
+    except FileNotFoundError as exc:
+        bad_input(str(exc))
+    title = f"failover: {daemons} daemons, {loops} loops, lease {lease:g} s; one daemon killed (SIGKILL)"
+    if as_markdown:
+        print(f"{title}\n\n{markdown([result])}")
+        return
+    table = Table(title=title, title_justify="left")
+    for name in HEADERS:
+        table.add_column(name, justify="right")
+    for row in table_rows([result]):
+        table.add_row(*row)
+    stdout.print(table)
