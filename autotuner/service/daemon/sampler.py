@@ -32,7 +32,6 @@ import contextlib
 import logging
 import os
 import signal
-import socket
 import subprocess
 import sys
 from collections.abc import Awaitable
@@ -46,7 +45,7 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.experiment.relay import Status
 from autotuner.engine.outcome import Code
 from autotuner.engine.simulated_tuning import DesignJob
-from autotuner.service.channel import (Channel, Peer, PeerLost, cpu_seconds, forward_logs, log_levels, log_record,
+from autotuner.service.channel import (Channel, Peer, PeerLost, child_start, cpu_seconds, log_levels, log_record,
                                        start_child)
 from autotuner.service.config import LoopConfig
 from autotuner.service.daemon.capacity import Cost
@@ -157,12 +156,10 @@ class _Sampler:
 async def serve(fd: int) -> None:
     """The sampler's work: the daemon's init over the socket ``fd``, then its calls until told to stop or the
     daemon is gone (then every loop is handed back first)."""
-    channel = await Channel.open(socket.socket(fileno=fd))
-    message = await channel.receive()
-    if message is None or message[0] != "init":
+    started = await child_start(fd)
+    if started is None:
         return
-    init: SamplerInit = message[1]
-    forward_logs(channel, init.levels)
+    channel, init = started
     realtime = _raise_priority(init.shard)
     sys.setswitchinterval(SWITCH_INTERVAL)
     asyncio.get_running_loop().set_default_executor(ThreadPoolExecutor(
