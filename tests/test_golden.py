@@ -12,7 +12,13 @@ experiment must leave every reference as it is, and a change of behaviour must s
 
 from __future__ import annotations
 
-import hashlib
+import os
+
+# As tests/conftest.py sets them for pytest, for `python tests/test_golden.py --update` (before numpy's import).
+os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import hashlib  # noqa: E402
 import json
 import math
 import sys
