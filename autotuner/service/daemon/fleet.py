@@ -32,11 +32,13 @@ log = logging.getLogger("autotuner.service.daemon")
 
 @dataclass(frozen=True)
 class Round:
-    """What a round changed: the loops gained (loop → epoch) and lost, and until when (monotonic) the leases held
-    are valid here."""
+    """What a round changed: the loops gained (loop → epoch), lost (taken over by another daemon) and released
+    (given to the others to even the loops out, or drained), and until when (monotonic) the leases held are valid
+    here."""
 
     gained: dict[str, int]
     lost: set[str]
+    released: set[str]
     valid_until: float
 
 
@@ -84,16 +86,16 @@ class Fleet:
             gained = await asyncio.to_thread(self.leases.acquire, free, share - len(kept))
             self.held.update(gained)
         surplus = len(self.held) - share
+        release: dict[str, int] = {}
         if surplus > 0:
-            release = {loop: epoch for loop, epoch in self.held.items() if self.idle(loop)}
-            release = dict(list(release.items())[:surplus])
+            idle = {loop: epoch for loop, epoch in self.held.items() if self.idle(loop)}
+            release = dict(list(idle.items())[:surplus])
             await asyncio.to_thread(self.leases.release, release)
             for loop_id in release:
                 del self.held[loop_id]
-            lost |= set(release)
         self.valid_until = start + self.leases.ttl - MARGIN
         self.owners = await asyncio.to_thread(self.leases.owners)
-        return Round(gained, lost, self.valid_until)
+        return Round(gained, lost, set(release), self.valid_until)
 
     async def leave(self) -> None:
         """Release every lease held (a daemon that stops after handing its loops back)."""

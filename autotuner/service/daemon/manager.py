@@ -190,9 +190,11 @@ class LoopManager:
         fleet = self.fleet
         assert fleet is not None
         done = await fleet.round()
-        for loop_id in done.lost:
+        for loop_id in done.lost | done.released:
             self.field.unserve(loop_id)  # fenced at once: a session on it ends without another write
-            log.warning("loop %s: no longer served by this daemon (its lease went to another)", loop_id)
+        if done.released:
+            log.info("fleet: released %d idle loop(s) to the other daemons (%s): %s", len(done.released),
+                     "drained" if fleet.draining else "evening the loops out", ", ".join(sorted(done.released)))
         for loop_id in fleet.held:
             self.field.grant(loop_id, done.valid_until)
         if done.gained:

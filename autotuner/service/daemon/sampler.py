@@ -190,7 +190,9 @@ def _raise_priority(shard: int) -> bool:
         pass
     try:
         os.setpriority(os.PRIO_PROCESS, 0, PRIORITY_NICE)
-        log.info("sampler %d runs at nice %d (no real-time priority: it needs CAP_SYS_NICE)", shard, PRIORITY_NICE)
+        log.info("sampler %d runs at nice %d (no real-time priority: it needs CAP_SYS_NICE and, where the kernel "
+                 "schedules real time by groups, a real-time budget for its cgroup: docs/daemon.md)", shard,
+                 PRIORITY_NICE)
     except PermissionError:
         log.info("sampler %d runs at the same priority as the API (a higher one needs CAP_SYS_NICE): a machine "
                  "busy with other programs can delay its samples", shard)
