@@ -1,6 +1,7 @@
 """The history under faults, with real processes: a daemon (``autotuner serve``) whose SQLite file another process
 locks; a gains write interrupted by SIGKILL between the device write and its record, reconciled at the next start
-with the gains read back from a real Modbus server."""
+with the gains read back from a real Modbus server; a daemon restarted with its wall clock stepped back an hour
+(libfaketime)."""
 
 from __future__ import annotations
 
@@ -24,13 +25,15 @@ from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.modbus_server import ModbusPlcServer, serve_modbus
 from drivers.simplc import SimulatedPlc, run
-from helpers import Daemon
+from helpers import Daemon, libfaketime
 from test_handback import Plc, daemon as handback_daemon, history_row, wait_for
 
 PLANT = "exp(-s)/(2*s+1)"
 SPEED = 10.0
 # The experiment whose gains are written runs slower: a PLC served in a thread of the test jitters more.
 SLOW = 4.0
+# Sessions that must succeed on a loaded machine (not end OVERLOADED): 44 ms of wall time between samples.
+CALM = 3.0
 TS = default_sample_time(parse_process(PLANT)) * 100 / 40
 
 # A separate process holding an exclusive lock on an SQLite file until its stdin closes.
@@ -263,3 +266,50 @@ def test_an_intent_whose_write_never_reached_the_device_is_recorded_as_not_appli
         assert plant.plc.gains.k != 9.0
     finally:
         plant.close()
+
+
+def tuned(daemon: Daemon, loop_id: str, body: dict) -> dict:
+    """TUNE ``loop_id`` with ``body`` and wait for the session's end: its record."""
+    r = httpx.post(f"{daemon.base}/loops/{loop_id}/tune", json=body, headers=daemon.headers, timeout=30)
+    assert r.status_code == 202, r.text
+    sid = r.json()["session"]
+
+    def ended() -> bool:
+        record = httpx.get(f"{daemon.base}/sessions/{sid}", headers=daemon.headers, timeout=30).json()
+        return record.get("state") == "finished" and not status(daemon, loop_id)["tbsy"]
+
+    daemon.wait_until(ended, 180, f"session {sid} to end")
+    return httpx.get(f"{daemon.base}/sessions/{sid}", headers=daemon.headers, timeout=30).json()
+
+
+def test_a_wall_clock_stepped_back_across_a_restart_leaves_the_new_session_the_newest(tmp_path: Path):
+    """The issue's finding: with the clock stepped back an hour across a restart, the history sorted the new
+    session below the old one, the status showed the old outcome and ``POST /apply`` without a body wrote the
+    older session's gains. The order is now the database's: the new session is the newest whatever its times."""
+    config = tmp_path / "daemon.yaml"
+    config.write_text(yaml.safe_dump({"history": str(tmp_path / "h.db"), "loops": [
+        {"id": "A", "sim": {"plant": PLANT}, "ts": TS, "speed": CALM, "monitor_period": 0.2,
+         "tuning": {"amp": 5.0, "time_limit": 1000.0}, "limits": {"pv": [0, 100], "mv": [0, 100]}}]}))
+    # The first run's wall clock an hour ahead, the second's the machine's: stepped back an hour across the
+    # restart. (Not the second run's an hour behind: libfaketime 0.9.10 then fails Python's sleeps with EINVAL,
+    # and with FAKETIME_DONT_FAKE_MONOTONIC its absolute monotonic sleeps too.)
+    with Daemon(config, env={"LD_PRELOAD": libfaketime(), "FAKETIME": "+1h"}) as daemon:
+        old = tuned(daemon, "A", {"ms": 1.2})
+    with Daemon(config) as daemon:
+        new = tuned(daemon, "A", {"ms": 2.0})
+        assert old["outcome"] == new["outcome"] == "success", (old["message"], new["message"])
+        assert new["started_at"] < old["started_at"]  # the daemon's clock really was an hour back
+        assert new["seq"] > old["seq"]
+        assert new["result"]["gains"]["pk"] != pytest.approx(old["result"]["gains"]["pk"], rel=1e-3)
+        listed = httpx.get(f"{daemon.base}/loops/A/history", headers=daemon.headers, timeout=30).json()
+        assert [r["id"] for r in listed] == [new["id"], old["id"]]
+        now = status(daemon, "A")
+        assert now["last_tuned_at"] == new["finished_at"] and now["pending_gains"] is True
+        applied = httpx.post(f"{daemon.base}/loops/A/apply", headers=daemon.headers, timeout=30)
+        assert applied.status_code == 200, applied.text
+        assert applied.json()["session"] == new["id"]
+        assert applied.json()["gains"]["pk"] == pytest.approx(new["result"]["gains"]["pk"], rel=1e-5)
+        assert status(daemon, "A")["current_gains"]["pk"] == pytest.approx(new["result"]["gains"]["pk"], rel=1e-5)
+        record = httpx.get(f"{daemon.base}/sessions/{old['id']}", headers=daemon.headers, timeout=30).json()
+        assert record["applied_by"] is None  # the older session's gains were never written
+    assert "Traceback" not in daemon.log()

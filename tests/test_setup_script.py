@@ -58,7 +58,7 @@ done''')
         path.chmod(0o755)
 
     def run(self, *args: str) -> subprocess.CompletedProcess[str]:
-        env = {"PATH": str(self.bin), "VENV": str(self.venv), "AUTOTUNER_PG_BIN": "/nonexistent",
+        env = {"PATH": str(self.bin), "VENV": str(self.venv), "AUTOTUNER_PG_BIN": "/nonexistent", "AUTOTUNER_FAKETIME": "/x",
                "HOME": os.environ.get("HOME", "/root")}
         return subprocess.run([BASH, str(SCRIPT), *args], capture_output=True, text=True, env=env, timeout=60)
 
@@ -119,7 +119,7 @@ def test_an_existing_venv_is_kept_and_dry_run_runs_nothing(tmp_path):
     machine.run()  # creates the venv
     machine.log.write_text("")
     done = subprocess.run([BASH, str(SCRIPT)], capture_output=True, text=True, timeout=60,
-                          env={"PATH": str(machine.bin), "VENV": str(machine.venv), "AUTOTUNER_PG_BIN": "/x",
+                          env={"PATH": str(machine.bin), "VENV": str(machine.venv), "AUTOTUNER_PG_BIN": "/x", "AUTOTUNER_FAKETIME": "/x",
                                "DRY_RUN": "1"})
     assert done.returncode == 0, done.stderr
     assert machine.ran() == []  # nothing was run...
@@ -131,7 +131,7 @@ def test_an_existing_venv_is_kept_and_dry_run_runs_nothing(tmp_path):
 def test_dry_run_on_plain_debian_prints_nodejs_then_npm(tmp_path):
     machine = Machine(tmp_path, has=(), apt="")
     done = subprocess.run([BASH, str(SCRIPT), "tests/test_pid.py"], capture_output=True, text=True, timeout=60,
-                          env={"PATH": str(machine.bin), "VENV": str(machine.venv), "AUTOTUNER_PG_BIN": "/x",
+                          env={"PATH": str(machine.bin), "VENV": str(machine.venv), "AUTOTUNER_PG_BIN": "/x", "AUTOTUNER_FAKETIME": "/x",
                                "DRY_RUN": "1"})
     assert done.returncode == 0, done.stderr
     assert machine.ran() == []

@@ -70,18 +70,27 @@ _SESSIONS = sa.Table(
     sa.Column("applied_at", sa.String(40)),
     sa.Column("applied_by", sa.Text),
     sa.Column("gains_intent", sa.Text),
+    # The history's order: assigned by the database when the session is recorded (one more than the largest so
+    # far), never read from a clock — a wall clock stepped back must not make a new session older than an old one.
+    sa.Column("seq", sa.BigInteger),
     sa.Index("sessions_by_loop", "loop", "started_at"),
 )
+# Indexes of the order, created on an older database too (create_all makes a table's indexes only with the table).
+_SEQ_INDEXES = (sa.Index("sessions_seq", _SESSIONS.c.seq, unique=True),
+                sa.Index("sessions_by_loop_seq", _SESSIONS.c.loop, _SESSIONS.c.seq))
 # Columns added since the first schema, added to an older database when it is opened.
-_ADDED = ("applied_at", "applied_by", "gains_intent")
+_ADDED = ("applied_at", "applied_by", "gains_intent", "seq")
 # How long a write that fails on a busy database is retried, seconds (each try waits SQLite's busy timeout).
 WRITE_RETRY_FOR = 120.0
 # SQLite's own wait for a lock per try, seconds (its default, 5 s, is what stalled every loop when run inline).
 SQLITE_BUSY_TIMEOUT = 1.0
 
 log = logging.getLogger("autotuner.service.history")
-# Newest first; the id breaks a tie of two sessions started in the same microsecond.
-_NEWEST_FIRST = (_SESSIONS.c.started_at.desc(), _SESSIONS.c.id.desc())
+# Newest first: by the order the database assigned (timestamps are for display only).
+_NEWEST_FIRST = (_SESSIONS.c.seq.desc(),)
+_OLDEST_FIRST = (_SESSIONS.c.seq.asc(),)
+# The next place in the order, computed by the database in the session's INSERT.
+_NEXT_SEQ = sa.select(sa.func.coalesce(sa.func.max(_SESSIONS.c.seq), 0) + 1).scalar_subquery()
 
 
 def database_url(history: str) -> str:
@@ -139,6 +148,24 @@ def state_of(data: dict[str, Any]) -> LoopState:
     return LoopState(mode=Mode[data["mode"]], mv=data["mv"], sp=data["sp"], gains=Gains.from_json(data["gains"]))
 
 
+def _upgrade(db: sa.Connection) -> None:
+    """Bring an older database's table up to this schema: the columns added since, and the order (``seq``) of
+    sessions recorded without one, given in the order they started (their ``started_at``, then id)."""
+    columns = {c["name"] for c in sa.inspect(db).get_columns("sessions")}
+    for name in _ADDED:
+        if name not in columns:
+            type_ = _SESSIONS.c[name].type.compile(db.dialect)
+            db.execute(sa.text(f"ALTER TABLE sessions ADD COLUMN {name} {type_}"))
+    unordered = db.execute(sa.select(_SESSIONS.c.id).where(_SESSIONS.c.seq.is_(None))
+                           .order_by(_SESSIONS.c.started_at, _SESSIONS.c.id)).scalars().all()
+    if unordered:
+        last = db.execute(sa.select(sa.func.coalesce(sa.func.max(_SESSIONS.c.seq), 0))).scalar_one()
+        db.execute(_SESSIONS.update().where(_SESSIONS.c.id == sa.bindparam("sid")).values(seq=sa.bindparam("n")),
+                   [{"sid": sid, "n": last + i} for i, sid in enumerate(unordered, start=1)])
+    for index in _SEQ_INDEXES:
+        index.create(db, checkfirst=True)
+
+
 def downsample(trace: Trace, points: int = TRACE_POINTS) -> dict[str, list[float]]:
     """At most ``points`` evenly spaced samples of ``trace`` (plant seconds, PV, MV), the last one included."""
     return trace.thinned(points)
@@ -178,10 +205,7 @@ class History:
                         raise ValueError(f"history database {file} is damaged ({shown}): "
                                          "restore it from a backup, or move it away to start a new one")
                 _META.create_all(db)
-                columns = {c["name"] for c in sa.inspect(db).get_columns("sessions")}
-                for name in _ADDED:
-                    if name not in columns:
-                        db.execute(sa.text(f"ALTER TABLE sessions ADD COLUMN {name} {_SESSIONS.c[name].type}"))
+                _upgrade(db)
         except sa.exc.DatabaseError as exc:
             reason = mask(str(exc.orig) if exc.orig is not None else str(exc), url)
             hint = "" if file is None else ": restore it from a backup, or move it away to start a new one"
@@ -203,9 +227,9 @@ class History:
             try:
                 with self._lock:
                     write()
-            except sa.exc.OperationalError as exc:
+            except (sa.exc.OperationalError, _Contended) as exc:
                 failures += 1
-                reason = str(exc.orig) if exc.orig is not None else str(exc)
+                reason = _reason(exc)
                 if time.monotonic() + pause > deadline:
                     log.error("history %s: %s failed %d times (%s); given up", self.shown, what, failures, reason)
                     raise
@@ -233,9 +257,18 @@ class History:
         started = now()
 
         def write() -> None:
-            with self._engine.begin() as db:
-                db.execute(_SESSIONS.insert().values(id=sid, loop=loop, user=user, started_at=started,
-                                                     state="running", request=json.dumps(request)))
+            try:
+                with self._engine.begin() as db:
+                    db.execute(_SESSIONS.insert().values(id=sid, loop=loop, user=user, started_at=started,
+                                                         state="running", request=json.dumps(request),
+                                                         seq=_NEXT_SEQ))
+            except sa.exc.IntegrityError:
+                # Another writer (``tune --config`` beside the daemon, on PostgreSQL) took the same place in the
+                # order at the same time: its unique index refused ours; a new try takes the next one. (A try
+                # whose commit went through although it reported an error finds its row there.)
+                with self._engine.connect() as db:
+                    if db.execute(sa.select(_SESSIONS.c.id).where(_SESSIONS.c.id == sid)).first() is None:
+                        raise _Contended("another writer took the same place in the order") from None
 
         self._retried(f"session {sid}: begin", write)
 
@@ -286,7 +319,7 @@ class History:
     def not_restored(self) -> list[dict[str, Any]]:
         """Sessions whose loops were not handed back (the daemon retries them)."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.state == "not_restored")
-                          .order_by(_SESSIONS.c.started_at))
+                          .order_by(*_OLDEST_FIRST))
         return [_record(row, with_trace=False) for row in rows]
 
     def applied(self, sid: str, user: str, gains_after: Gains) -> None:
@@ -297,7 +330,7 @@ class History:
     def open_intents(self) -> list[dict[str, Any]]:
         """Sessions whose gains write was intended but whose outcome was never recorded (a crash between)."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.gains_intent.is_not(None))
-                          .order_by(_SESSIONS.c.started_at))
+                          .order_by(*_OLDEST_FIRST))
         return [_record(row, with_trace=False) for row in rows]
 
     def resolve_intent(self, sid: str, read_back: Gains, applied: bool) -> None:
@@ -323,7 +356,7 @@ class History:
     def running(self) -> list[dict[str, Any]]:
         """Sessions recorded as running (after a crash: the ones whose loops must be put back)."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.state == "running")
-                          .order_by(_SESSIONS.c.started_at))
+                          .order_by(*_OLDEST_FIRST))
         return [_record(row, with_trace=False) for row in rows]
 
     def of_loop(self, loop: str, limit: int = 100) -> list[dict[str, Any]]:
@@ -336,6 +369,16 @@ class History:
         """Session ``sid`` in full, or None."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.id == sid))
         return _record(rows[0], with_trace=True) if rows else None
+
+
+class _Contended(Exception):
+    """A session's INSERT lost its place in the order to another writer's at the same time (tried again)."""
+
+
+def _reason(exc: Exception) -> str:
+    """What a failed write says: the database driver's message when there is one."""
+    orig = getattr(exc, "orig", None)
+    return str(orig) if orig is not None else str(exc)
 
 
 def _load(text: str | None) -> Any:
@@ -352,6 +395,7 @@ def _record(row: RowMapping, with_trace: bool) -> dict[str, Any]:
     result = _result(row["result"])
     record = {
         "id": row["id"],
+        "seq": row["seq"],
         "loop": row["loop"],
         "user": row["user"],
         "started_at": row["started_at"],
