@@ -169,17 +169,15 @@ class ThreadedPlc:
     async def _main(self) -> None:
         self._loop, self._halt = asyncio.get_running_loop(), asyncio.Event()
         self.server = server = await serve_modbus(self.plc, "127.0.0.1", 0, unit=1)
-        set_plc = server._set_plc
+        set_gains = self.plc.set_gains
 
-        def watched(written: dict[str, float]):
-            answer = set_plc(written)
-            if "k" in written and answer is None:
-                self.gains_written.set()
-                if self.freeze_after_gains:
-                    server.hang(True)
-            return answer
+        def watched(gains):  # the server applies a gains write through it, in its event loop
+            set_gains(gains)
+            self.gains_written.set()
+            if self.freeze_after_gains:
+                server.hang(True)
 
-        server._set_plc = watched  # type: ignore[method-assign]
+        self.plc.set_gains = watched  # type: ignore[method-assign]
         self._ready.set()
         await run(self.plc, self.speed, self._halt)
         await server.close()

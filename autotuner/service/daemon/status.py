@@ -92,6 +92,11 @@ class LoopStatus:
     pending_gains: bool = described("idle, and the newest session succeeded with gains not applied yet",
                                     example=True)
     monitor_error: str | None = described("why the monitor cannot read the loop (null: fine)", example=None)
+    history_error: str | None = described(
+        "why the daemon's history cannot record now — its file (or database, password masked), since when, the "
+        "database's reason, e.g. database or disk is full — the same for every loop; meanwhile a TUNE ends before "
+        "it touches the loop (ite 27) and an apply is refused (503 history_unavailable); null: fine",
+        example=None)
     defaults: Settings = described("the settings a TUNE without a body runs with")
     units: UnitsRecord = described("engineering units and display of the loop's values (the config's units)")
     restore: RestoreStatus | None = described("the loop is not handed back yet (te true, ite 20, TUNE refused); "
