@@ -310,8 +310,12 @@ class History:
         self._retried(f"session {sid}: {', '.join(values)}", write, deadline)
 
     def _read(self, query: sa.Select[Any]) -> list[RowMapping]:
-        with self._lock, self._engine.connect() as db:
-            return list(db.execute(query).mappings())
+        """The rows of ``query``; :class:`Unavailable` if the database cannot answer (locked, gone)."""
+        try:
+            with self._lock, self._engine.connect() as db:
+                return list(db.execute(query).mappings())
+        except sa.exc.OperationalError as exc:
+            raise Unavailable(f"history {self.shown}: {_reason(exc)}") from None
 
     def begin(self, sid: str, loop: str, user: str, request: dict[str, Any]) -> None:
         """Record a session that starts now on ``loop``, asked by ``user`` with ``request`` (settings in force)."""
@@ -446,6 +450,10 @@ class History:
         """Session ``sid`` in full, or None."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.id == sid))
         return _record(rows[0], with_trace=True) if rows else None
+
+
+class Unavailable(Exception):
+    """A read the database could not answer (an SQLite file locked by another process, a server gone)."""
 
 
 class Late(Exception):

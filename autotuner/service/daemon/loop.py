@@ -21,7 +21,7 @@ from autotuner.service.daemon.field import Reach
 from autotuner.service.daemon.recorder import HistoryHealth
 from autotuner.service.daemon.restore import Pending
 from autotuner.service.daemon.settings import settings_of
-from autotuner.service.daemon.status import LoopStatus, UnitsRecord
+from autotuner.service.daemon.status import BoundsRecord, LoopStatus, UnitsRecord
 from autotuner.service.link_session import not_restored
 
 
@@ -139,7 +139,8 @@ class Loop:
             last_tuned_at=None if self.latest is None else self.latest["finished_at"],
             last_outcome=None if self.latest is None else self.latest["outcome"],
             pending_gains=self.pending_gains, monitor_error=self.monitor_error, history_error=self.history.error,
-            defaults=settings_of(c, TuneRequest()), units=_units(c),
+            defaults=settings_of(c, TuneRequest()), bounds=BoundsRecord(c.max_amp, c.max_hysteresis),
+            units=_units(c),
             restore=None if p is None else p.status())
 
     def as_json(self) -> dict[str, Any]:

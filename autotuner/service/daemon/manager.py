@@ -66,7 +66,7 @@ from autotuner.service.daemon.settings import Settings, plan_of, settings_of
 from autotuner.service.daemon.timing import Histogram, TimingBatch
 from autotuner.service.daemon.watch import Reading
 from autotuner.service.design_pool import Outcome, close_design_pool, designed
-from autotuner.service.history import History, downsample, state_of
+from autotuner.service.history import History, Unavailable, downsample, state_of
 from autotuner.service.link_session import NotTracking
 from autotuner.service.session_record import mv_hull, same_gains, waited
 from autotuner.service.session_runner import SessionOutcome
@@ -279,7 +279,12 @@ class LoopManager:
         settings = settings_of(loop.config, request)
         if settings.amp > loop.config.max_amp:
             raise Refused("invalid", f"amp: {settings.amp:g} is above loop {loop_id!r}'s largest relay amplitude "
-                          f"{loop.config.max_amp:g} MV units (the span of its MV limits, else its tuning.max_amp)")
+                          f"{loop.config.max_amp:g} MV units (the span of its MV limits, else its tuning.max_amp; "
+                          "its status' bounds.amp)")
+        if settings.hysteresis is not None and settings.hysteresis > loop.config.max_hysteresis:
+            raise Refused("invalid", f"hysteresis: {settings.hysteresis:g} is above loop {loop_id!r}'s largest "
+                          f"hysteresis {loop.config.max_hysteresis:g} PV units (its tuning.max_hysteresis, else a "
+                          "quarter of the span of its PV limits; its status' bounds.hysteresis)")
         return settings
 
     def _check_capacity(self, loop_id: str) -> None:
@@ -365,8 +370,8 @@ class LoopManager:
         try:
             record = await self.recorder.read(self.history.latest if sid is None else self.history.get,
                                               loop_id if sid is None else sid, wait=deadline - time.monotonic())
-        except TimeoutError:
-            why = self.recorder.health.error or "writes ahead of the read"
+        except (TimeoutError, Unavailable) as exc:
+            why = self.recorder.health.error or str(exc) or "writes ahead of the read"
             raise Refused("history_unavailable", f"gains not written to loop {loop_id!r}: the history did not "
                           f"answer within {HISTORY_WAIT:g} s ({why}): which session's gains to write is not "
                           "known") from None
