@@ -20,6 +20,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+import sqlalchemy
 import yaml
 
 from autotuner.engine.outcome import Code
@@ -443,3 +444,28 @@ def test_a_daemon_whose_history_disk_fills_loses_no_session_and_writes_no_late_i
         assert record["gains_intent"] is None and record["applied_by"] is None
         assert record["gains_after"] == first["gains_after"]
         assert "was interrupted" not in daemon.log()
+
+
+def test_a_stop_while_the_disk_is_full_gives_the_retried_writes_up_and_says_so(disk, caplog):
+    """Writes are retried until written — but not past the daemon's stop, which would then never end."""
+    from autotuner.service.daemon.recorder import Recorder
+    from autotuner.service.history import History
+
+    history = History(str(disk.path / "h.db"))
+
+    async def body() -> None:
+        recorder = Recorder(history)
+        disk.fill()
+        begun = recorder.record(history.begin, "s1", "A", "alice", {})
+        await recorder.drain(1.0)
+        assert not begun.done()  # retried
+        await asyncio.wait_for(asyncio.to_thread(recorder.close, True), 60)  # ends: given up at its next failure
+        with pytest.raises(sqlalchemy.exc.OperationalError, match="full"):
+            await asyncio.wait_for(begun, 30)
+
+    try:
+        with caplog.at_level("WARNING"):
+            asyncio.run(body())
+        assert "1 write(s) not done yet at the stop" in caplog.text and "NOT RECORDED" in caplog.text
+    finally:
+        history.close()

@@ -140,4 +140,4 @@ async def _recorded(loop_id: str, settings: Settings, plan: SessionPlan, connect
                                              f"history: {why}")
         return result
     finally:
-        recorder.close(wait=True)  # the writes still retried end within the history's retry_for
+        recorder.close(wait=True)  # a write still failing is given up now (logged): the command ends

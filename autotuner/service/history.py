@@ -202,6 +202,7 @@ class History:
         self.on_error: Callable[[str | None], None] | None = None
         self._error: str | None = None
         self._outage = 0.0
+        self._stopping = False
         file = _sqlite_file(url)
         self.shown = file or shown_url(url)
         if file is not None and not init_empty and os.path.isfile(file) and os.path.getsize(file) == 0:
@@ -235,6 +236,11 @@ class History:
         with self._lock:
             self._engine.dispose()
 
+    def stop_retrying(self) -> None:
+        """A write that fails from now on is given up at once (the daemon exits: a write retried until the
+        database is back would keep the process from ending); each one given up is logged."""
+        self._stopping = True
+
     def _retried(self, what: str, write: Callable[[sa.Connection], None], deadline: float | None = None) -> None:
         """Run ``write`` in a transaction; on a database error (locked, disk full, server gone) try again with
         growing pauses until it is written, or ``retry_for`` s have passed (then raise).
@@ -265,8 +271,9 @@ class History:
             except (sa.exc.OperationalError, _Contended) as exc:
                 failures += 1
                 self._failed(what, _reason(exc))
-                if time.monotonic() + pause > give_up:
-                    log.error("history %s: %s failed %d times; given up", self.shown, what, failures)
+                if self._stopping or time.monotonic() + pause > give_up:
+                    log.error("history %s: %s failed %d times; given up%s: NOT RECORDED", self.shown, what, failures,
+                              " (the daemon stops)" if self._stopping else "")
                     raise
                 log.debug("history %s: %s failed (%s); retrying in %.1f s", self.shown, what, _reason(exc), pause)
                 time.sleep(pause)

@@ -151,5 +151,10 @@ class Recorder:
             await asyncio.wait(set(self._writes), timeout=timeout)
 
     def close(self, wait: bool = False) -> None:
-        """No more writes: the thread ends once the ones under way are done (``wait``: wait for that here)."""
+        """No more writes: the thread ends once the ones under way are done (``wait``: wait for that here); a
+        write still failing then is given up at its next failure (logged), so the process can end."""
+        if self._writes:
+            log.warning("history: %d write(s) not done yet at the stop: %s", len(self._writes),
+                        self.health.error or "under way")
+        self.history.stop_retrying()
         self._thread.shutdown(wait=wait)
