@@ -41,6 +41,9 @@ from autotuner.service.design_pool import Outcome, designed
 
 # Handshake bits (TBSY, ite) and the watchdog's heartbeat are written this often, wall seconds.
 FLAGS_PERIOD = 0.5
+# Two heartbeats that may have reached the device this fraction of its watchdog's timeout apart (or more) make the
+# session read the device for the watchdog's hand-back (a margin for the device's own clock and cycle).
+WATCHDOG_SUSPECT = 0.5
 # Pauses between read-backs while the device tracks the saved MV, wall seconds (growing from the first).
 TRACK_POLL = (0.01, 0.1)
 # A sample the session itself takes this many sample times late (its event loop, its machine — not the link)
@@ -409,11 +412,13 @@ class _Sampling:
         self._start = 0.0
         self._flags_due = 0.0
         self._beats = 0
+        self._beat_sent = 0.0  # when the last heartbeat write started, or the watchdog was armed (monotonic)
+        self._suspect_until = -math.inf  # the device is read for its watchdog's hand-back until then
         self.fell_back = False  # the device's watchdog handed the loop back during the experiment
 
     async def run(self) -> None:
         """Sample until the experiment ends (or ``hooks.stop`` aborts it); LinkError if the link fails."""
-        self._start = self._flags_due = time.monotonic()
+        self._start = self._flags_due = self._beat_sent = time.monotonic()  # the watchdog was armed just before
         stop, experiment = self.hooks.stop, self.experiment
         schedule = deadlines(self.plan.ts / self.plan.speed, stop, FLAGS_PERIOD)
         async with contextlib.aclosing(schedule):
@@ -475,24 +480,31 @@ class _Sampling:
     async def _handshake(self, status: Status) -> None:
         """TBSY, ite and the heartbeat every :data:`FLAGS_PERIOD` (the heartbeat only to an armed watchdog).
 
-        With the watchdog armed, the device is read first: once it shows its
-        watchdog's hand-back (a heartbeat came too late: a slow link) the
-        experiment ends with its code 22, never overwritten by TBSY and a
-        countdown, and the loop is left as the device handed it back.
+        Once two heartbeats may have reached the device a good part of the
+        watchdog's timeout apart (:data:`WATCHDOG_SUSPECT` of it, between the
+        start of one write and the end of the next: a slow link), the device is
+        read first, over the next timeout: when it shows its watchdog's hand-back
+        the experiment ends with its code 22, never overwritten by TBSY and a
+        countdown, and the loop is left as the device handed it back. (Not read
+        otherwise: a heartbeat on time cannot have let the watchdog fall back.)
         """
         if time.monotonic() < self._flags_due:
             return
         self._flags_due = time.monotonic() + FLAGS_PERIOD
-        armed = self.plan.handback.watchdog > 0.0
-        if armed and await self._taken_back():
+        timeout = self.plan.handback.watchdog
+        if time.monotonic() < self._suspect_until and await self._taken_back():
             self.fell_back = True
             self.experiment.fail(Code.WATCHDOG_FALLBACK, f"{MESSAGES[Code.WATCHDOG_FALLBACK]}: its heartbeat came "
-                                 f"more than {self.plan.handback.watchdog:g} s apart (a slow link); the loop is as "
-                                 "the device handed it back")
+                                 f"more than {timeout:g} s apart (a slow link); the loop is as the device handed it "
+                                 "back")
             return
         self._beats += 1
-        await _publish(self.link, TuneFlags(tbsy=True, te=False, ite=status.ite), self._beats if armed else None)
+        sent = time.monotonic()
+        await _publish(self.link, TuneFlags(tbsy=True, te=False, ite=status.ite), self._beats if timeout > 0 else None)
         self.overload.io_end = time.monotonic()
+        if timeout > 0.0 and self.overload.io_end - self._beat_sent >= WATCHDOG_SUSPECT * timeout:
+            self._suspect_until = self.overload.io_end + timeout
+        self._beat_sent = sent
 
     async def _taken_back(self) -> bool:
         """Whether the armed watchdog has handed the loop back: the device shows it (TE, ite 22), or the loop is
