@@ -29,7 +29,9 @@ may be refused only for a reason the client could have read first: the
 loop's state (409 busy, idle, nothing_to_apply, ...), or a TUNE's ``amp`` or
 ``hysteresis`` above the loop's own bound, which a static schema cannot
 carry per loop and the loop's status publishes (``bounds``). Any other 422
-for schema-valid data is a failure (it was: ``amp`` 5.7e307 was valid). The loops are simulated plants in real time (speed 1), so
+for schema-valid data is a failure (it was: ``amp`` 5.7e307 was valid).
+
+The loops are simulated plants in real time (speed 1), so
 a session the fuzzer starts runs far longer than the run unless its settings
 make it fail at once.
 

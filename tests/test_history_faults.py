@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import errno
 import os
-import signal
 import sqlite3
 import subprocess
 import sys

@@ -133,8 +133,8 @@ async def _recorded(loop_id: str, settings: Settings, plan: SessionPlan, connect
             gains_after = None if outcome is None else outcome.gains_after
             if restore_error and record.saved is not None:  # the next start of the daemon resumes the restore
                 state = "not_restored"
-            why = await recorder.durable(history.finish, sid, result.record(), gains_after, downsample(result.trace), state,
-                                record.applied_by(gains_after))
+            why = await recorder.durable(history.finish, sid, result.record(), gains_after, downsample(result.trace),
+                                         state, record.applied_by(gains_after))
             if why:
                 result = dataclasses.replace(result, message=f"{result.message}; its end is not recorded in the "
                                              f"history: {why}")

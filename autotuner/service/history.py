@@ -384,8 +384,8 @@ class History:
         intent = json.dumps({"gains": gains.as_json()})[:-1]  # the start of the intent's JSON: {"gains": {...}
 
         def write(db: sa.Connection) -> None:
-            db.execute(_SESSIONS.update().where(_SESSIONS.c.id == sid, _SESSIONS.c.gains_intent.startswith(intent, autoescape=True))
-                       .values(gains_intent=None))
+            still_open = _SESSIONS.c.gains_intent.startswith(intent, autoescape=True)
+            db.execute(_SESSIONS.update().where(_SESSIONS.c.id == sid, still_open).values(gains_intent=None))
 
         self._retried(f"session {sid}: intent withdrawn", write)
 
