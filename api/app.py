@@ -31,9 +31,10 @@ from autotuner.engine.design.analysis import analyse
 from autotuner.engine.outcome import MESSAGES, WARNINGS, Code
 from autotuner.service.config import DaemonConfig, FleetConfig, Tuning, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
+from autotuner.service.daemon.recorder import HISTORY_WAIT, LATE_GRACE
 from autotuner.service.daemon.sampler import SamplerField
 from autotuner.service.daemon.fleet import Fleet
-from autotuner.service.history import History, database_url
+from autotuner.service.history import History, Unavailable, database_url
 from autotuner.service.leases import Leases
 
 from . import docs, errors
@@ -59,6 +60,8 @@ _ERROR_TEXT = {
     404: "not_found: no loop (or session) with this id",
     413: "too_large: the request body is too large",
     422: "invalid: a field is out of range or unknown; the message names the field",
+    503: "history_unavailable: the history did not answer within a few seconds (locked, its disk full, its server "
+         "gone: the loops' history_error says why); retry later",
 }
 
 
@@ -143,8 +146,10 @@ async def abort(loop_id: LoopId, manager: Manager, _: Operator) -> dict[str, str
           "description": "busy: the loop tunes (or is being written); nothing_to_apply: the session failed, has no "
                          "gains, or the loop has no finished session"},
     502: {"model": errors.ErrorBody, "description": "link: the gains could not be written to the controller"},
-    503: {"model": errors.ErrorBody, "description": "history_unavailable: the intent to write the gains could not be "
-                                                    "recorded first, so they were not written"}})
+    503: {"model": errors.ErrorBody, "description": "history_unavailable: the history did not answer within a few "
+                                                    "seconds (which session to write, or the intent to write its "
+                                                    "gains, which must be recorded first): nothing was written, and "
+                                                    "nothing of the request is recorded later"}})
 async def apply(loop_id: LoopId, manager: Manager, who: Operator,
                 body: Annotated[ApplyRequest, Body()] = ApplyRequest()) -> dict[str, Any]:
     """Write a session's designed gains to the controller (default: the loop's newest session) and read them back.
@@ -241,27 +246,37 @@ async def all_events(request: Request, manager: Manager, _: Viewer) -> Streaming
                        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
+async def _read_history(method: Any, *args: Any) -> Any:
+    """``method(*args)`` of the history in a thread (never on the event loop), within ``HISTORY_WAIT`` +
+    ``LATE_GRACE`` seconds; 503 history_unavailable if the database does not answer by then."""
+    try:
+        return await asyncio.wait_for(asyncio.to_thread(method, *args), HISTORY_WAIT + LATE_GRACE)
+    except (TimeoutError, Unavailable) as exc:
+        reason = str(exc) or f"no answer within {HISTORY_WAIT + LATE_GRACE:g} s"
+        raise errors.ApiError(503, "history_unavailable", f"the history cannot be read now: {reason}") from None
+
+
 @router.get("/loops/{loop_id}/history", response_model=list[SessionSummary], tags=["history"],
-            responses=_errors(401, 404, 422))
+            responses=_errors(401, 404, 422, 503))
 async def history(loop_id: LoopId, manager: Manager, _: Viewer,
                   limit: Annotated[int, Query(ge=1, le=1000, description="most sessions returned")] = 100,
                   ) -> list[dict[str, Any]]:
     """Past sessions of the loop, newest first (without traces)."""
     manager.get(loop_id)
-    return await asyncio.to_thread(manager.history.of_loop, loop_id, limit)  # never on the event loop
+    return await _read_history(manager.history.of_loop, loop_id, limit)
 
 
-@router.get("/sessions/{sid}", response_model=Session, tags=["history"], responses=_errors(401, 404))
+@router.get("/sessions/{sid}", response_model=Session, tags=["history"], responses=_errors(401, 404, 503))
 async def session(sid: str, manager: Manager, _: Viewer) -> dict[str, Any]:
     """One session in full, with its downsampled trace."""
-    record = await asyncio.to_thread(manager.history.get, sid)
+    record = await _read_history(manager.history.get, sid)
     if record is None:
         raise errors.ApiError(404, "not_found", f"no session {sid!r}")
     return record
 
 
 @router.get("/sessions/{sid}/analysis", response_model=Analysis, tags=["history"], responses={
-    **_errors(401, 404),
+    **_errors(401, 404, 503),
     409: {"model": errors.ErrorBody, "description": "no_result: the session has no identified point or no design"}})
 async def analysis(sid: str, request: Request, manager: Manager, _: Viewer) -> dict[str, Any]:
     """What the session's gains (new) and the controller's gains before it (old) do on the identified model:
@@ -269,7 +284,7 @@ async def analysis(sid: str, request: Request, manager: Manager, _: Viewer) -> d
     cache: dict[str, dict[str, Any]] = request.app.state.analyses
     if sid in cache:
         return cache[sid]
-    record = await asyncio.to_thread(manager.history.get, sid)
+    record = await _read_history(manager.history.get, sid)
     if record is None:
         raise errors.ApiError(404, "not_found", f"no session {sid!r}")
     result = record["result"]

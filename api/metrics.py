@@ -77,6 +77,8 @@ class DaemonCollector(Collector):
         if opcua is not None:
             yield _gauge("autotuner_opcua_sessions", "OPC UA client sessions open", opcua.sessions)
         yield _gauge("autotuner_history_queue", "History writes asked for and not done yet", m.recorder.pending)
+        yield _gauge("autotuner_history_failing", "1 while the history's writes fail (disk full, locked, server gone: "
+                     "the loops' history_error says why), else 0", float(m.recorder.health.error is not None))
         cpu = getattr(m.field, "cpu_seconds", None)
         if cpu is not None:
             family = CounterMetricFamily("autotuner_sampler_cpu_seconds", "CPU seconds of each sampler process",

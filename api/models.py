@@ -89,6 +89,9 @@ class SessionSummary(BaseModel):
     """One session as listed in a loop's history."""
 
     id: str = _f("session id", SID)
+    seq: int = _f("its place in the history's order, assigned by the database when it was recorded: a later "
+                  "session has a larger one, whatever the clocks said (newest first, the last outcome and apply's "
+                  "default follow it; the times are for display)", 42)
     loop: str = _f("loop id", "TIC-101")
     user: str = _f("name of the token that started it (plc: the device's TUNE bit)", "hmi")
     started_at: str = _f("when it was requested, UTC ISO 8601", WHEN)

@@ -19,6 +19,7 @@ import asyncio
 import contextlib
 import logging
 import signal
+import urllib.parse
 from collections.abc import Generator
 from typing import Any
 
@@ -33,6 +34,27 @@ STARTUP_FAILURE = 3
 GRACEFUL_WAIT = 3.0
 
 log = logging.getLogger("autotuner.api.server")
+
+
+def redacted(target: str) -> str:
+    """A request target with every query value masked (``/loops?access_token=***&limit=***``): a client may put a
+    secret there (a token, refused 401 all the same), and the access log must not keep it."""
+    path, sep, query = target.partition("?")
+    if not sep:
+        return target
+    parts = (part.partition("=") for part in query.split("&"))  # a part without "=" may be the secret itself
+    return path + "?" + "&".join(f"{urllib.parse.quote(urllib.parse.unquote_plus(name)[:64])}=***" if eq and name
+                                 else "***" for name, eq, _ in parts)
+
+
+class RedactQuery(logging.Filter):
+    """uvicorn's access log (``client - "METHOD TARGET HTTP/x" status``) with the target's query values masked."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        args = record.args
+        if isinstance(args, tuple) and len(args) == 5 and isinstance(args[2], str):
+            record.args = (*args[:2], redacted(args[2]), *args[3:])
+        return True
 
 
 class DaemonServer(uvicorn.Server):
@@ -90,6 +112,9 @@ class DaemonServer(uvicorn.Server):
 def serve(app: FastAPI, **options: Any) -> int:
     """Serve ``app`` (uvicorn ``options``: host, port, ssl files, ...) until SIGTERM/SIGINT; the exit status."""
     config = uvicorn.Config(app, timeout_graceful_shutdown=GRACEFUL_WAIT, **options)
+    access = logging.getLogger("uvicorn.access")
+    if not any(isinstance(f, RedactQuery) for f in access.filters):
+        access.addFilter(RedactQuery())
     server = DaemonServer(config, app)
     server.run()
     if not server.started:  # the lifespan's start failed (uvicorn.run would exit 3 too)

@@ -39,6 +39,19 @@ async def until(predicate: Callable[[], bool], timeout: float, what: str) -> Non
         await asyncio.sleep(0.02)
 
 
+def libfaketime() -> str:
+    """The distribution's libfaketime (a wall clock shifted for one process; $AUTOTUNER_FAKETIME, else Debian's);
+    a clear failure without it."""
+    if os.environ.get("AUTOTUNER_FAKETIME"):
+        return os.environ["AUTOTUNER_FAKETIME"]
+    found = sorted(Path("/usr/lib").glob("*/faketime/libfaketime.so.1")) + sorted(
+        Path("/usr/lib/faketime").glob("libfaketime.so.1"))
+    if not found:
+        pytest.fail("the clock-step test needs libfaketime: apt-get install faketime (Debian), or set "
+                    "AUTOTUNER_FAKETIME to its libfaketime.so.1", pytrace=False)
+    return str(found[0])
+
+
 def chromium_path() -> str:
     """The distribution's Chromium ($AUTOTUNER_CHROMIUM, else ``chromium`` on PATH); a clear failure without it."""
     path = os.environ.get("AUTOTUNER_CHROMIUM") or shutil.which("chromium")
@@ -75,13 +88,13 @@ class Daemon:
     """``autotuner serve --config CONFIG`` as a real process on a free port, with ``token`` as $AUTOTUNER_TOKEN.
 
     Its stdout and stderr go to files (a full pipe must never stall the daemon); :meth:`log` reads them.
-    Use as a context manager: it waits until ``/health`` answers (``timeout`` s) and, on exit, stops the
+    ``env``: more environment variables for it (a preloaded library, say). Use as a context manager: it waits until ``/health`` answers (``timeout`` s) and, on exit, stops the
     daemon with SIGTERM (SIGKILL if it does not exit within 60 s). It runs in a session of its own, so that
     :meth:`kill` ends the whole tuner — the daemon and its sampler processes — as a lost machine would.
     """
 
     def __init__(self, config: Path, token: str = "test-operator-token", args: tuple[str, ...] = (),
-                 timeout: float = 120.0) -> None:
+                 timeout: float = 120.0, env: dict[str, str] | None = None) -> None:
         import subprocess
         import sys
 
@@ -89,7 +102,7 @@ class Daemon:
         self.base = f"http://127.0.0.1:{self.port}/api/v1"
         self.headers = {"Authorization": f"Bearer {token}"}
         self._out = config.parent / f"daemon-{self.port}.log"
-        env = {**os.environ, "AUTOTUNER_TOKEN": token}
+        env = {**os.environ, **(env or {}), "AUTOTUNER_TOKEN": token}
         with open(self._out, "w") as out:
             self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(config),
                                           "--port", str(self.port), *args], env=env, stdout=out, stderr=out,

@@ -4,8 +4,10 @@
 #   tests/setup-and-run.sh [PYTEST ARGUMENTS...]      (none: -n 2 -q, the whole suite)
 #
 # 1. The system programs some tests use, from apt (as root, or through sudo): Chromium (the browser tests;
-#    not needed with $AUTOTUNER_CHROMIUM), PostgreSQL (the history tests; not needed with $AUTOTUNER_PG_BIN) and
-#    Node.js with npm (the node-opcua test). Node.js first and npm only if it is still missing then: Debian's
+#    not needed with $AUTOTUNER_CHROMIUM), PostgreSQL (the history tests; not needed with $AUTOTUNER_PG_BIN),
+#    libfaketime (package faketime: the daemon restarted with its wall clock stepped back; not needed with
+#    $AUTOTUNER_FAKETIME) and Node.js with npm
+#    (the node-opcua test). Node.js first and npm only if it is still missing then: Debian's
 #    nodejs comes without npm (its own package), while NodeSource's nodejs carries npm and Debian's npm
 #    conflicts with it ("held broken packages"), so asking apt for both at once fails on such a machine.
 #    If an install fails, the package lists are refreshed (apt-get update) and it is tried once more.
@@ -47,6 +49,8 @@ missing=()
 [[ -n "${AUTOTUNER_CHROMIUM:-}" ]] || command -v chromium >/dev/null || missing+=(chromium)
 [[ -n "${AUTOTUNER_PG_BIN:-}" ]] || compgen -G "/usr/lib/postgresql/*/bin/pg_ctl" >/dev/null ||
     missing+=(postgresql)
+[[ -n "${AUTOTUNER_FAKETIME:-}" ]] || compgen -G "/usr/lib/*/faketime/libfaketime.so.1" >/dev/null ||
+    missing+=(faketime)
 command -v node >/dev/null || missing+=(nodejs)
 if (( ${#missing[@]} )); then
     apt_install "${missing[@]}"

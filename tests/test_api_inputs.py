@@ -51,7 +51,7 @@ def test_tune_bodies_of_the_wrong_json_type_are_refused_naming_the_field_and_not
     assert client.get(f"{API}/loops/FREE", headers=auth(VIEWER)).json()["tbsy"] is False
 
 
-@pytest.mark.parametrize("loop_id, amp, bound", [("LIM", 40.5, 40.0), ("FREE", 1e30, DEFAULT_MAX_AMP),
+@pytest.mark.parametrize("loop_id, amp, bound", [("LIM", 40.5, 40.0), ("FREE", 1e5, DEFAULT_MAX_AMP),
                                                  ("FREE", 100.5, DEFAULT_MAX_AMP)])
 def test_an_amplitude_above_the_loops_bound_is_refused_and_nothing_starts(client, loop_id, amp, bound):
     response = client.post(f"{API}/loops/{loop_id}/tune", json={"amp": amp}, headers=auth(OPERATOR))
@@ -172,3 +172,51 @@ def test_tune_on_a_nan_pv_is_409_with_its_code_and_the_loop_untouched(client):
         plc.nan_pv = False
     assert response.status_code == 409 and response.json()["code"] == "pv_invalid", response.text
     assert plc.mode.name == "AUTO"
+
+
+def test_a_token_in_a_query_string_is_refused_and_never_written_to_the_access_log(daemon):
+    """The issue's finding: a token sent in a URL query (refused 401) was written verbatim to the access log."""
+    secret = "q-secret-0123456789"
+    for target in (f"/loops?access_token={secret}&limit=5", f"/loops/FREE?{secret}", f"/codes?token={secret}"):
+        assert httpx.get(f"{daemon.base}{target}").status_code == 401
+    daemon.wait_until(lambda: daemon.log().count('"GET /api/v1/codes?token=***') == 1, 30, "the access log lines")
+    log = daemon.log()
+    assert secret not in log
+    assert '"GET /api/v1/loops?access_token=***&limit=*** HTTP/1.1" 401' in log
+    assert '"GET /api/v1/loops/FREE?*** HTTP/1.1" 401' in log
+
+
+def test_every_loop_publishes_its_own_bounds_and_a_hysteresis_above_it_is_refused(client):
+    """The issue's finding: hysteresis had no upper bound (135 PV units was accepted and the session ended 'no
+    oscillation'). Each loop's bounds are in its status; a request above one is refused naming the field."""
+    bounds = {loop["id"]: loop["bounds"] for loop in client.get(f"{API}/loops", headers=auth(VIEWER)).json()}
+    assert bounds == {"LIM": {"amp": 40.0, "hysteresis": 25.0}, "FREE": {"amp": DEFAULT_MAX_AMP, "hysteresis": 25.0}}
+    response = client.post(f"{API}/loops/FREE/tune", json={"hysteresis": 25.5}, headers=auth(OPERATOR))
+    assert response.status_code == 422 and response.json()["message"].startswith("hysteresis: 25.5 is above"), \
+        response.text
+    assert "bounds.hysteresis" in response.json()["message"]
+    assert client.get(f"{API}/loops/FREE", headers=auth(VIEWER)).json()["tbsy"] is False
+
+
+def test_the_schema_publishes_finite_global_bounds_and_the_loops_bounds_are_tighter(client):
+    from autotuner.service.config import AMP_MAX, HYSTERESIS_MAX
+
+    spec = client.get(f"{API}/openapi.json").json()
+    fields = spec["components"]["schemas"]["TuneRequest"]["properties"]
+    number = {name: next(s for s in fields[name]["anyOf"] if s["type"] == "number") for name in ("amp", "hysteresis")}
+    assert number["amp"]["maximum"] == AMP_MAX and number["hysteresis"]["maximum"] == HYSTERESIS_MAX
+    response = client.post(f"{API}/loops/FREE/tune", json={"amp": 5.7e307}, headers=auth(OPERATOR))
+    assert response.status_code == 422 and response.json()["message"].startswith("amp: "), response.text
+    assert "bounds" in spec["components"]["schemas"]["LoopStatus"]["required"]
+
+
+@pytest.mark.parametrize("limits, tuning, bound", [({"pv": [0.0, 120.0]}, {}, 30.0), ({}, {}, 25.0),
+                                                   ({"pv": [0.0, 120.0]}, {"max_hysteresis": 2.0}, 2.0)])
+def test_the_hysteresis_bound_comes_from_the_pv_limits_or_the_config(tmp_path: Path, limits, tuning, bound):
+    path = tmp_path / "d.yaml"
+    loop = {**LOOPS[1], "limits": limits, "tuning": {"amp": 5.0, **tuning}}
+    path.write_text(yaml.safe_dump({"loops": [loop]}))
+    assert load_config(path).loops[0].max_hysteresis == bound
+    path.write_text(yaml.safe_dump({"loops": [{**loop, "tuning": {**loop["tuning"], "hysteresis": bound + 0.5}}]}))
+    with pytest.raises(ConfigError, match=r"loops\[0\]: tuning.hysteresis .* is above the loop's largest hysteresis"):
+        load_config(path)

@@ -18,9 +18,20 @@ Every response must hold to the properties of issue 6:
   loop either still busy or ended by itself (never with code ABORTED, which
   only an accepted TBRK gives).
 
-Two runs. With an operator token, writes may start (202) and abort sessions.
+Three runs. With an operator token, writes may start (202) and abort sessions.
 Without a token and with a viewer token, every write must be refused and
-nothing may change. The loops are simulated plants in real time (speed 1), so
+nothing may change. And the stateful phase: schemathesis chains operations
+along the links it infers (a loop listed, then tuned, broken, applied, its
+history read), with the operator token.
+
+In every phase a request the schema allows (schemathesis' positive data)
+may be refused only for a reason the client could have read first: the
+loop's state (409 busy, idle, nothing_to_apply, ...), or a TUNE's ``amp`` or
+``hysteresis`` above the loop's own bound, which a static schema cannot
+carry per loop and the loop's status publishes (``bounds``). Any other 422
+for schema-valid data is a failure (it was: ``amp`` 5.7e307 was valid).
+
+The loops are simulated plants in real time (speed 1), so
 a session the fuzzer starts runs far longer than the run unless its settings
 make it fail at once.
 
@@ -52,6 +63,8 @@ OPERATOR, VIEWER = "fuzz-operator", "fuzz-viewer"
 LOOP_IDS = ("TIC-1", "LIC-2", "FIC-3")
 # Random examples per operation after the coverage phase; the whole file stays well under a minute.
 EXAMPLES = 25
+# Scenarios of the stateful phase (each up to 6 linked calls).
+STATEFUL_EXAMPLES = 20
 # A Server-Sent Events stream never ends; the transport keeps what arrived within this many seconds.
 STREAM_TIMEOUT = 0.5
 WRITES = frozenset({"POST", "PUT", "PATCH", "DELETE"})
@@ -160,11 +173,32 @@ def _no_traceback(response) -> None:
     assert "Traceback" not in text and 'File "/' not in text, f"traceback in the response: {text[:500]}"
 
 
+@schemathesis.check
+def refusals_explained(ctx, response, case) -> None:
+    """Schema-valid data refused as invalid (422) only for a bound the loop's status publishes."""
+    if response.status_code != 422 or case.meta is None or not case.meta.generation.mode.is_positive:
+        return
+    loop_id = (case.path_parameters or {}).get("loop_id")
+    body = case.body if isinstance(case.body, dict) else {}
+    assert case.path.endswith("/tune") and loop_id in LOOP_IDS, f"valid data refused: {response.text}"
+    bounds = _read(f"/loops/{loop_id}")["bounds"]
+    over = [name for name in ("amp", "hysteresis") if isinstance(body.get(name), int | float)
+            and body[name] > bounds[name]]
+    message = response.json()["message"]
+    assert over and message.startswith(f"{over[0]}: ") and f"bounds.{over[0]}" in message, \
+        f"{body} refused, within the loop's published bounds {bounds}: {message}"
+
+
+CHECKS = [not_a_server_error, content_type_conformance, response_schema_conformance, refusals_explained]
+
+
+def _transport(case) -> dict[str, Any]:
+    return {"timeout": STREAM_TIMEOUT} if case.path.endswith("/events") else {}
+
+
 def _call(case, token: str | None):
     """The request, with the built-in checks (no 5xx, content type, body schema) and ours."""
-    kwargs = {"timeout": STREAM_TIMEOUT} if case.path.endswith("/events") else {}
-    response = case.call_and_validate(headers=_bearer(token), checks=[
-        not_a_server_error, content_type_conformance, response_schema_conformance], **kwargs)
+    response = case.call_and_validate(headers=_bearer(token), checks=CHECKS, **_transport(case))
     _no_traceback(response)
     _documented(case, response)
     return response
@@ -203,3 +237,22 @@ def test_writes_without_operator_are_refused(case):
         elif token is None and case.method.lower() in SPEC["paths"][case.path] and not case.path.endswith("/health"):
             assert response.status_code == 401, f"{what}: {response.status_code}"
         _assert_unchanged(case, before, f"{what} -> {response.status_code}")
+
+
+class _Workflow(schema.as_state_machine()):
+    """The stateful phase: chains of operations along the inferred links, with the operator token and our checks."""
+
+    def get_call_kwargs(self, case) -> dict[str, Any]:
+        return {"headers": _bearer(OPERATOR), **_transport(case)}
+
+    def validate_response(self, response, case, additional_checks=None, **kwargs) -> None:
+        case.validate_response(response, checks=CHECKS, transport_kwargs=kwargs)
+        _no_traceback(response)
+        _documented(case, response)
+        if case.path.endswith("/break") and response.status_code == 202:
+            _settle(case, response)
+
+
+TestStateful = _Workflow.TestCase
+TestStateful.settings = settings(max_examples=STATEFUL_EXAMPLES, stateful_step_count=6, deadline=None,
+                                 suppress_health_check=list(HealthCheck))

@@ -11,6 +11,7 @@ import contextlib
 import json
 import os
 import signal
+import socket
 import sqlite3
 import subprocess
 import sys
@@ -127,9 +128,10 @@ class Plc:
 
 
 class Daemon:
-    """An `autotuner serve --config` process over one loop ``L1`` on ``plc``, with its history in ``tmp``."""
+    """An `autotuner serve --config` process over one loop ``L1`` on ``plc`` (or anything with its ``url`` and
+    ``speed``: a proxy in front of it), with its history in ``tmp``."""
 
-    def __init__(self, tmp: Path, plc: Plc, **handback: float) -> None:
+    def __init__(self, tmp: Path, plc: Any, **handback: float) -> None:
         self.tmp = tmp
         self.history = tmp / "history.sqlite"
         settings = {"window": 2.0, "retry_first": 0.3, "retry_max": 1.0, "track_timeout": 2.0, "shutdown": 8.0,
@@ -213,7 +215,7 @@ def plc(tmp_path) -> Iterator[Plc]:
 
 
 @contextmanager
-def daemon(tmp: Path, plc: Plc, **handback: float) -> Iterator[Daemon]:
+def daemon(tmp: Path, plc: Any, **handback: float) -> Iterator[Daemon]:
     d = Daemon(tmp, plc, **handback)
     try:
         yield d
@@ -447,3 +449,78 @@ def test_a_sigkill_at_a_switch_sample_between_the_levels_is_the_daemons_own_mv_a
         assert row["state"] == "interrupted" and "loop restored to AUTO with MV 50" in row["result"]["message"], row
         assert row["result"]["ite"] == int(Code.ABORTED)
         assert "an operator's intervention" not in d.output()
+
+
+class SlowLink:
+    """A TCP proxy in front of ``plc`` (a thread of the test) whose requests reach the PLC ``delay`` = (low, high)
+    wall seconds late, drawn at random per request and kept in order (a slow gateway or radio link); None: at once.
+    ``url``: the daemon's link through it (a Modbus timeout longer than the longest delay: slow, not dead)."""
+
+    def __init__(self, plc: Plc) -> None:
+        import random
+
+        self.plc, self.speed, self.delay = plc, plc.speed, None
+        self._random = random.Random(7)
+        self._server = socket.create_server(("127.0.0.1", 0))
+        self.port = self._server.getsockname()[1]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    @property
+    def url(self) -> str:
+        return f"modbus://127.0.0.1:{self.port}/1?timeout=5&retries=0"
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self._server.accept()
+            except OSError:
+                return
+            upstream = socket.create_connection(("127.0.0.1", self.plc.port))
+            threading.Thread(target=self._pipe, args=(client, upstream, True), daemon=True).start()
+            threading.Thread(target=self._pipe, args=(upstream, client, False), daemon=True).start()
+
+    def _pipe(self, source: socket.socket, target: socket.socket, delayed: bool) -> None:
+        due = 0.0
+        try:
+            while data := source.recv(65536):
+                if delayed and self.delay is not None:
+                    due = max(due, time.monotonic() + self._random.uniform(*self.delay))
+                    time.sleep(max(due - time.monotonic(), 0.0))
+                target.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for s in (source, target):
+                with contextlib.suppress(OSError):
+                    s.shutdown(socket.SHUT_RDWR)
+
+    def close(self) -> None:
+        self._server.close()
+
+
+def test_a_watchdog_hand_back_under_reply_delays_stays_code_22_and_no_message_nests(tmp_path, plc):
+    """The issue's finding: under 0.5-3 s reply delays the device's watchdog handed the loop back (ite 22); the
+    daemon's writes then overwrote 22 with 20 and 7, the history said 'nothing written', and the message nested
+    'LOOP NOT RESTORED (LOOP NOT RESTORED (...'. The device's 22 is its word on how the loop came back: it stays
+    the device's, the status's and the history's code."""
+    slow = SlowLink(plc)
+    try:
+        with daemon(tmp_path, slow, watchdog=1.5) as d:
+            sid = d.tune()
+            at_relay_level(plc)
+            slow.delay = (0.5, 3.0)
+            wait_for(lambda: (r := plc.read())["ite"] == float(Code.WATCHDOG_FALLBACK) and r["mode"] == "AUTO",
+                     60, "the device's watchdog to hand the loop back")
+            status = wait_for(lambda: (s := d.status())["tbsy"] is False and s["restore"] is None and s, 120,
+                              "the session to end, the loop dealt with")
+            for now in readings(plc, 2.0):  # nothing of the daemon's overwrites the device's word afterwards
+                assert now["ite"] == float(Code.WATCHDOG_FALLBACK) and now["mode"] == "AUTO", now
+            slow.delay = None
+            row = history_row(d.history, sid)
+        assert status["ite"] == float(Code.WATCHDOG_FALLBACK) and status["te"] is True, status
+        assert "watchdog" in status["message"] and "nothing written" not in status["message"], status["message"]
+        assert row["result"]["ite"] == int(Code.WATCHDOG_FALLBACK), row["result"]
+        for message in (status["message"], row["result"]["message"]):
+            assert message.count("LOOP NOT RESTORED") <= 1, message
+    finally:
+        slow.close()

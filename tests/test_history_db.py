@@ -12,6 +12,7 @@ import asyncio
 from collections.abc import Iterator
 
 import pytest
+import sqlalchemy as sa
 
 from autotuner.benchmarks.postgres import new_database, temporary_postgres
 from autotuner.service.config import ConfigError, load_config
@@ -123,3 +124,56 @@ def test_an_unreachable_database_is_a_clear_error_without_the_password():
     with pytest.raises(ValueError, match=r"history database postgresql\+psycopg://autotuner:\*\*\*@127.0.0.1") as err:
         History(url)
     assert "secret" not in str(err.value)
+
+
+def test_the_order_is_the_databases_not_the_clocks(database):
+    """Sessions recorded under a wall clock stepped back (their started_at earlier than an older session's) are
+    still the newest: newest first, the latest finished, the running and open intents in order."""
+    history = History(database)
+    try:
+        result = ResultRecord(False, False, 0, "ok", "PI", None, None, GainsRecord.of(Gains(k=1.0)),
+                              ExperimentRecord(0.0, None, 0))
+        for sid in ("old", "new"):
+            history.begin(sid, "A", "alice", {})
+            history.finish(sid, result, Gains(k=1.0), None)
+        history.begin("running", "A", "alice", {})
+        with history._engine.begin() as db:  # the clock stepped back an hour for the later sessions
+            db.execute(sa.text("UPDATE sessions SET started_at = '2020-01-01T00:00:00+00:00' "
+                               "WHERE id IN ('new', 'running')"))
+            db.execute(sa.text("UPDATE sessions SET finished_at = '2020-01-01T00:01:00+00:00' WHERE id = 'new'"))
+        assert [r["id"] for r in history.of_loop("A")] == ["running", "new", "old"]
+        seqs = [r["seq"] for r in history.of_loop("A")]
+        assert seqs == sorted(seqs, reverse=True) and len(set(seqs)) == 3
+        assert history.latest("A")["id"] == "new"
+        history.intend("old", "bob", Gains(k=2.0))
+        history.intend("new", "bob", Gains(k=3.0))
+        assert [r["id"] for r in history.open_intents()] == ["old", "new"]
+    finally:
+        history.close()
+
+
+def test_an_older_history_gets_its_order_from_the_start_times(database):
+    """A history written before the order existed (no ``seq``) gets one on open, in the order its sessions
+    started; sessions recorded after it come after them."""
+    engine = sa.create_engine(database if "://" in database else f"sqlite:///{database}")
+    with engine.begin() as db:
+        db.execute(sa.text("CREATE TABLE sessions (id VARCHAR(64) PRIMARY KEY, loop VARCHAR(64) NOT NULL, "
+                           "\"user\" TEXT NOT NULL, started_at VARCHAR(40) NOT NULL, finished_at VARCHAR(40), "
+                           "state VARCHAR(16) NOT NULL, request TEXT NOT NULL, saved TEXT, result TEXT, "
+                           "gains_after TEXT, trace TEXT)"))
+        for sid, started in (("b", "2024-01-02"), ("c", "2024-01-03"), ("a", "2024-01-01")):
+            db.execute(sa.text("INSERT INTO sessions (id, loop, \"user\", started_at, state, request) VALUES "
+                               f"('{sid}', 'A', 'bob', '{started}T00:00:00+00:00', 'running', '{{}}')"))
+    engine.dispose()
+    history = History(database)
+    try:
+        assert [(r["id"], r["seq"]) for r in history.of_loop("A")] == [("c", 3), ("b", 2), ("a", 1)]
+        history.begin("d", "A", "bob", {})
+        assert history.get("d")["seq"] == 4 and history.of_loop("A", limit=1)[0]["id"] == "d"
+    finally:
+        history.close()
+    reopened = History(database)  # opening it again: nothing to add, the order kept
+    try:
+        assert [r["id"] for r in reopened.of_loop("A")] == ["d", "c", "b", "a"]
+    finally:
+        reopened.close()

@@ -34,6 +34,7 @@ def test_metrics_need_a_token_and_say_what_the_daemon_holds(client):
     m = scrape(client)
     assert m["autotuner_loops"][()] == 3.0 and m["autotuner_loops_tuning"][()] == 0.0
     assert m["autotuner_history_queue"][()] >= 0.0
+    assert m["autotuner_history_failing"][()] == 0.0
     assert "process_resident_memory_bytes" in m  # the process's own figures too
 
 

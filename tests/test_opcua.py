@@ -179,6 +179,11 @@ def test_refused_calls_carry_the_rest_code_and_message(daemon):
             bad = await call(c, "TIC-3", "Tune", "PIDD", NAN, NAN, NAN, NAN, "maybe")
             assert bad.StatusCode.value == ua.StatusCodes.BadInvalidArgument
             assert "controller" in bad.OutputArguments[1].Value and "apply" in bad.OutputArguments[1].Value
+            # The issue's finding: 135 PV units of hysteresis was accepted (PV limits 0-100: the bound is 25).
+            bad = await call(c, "TIC-3", "Tune", "", NAN, 135.0, NAN, NAN, "")
+            assert bad.StatusCode.value == ua.StatusCodes.BadInvalidArgument, bad.OutputArguments[1].Value
+            assert bad.OutputArguments[1].Value.startswith("invalid: hysteresis: 135 is above loop 'TIC-3''s "
+                                                           "largest hysteresis 25 PV units")
             idle = await call(c, "TIC-3", "Break")
             assert idle.StatusCode.value == ua.StatusCodes.BadInvalidState
             assert idle.OutputArguments[1].Value.startswith("idle: ")

@@ -29,7 +29,7 @@ from autotuner.service.daemon import LoopManager, Refused
 from autotuner.service.daemon.sampler import device_of, shards_of
 from autotuner.service.history import History
 from helpers import Daemon, until
-from test_handback import (AMP, FIRST_AUTO_TOL, SAVED_MV, WAIT, Plc, at_relay_level, daemon, first_auto, history_row,
+from test_handback import (FIRST_AUTO_TOL, SAVED_MV, WAIT, Plc, at_relay_level, daemon, first_auto, history_row,
                            wait_for)
 
 

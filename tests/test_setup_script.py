@@ -58,7 +58,7 @@ done''')
         path.chmod(0o755)
 
     def run(self, *args: str) -> subprocess.CompletedProcess[str]:
-        env = {"PATH": str(self.bin), "VENV": str(self.venv), "AUTOTUNER_PG_BIN": "/nonexistent",
+        env = {"PATH": str(self.bin), "VENV": str(self.venv), "AUTOTUNER_PG_BIN": "/nonexistent", "AUTOTUNER_FAKETIME": "/x",
                "HOME": os.environ.get("HOME", "/root")}
         return subprocess.run([BASH, str(SCRIPT), *args], capture_output=True, text=True, env=env, timeout=60)
 
@@ -120,7 +120,7 @@ def test_an_existing_venv_is_kept_and_dry_run_runs_nothing(tmp_path):
     machine.log.write_text("")
     done = subprocess.run([BASH, str(SCRIPT)], capture_output=True, text=True, timeout=60,
                           env={"PATH": str(machine.bin), "VENV": str(machine.venv), "AUTOTUNER_PG_BIN": "/x",
-                               "DRY_RUN": "1"})
+                               "AUTOTUNER_FAKETIME": "/x", "DRY_RUN": "1"})
     assert done.returncode == 0, done.stderr
     assert machine.ran() == []  # nothing was run...
     assert done.stdout.splitlines() == [  # ...only printed, and the venv made by the first run is kept
@@ -132,7 +132,7 @@ def test_dry_run_on_plain_debian_prints_nodejs_then_npm(tmp_path):
     machine = Machine(tmp_path, has=(), apt="")
     done = subprocess.run([BASH, str(SCRIPT), "tests/test_pid.py"], capture_output=True, text=True, timeout=60,
                           env={"PATH": str(machine.bin), "VENV": str(machine.venv), "AUTOTUNER_PG_BIN": "/x",
-                               "DRY_RUN": "1"})
+                               "AUTOTUNER_FAKETIME": "/x", "DRY_RUN": "1"})
     assert done.returncode == 0, done.stderr
     assert machine.ran() == []
     assert done.stdout.splitlines()[:2] == ["+ apt-get install -y -q chromium nodejs", "+ apt-get install -y -q npm"]

@@ -34,13 +34,27 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-Controller = Literal["PI", "PID"]
-PositiveFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
-
-
 # Largest relay amplitude of a loop without finite MV limits (and of ``tune --link`` without --mv-limits), MV units:
 # the whole range of an MV in percent. A relay amplitude is written to a live controller; it is never unbounded.
 DEFAULT_MAX_AMP = 100.0
+# The global bounds every TUNE request is held to (published in the OpenAPI schema), MV and PV units: large enough
+# for any plant's engineering units, finite so a client's arithmetic stays finite. Each loop's own bounds (below)
+# are tighter and are published in its status (``bounds``).
+AMP_MAX = 1e6
+HYSTERESIS_MAX = 1e6
+# A loop's largest hysteresis, as a fraction of the span of its PV limits: the PV must leave SP ± hysteresis on
+# both sides every half period, a swing of at least twice the hysteresis, and needs room beyond it (overshoot, an
+# SP off centre) within the limits; a quarter leaves half the span for that.
+HYSTERESIS_SPAN_FRACTION = 0.25
+# The largest hysteresis of a loop without finite PV limits and without tuning.max_hysteresis, PV units: a quarter
+# of 0-100 (a PV in percent).
+DEFAULT_MAX_HYSTERESIS = 25.0
+
+Controller = Literal["PI", "PID"]
+PositiveFloat = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+Amplitude = Annotated[float, Field(gt=0.0, le=AMP_MAX, allow_inf_nan=False)]
+Hysteresis = Annotated[float, Field(ge=0.0, le=HYSTERESIS_MAX, allow_inf_nan=False)]
+
 
 
 class Tuning(Strict):
@@ -51,21 +65,40 @@ class Tuning(Strict):
     sensitivity of the design; time_limit: longest experiment, plant seconds.
     max_amp: largest relay amplitude a request may ask for, MV units, when the
     loop has no finite MV limits (with them, the bound is their span).
+    max_hysteresis: largest hysteresis a request may ask for, PV units (None:
+    :data:`HYSTERESIS_SPAN_FRACTION` of the span of the PV limits, else
+    :data:`DEFAULT_MAX_HYSTERESIS`).
     """
 
     controller: Controller = "PI"
-    amp: PositiveFloat = 1.0
-    hysteresis: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] | None = None
+    amp: Amplitude = 1.0
+    hysteresis: Hysteresis | None = None
     phase: Annotated[float, Field(ge=90.0, le=170.0)] = 135.0
     ms: Annotated[float, Field(ge=1.05, le=4.0)] = 1.4
     time_limit: PositiveFloat = 7200.0
-    max_amp: PositiveFloat = DEFAULT_MAX_AMP
+    max_amp: Amplitude = DEFAULT_MAX_AMP
+    max_hysteresis: Hysteresis | None = None
 
 
 def amp_bound(mv_limits: tuple[float, float], max_amp: float = DEFAULT_MAX_AMP) -> float:
-    """The largest relay amplitude, MV units: the span of ``mv_limits`` when both are finite, else ``max_amp``."""
+    """The largest relay amplitude, MV units: the span of ``mv_limits`` when both are finite, else ``max_amp``
+    (never above :data:`AMP_MAX`)."""
     low, high = mv_limits
-    return high - low if math.isfinite(low) and math.isfinite(high) else max_amp
+    return min(high - low if math.isfinite(low) and math.isfinite(high) else max_amp, AMP_MAX)
+
+
+def hysteresis_bound(pv_limits: tuple[float, float], max_hysteresis: float | None = None) -> float:
+    """The largest relay hysteresis, PV units: ``max_hysteresis`` when configured, else
+    :data:`HYSTERESIS_SPAN_FRACTION` of the span of ``pv_limits`` when both are finite, else
+    :data:`DEFAULT_MAX_HYSTERESIS` (never above :data:`HYSTERESIS_MAX`)."""
+    low, high = pv_limits
+    if max_hysteresis is not None:
+        bound = max_hysteresis
+    elif math.isfinite(low) and math.isfinite(high):
+        bound = HYSTERESIS_SPAN_FRACTION * (high - low)
+    else:
+        bound = DEFAULT_MAX_HYSTERESIS
+    return min(bound, HYSTERESIS_MAX)
 
 
 class TuneRequest(BaseModel):
@@ -74,16 +107,20 @@ class TuneRequest(BaseModel):
     Strict: a value of the wrong JSON type (``"apply": "yes"``, ``"apply": 0``,
     ``"amp": "5"``) is refused, never coerced — these fields drive a live
     controller. (The YAML config keeps pydantic's lax conversions: lists to
-    tuples, strings to paths.) ``amp`` is also bounded per loop
-    (:func:`amp_bound`), which only the daemon knows.
+    tuples, strings to paths.) Every bound here is published in the OpenAPI
+    schema; ``amp`` and ``hysteresis`` are also bounded per loop
+    (:func:`amp_bound`, :func:`hysteresis_bound`), which only the daemon knows
+    and publishes in each loop's status (``bounds``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
     controller: Controller | None = Field(None, description="controller to design, PI or PID", examples=["PI"])
-    amp: PositiveFloat | None = Field(None, description="relay amplitude, MV units (> 0)", examples=[5.0])
-    hysteresis: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] | None = Field(
-        None, description="relay hysteresis, PV units (≥ 0; absent: 3σ of the noise measured first)", examples=[0.1])
+    amp: Amplitude | None = Field(None, description=f"relay amplitude, MV units (> 0, ≤ {AMP_MAX:g}; and at most the "
+                                  "loop's bounds.amp, in its status)", examples=[5.0])
+    hysteresis: Hysteresis | None = Field(
+        None, description=f"relay hysteresis, PV units (≥ 0, ≤ {HYSTERESIS_MAX:g}; and at most the loop's "
+        "bounds.hysteresis, in its status; absent: 3σ of the noise measured first)", examples=[0.1])
     phase: Annotated[float, Field(ge=90.0, le=170.0)] | None = Field(
         None, description="phase lag of the point to identify, degrees (90–170)", examples=[135.0])
     ms: Annotated[float, Field(ge=1.05, le=4.0)] | None = Field(
@@ -196,11 +233,20 @@ class LoopConfig(Strict):
         """The largest relay amplitude of this loop, MV units (:func:`amp_bound`)."""
         return amp_bound(self.limits.mv, self.tuning.max_amp)
 
+    @property
+    def max_hysteresis(self) -> float:
+        """The largest relay hysteresis of this loop, PV units (:func:`hysteresis_bound`)."""
+        return hysteresis_bound(self.limits.pv, self.tuning.max_hysteresis)
+
     @model_validator(mode="after")
     def _amp_bounded(self) -> LoopConfig:
         if self.tuning.amp > self.max_amp:
             raise ValueError(f"tuning.amp {self.tuning.amp:g} is above the loop's largest relay amplitude "
                              f"{self.max_amp:g} (the span of limits.mv, else tuning.max_amp)")
+        if self.tuning.hysteresis is not None and self.tuning.hysteresis > self.max_hysteresis:
+            raise ValueError(f"tuning.hysteresis {self.tuning.hysteresis:g} is above the loop's largest hysteresis "
+                             f"{self.max_hysteresis:g} (tuning.max_hysteresis, else a quarter of the span of "
+                             "limits.pv)")
         return self
 
     @model_validator(mode="after")

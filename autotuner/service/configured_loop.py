@@ -26,12 +26,9 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import functools
 import getpass
 import uuid
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from typing import Any
 
 from drivers.link import Link
 from drivers.simplc import run
@@ -41,10 +38,11 @@ from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.result import TuneResult
 from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
 from autotuner.service.daemon import Refused, Settings, connector, fresh_check, plan_of, settings_of, simulated_plc
+from autotuner.service.daemon.recorder import Recorder
 from autotuner.service.history import History, downsample
 from autotuner.service.link_session import HandBack, SessionHooks, SessionPlan, tune_link
 from autotuner.service.remote_tuning import tune_opened
-from autotuner.service.session_record import SessionRecord, waited
+from autotuner.service.session_record import SessionRecord
 from autotuner.service.session_runner import SessionOutcome, run_session
 
 
@@ -104,21 +102,17 @@ async def tune_configured(
 async def _recorded(loop_id: str, settings: Settings, plan: SessionPlan, connect: Callable[[], Link],
                     history: History, user: str, on_status: Callable[[Status], None] | None) -> TuneResult:
     """The session (:func:`~autotuner.service.session_runner.run_session`, the daemon's), recorded in ``history``
-    as the daemon records its sessions (writes in order in a thread of their own, each awaited at most
-    ``RECORD_WAIT`` s)."""
+    as the daemon records its sessions (the daemon's :class:`~autotuner.service.daemon.recorder.Recorder`: writes
+    in order in a thread of their own, each awaited at most ``RECORD_WAIT`` s, the saved state and a gains intent
+    dropped rather than written after that)."""
     sid = uuid.uuid4().hex
-    events = asyncio.get_running_loop()
-    recorder = ThreadPoolExecutor(1, thread_name_prefix="history")
-
-    async def durable(method: Callable[..., Any], *args: Any) -> str:
-        return await waited(events.run_in_executor(recorder, functools.partial(method, *args)))
-
+    recorder = Recorder(history)
     try:
-        why = await durable(history.begin, sid, loop_id, user, settings.as_json())
+        why = await recorder.durable(history.begin, sid, loop_id, user, settings.as_json())
         if why:
             return TuneResult.failed(Code.HISTORY_UNAVAILABLE, f"{MESSAGES[Code.HISTORY_UNAVAILABLE]}: {why}",
                                      settings.controller)
-        record = SessionRecord(lambda name, *args: durable(getattr(history, name), *args), sid, loop_id, user)
+        record = SessionRecord(recorder.session_record, sid, loop_id, user)
         restore_error = ""
 
         def handed_back(error: str) -> None:
@@ -139,11 +133,11 @@ async def _recorded(loop_id: str, settings: Settings, plan: SessionPlan, connect
             gains_after = None if outcome is None else outcome.gains_after
             if restore_error and record.saved is not None:  # the next start of the daemon resumes the restore
                 state = "not_restored"
-            why = await durable(history.finish, sid, result.record(), gains_after, downsample(result.trace), state,
-                                record.applied_by(gains_after))
+            why = await recorder.durable(history.finish, sid, result.record(), gains_after, downsample(result.trace),
+                                         state, record.applied_by(gains_after))
             if why:
                 result = dataclasses.replace(result, message=f"{result.message}; its end is not recorded in the "
                                              f"history: {why}")
         return result
     finally:
-        recorder.shutdown(wait=True)  # the writes still retried end within the history's retry_for
+        recorder.close(wait=True)  # a write still failing is given up now (logged): the command ends

@@ -20,20 +20,29 @@ an open intent, which the next start reconciles with the gains read back from
 the device (:meth:`History.open_intents`, :meth:`History.resolve_intent`):
 history and device agree.
 
-A write that fails because the database is busy (an SQLite file locked by
-another process) is retried with growing pauses for ``retry_for`` seconds,
-each failure logged; the daemon calls these methods from a worker thread,
-never from its event loop.
+A write that fails (an SQLite file locked by another process, a full disk,
+a database server gone) is retried with growing pauses until it is written
+(``retry_for``: ``tune --config`` gives up sooner) — a session's record given
+up would lose the session. The outage is logged once when it starts and once
+when it ends, and :attr:`History.error` says it meanwhile (the daemon shows it
+in every loop's status). A record that must be durable *before* a write it
+guards (the saved state before the loop is touched, a gains intent before
+the gains) carries a deadline, its caller's: past it, it is dropped, never
+written late (:class:`Late`). The daemon calls these methods from a worker
+thread, never from its event loop.
 
-Records are plain JSON-able dicts; times are UTC ISO 8601 strings (they sort
-as text). JSON is stored as text, so the one table works on every database
-SQLAlchemy Core speaks.
+Sessions are ordered by ``seq``, a number the database assigns when the
+session is recorded (one more than the largest), never by a clock: a wall
+clock stepped back does not make a new session older. Records are plain
+JSON-able dicts; times are UTC ISO 8601 strings, for display. JSON is stored
+as text, so the one table works on every database SQLAlchemy Core speaks.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import threading
 import time
@@ -70,18 +79,31 @@ _SESSIONS = sa.Table(
     sa.Column("applied_at", sa.String(40)),
     sa.Column("applied_by", sa.Text),
     sa.Column("gains_intent", sa.Text),
+    # The history's order: assigned by the database when the session is recorded (one more than the largest so
+    # far), never read from a clock — a wall clock stepped back must not make a new session older than an old one.
+    sa.Column("seq", sa.BigInteger),
     sa.Index("sessions_by_loop", "loop", "started_at"),
 )
+# Indexes of the order, created on an older database too (create_all makes a table's indexes only with the table).
+_SEQ_INDEXES = (sa.Index("sessions_seq", _SESSIONS.c.seq, unique=True),
+                sa.Index("sessions_by_loop_seq", _SESSIONS.c.loop, _SESSIONS.c.seq))
 # Columns added since the first schema, added to an older database when it is opened.
-_ADDED = ("applied_at", "applied_by", "gains_intent")
-# How long a write that fails on a busy database is retried, seconds (each try waits SQLite's busy timeout).
-WRITE_RETRY_FOR = 120.0
+_ADDED = ("applied_at", "applied_by", "gains_intent", "seq")
+# How long a write that fails on a busy database is retried, seconds (each try waits SQLite's busy timeout): the
+# daemon's until it is written — a session's record given up would lose the session; what may not be written late
+# carries a deadline instead (History._retried).
+WRITE_RETRY_FOR = math.inf
+# Longest pause between two tries of a failing write, seconds.
+RETRY_PAUSE_MAX = 5.0
 # SQLite's own wait for a lock per try, seconds (its default, 5 s, is what stalled every loop when run inline).
 SQLITE_BUSY_TIMEOUT = 1.0
 
 log = logging.getLogger("autotuner.service.history")
-# Newest first; the id breaks a tie of two sessions started in the same microsecond.
-_NEWEST_FIRST = (_SESSIONS.c.started_at.desc(), _SESSIONS.c.id.desc())
+# Newest first: by the order the database assigned (timestamps are for display only).
+_NEWEST_FIRST = (_SESSIONS.c.seq.desc(),)
+_OLDEST_FIRST = (_SESSIONS.c.seq.asc(),)
+# The next place in the order, computed by the database in the session's INSERT.
+_NEXT_SEQ = sa.select(sa.func.coalesce(sa.func.max(_SESSIONS.c.seq), 0) + 1).scalar_subquery()
 
 
 def database_url(history: str) -> str:
@@ -139,6 +161,24 @@ def state_of(data: dict[str, Any]) -> LoopState:
     return LoopState(mode=Mode[data["mode"]], mv=data["mv"], sp=data["sp"], gains=Gains.from_json(data["gains"]))
 
 
+def _upgrade(db: sa.Connection) -> None:
+    """Bring an older database's table up to this schema: the columns added since, and the order (``seq``) of
+    sessions recorded without one, given in the order they started (their ``started_at``, then id)."""
+    columns = {c["name"] for c in sa.inspect(db).get_columns("sessions")}
+    for name in _ADDED:
+        if name not in columns:
+            type_ = _SESSIONS.c[name].type.compile(db.dialect)
+            db.execute(sa.text(f"ALTER TABLE sessions ADD COLUMN {name} {type_}"))
+    unordered = db.execute(sa.select(_SESSIONS.c.id).where(_SESSIONS.c.seq.is_(None))
+                           .order_by(_SESSIONS.c.started_at, _SESSIONS.c.id)).scalars().all()
+    if unordered:
+        last = db.execute(sa.select(sa.func.coalesce(sa.func.max(_SESSIONS.c.seq), 0))).scalar_one()
+        db.execute(_SESSIONS.update().where(_SESSIONS.c.id == sa.bindparam("sid")).values(seq=sa.bindparam("n")),
+                   [{"sid": sid, "n": last + i} for i, sid in enumerate(unordered, start=1)])
+    for index in _SEQ_INDEXES:
+        index.create(db, checkfirst=True)
+
+
 def downsample(trace: Trace, points: int = TRACE_POINTS) -> dict[str, list[float]]:
     """At most ``points`` evenly spaced samples of ``trace`` (plant seconds, PV, MV), the last one included."""
     return trace.thinned(points)
@@ -159,6 +199,10 @@ class History:
         url = database_url(history)
         memory = url == "sqlite://"
         self.retry_for = retry_for
+        self.on_error: Callable[[str | None], None] | None = None
+        self._error: str | None = None
+        self._outage = 0.0
+        self._stopping = False
         file = sqlite_file(url)
         self.shown = file or shown_url(url)
         if file is not None and not init_empty and os.path.isfile(file) and os.path.getsize(file) == 0:
@@ -178,10 +222,7 @@ class History:
                         raise ValueError(f"history database {file} is damaged ({shown}): "
                                          "restore it from a backup, or move it away to start a new one")
                 _META.create_all(db)
-                columns = {c["name"] for c in sa.inspect(db).get_columns("sessions")}
-                for name in _ADDED:
-                    if name not in columns:
-                        db.execute(sa.text(f"ALTER TABLE sessions ADD COLUMN {name} {_SESSIONS.c[name].type}"))
+                _upgrade(db)
         except sa.exc.DatabaseError as exc:
             reason = mask(str(exc.orig) if exc.orig is not None else str(exc), url)
             hint = "" if file is None else ": restore it from a backup, or move it away to start a new one"
@@ -195,60 +236,123 @@ class History:
         with self._lock:
             self._engine.dispose()
 
-    def _retried(self, what: str, write: Callable[[], None]) -> None:
-        """Run ``write``; on a database error retry with growing pauses for ``retry_for`` s (logged), then raise."""
-        deadline = time.monotonic() + self.retry_for
+    def stop_retrying(self) -> None:
+        """A write that fails from now on is given up at once (the daemon exits: a write retried until the
+        database is back would keep the process from ending); each one given up is logged."""
+        self._stopping = True
+
+    def _retried(self, what: str, write: Callable[[sa.Connection], None], deadline: float | None = None) -> None:
+        """Run ``write`` in a transaction; on a database error (locked, disk full, server gone) try again with
+        growing pauses until it is written, or ``retry_for`` s have passed (then raise).
+
+        ``deadline`` (monotonic seconds): the write is for a caller that gives
+        up then (a record that must be durable before the write it guards):
+        past it no try starts and no transaction commits — it raises
+        :class:`Late`, logged — so a write refused to its caller is never
+        written afterwards. The first failure of an outage is logged once, with
+        the database and the reason, and so is the first success after it
+        (:attr:`error` says meanwhile).
+        """
+        give_up = time.monotonic() + self.retry_for
         pause, failures = 0.05, 0
         while True:
             try:
                 with self._lock:
-                    write()
-            except sa.exc.OperationalError as exc:
+                    if deadline is not None and time.monotonic() > deadline:
+                        raise Late(f"{what}: its deadline passed before it could be written")
+                    with self._engine.begin() as db:
+                        write(db)
+                        if deadline is not None and time.monotonic() > deadline:  # rolled back, never committed
+                            raise Late(f"{what}: its deadline passed before it was committed")
+            except Late as late:
+                log.warning("history %s: %s; dropped, never to be written (its caller was told so)", self.shown,
+                            late)
+                raise
+            except (sa.exc.OperationalError, _Contended) as exc:
                 failures += 1
-                reason = str(exc.orig) if exc.orig is not None else str(exc)
-                if time.monotonic() + pause > deadline:
-                    log.error("history %s: %s failed %d times (%s); given up", self.shown, what, failures, reason)
+                self._failed(what, _reason(exc))
+                if self._stopping or time.monotonic() + pause > give_up:
+                    log.error("history %s: %s failed %d times; given up%s: NOT RECORDED", self.shown, what, failures,
+                              " (the daemon stops)" if self._stopping else "")
                     raise
-                log.warning("history %s: %s failed (%s); retrying in %.1f s", self.shown, what, reason, pause)
+                log.debug("history %s: %s failed (%s); retrying in %.1f s", self.shown, what, _reason(exc), pause)
                 time.sleep(pause)
-                pause = min(2.0 * pause, 5.0)
+                pause = min(2.0 * pause, RETRY_PAUSE_MAX)
             else:
-                if failures:
-                    log.info("history %s: %s written after %d failed tries", self.shown, what, failures)
+                self._succeeded(what, failures)
                 return
 
-    def _write(self, sid: str, **values: Any) -> None:
-        def write() -> None:
-            with self._engine.begin() as db:
-                db.execute(_SESSIONS.update().where(_SESSIONS.c.id == sid).values(**values))
+    def _failed(self, what: str, reason: str) -> None:
+        """A write failed: the first failure of an outage is logged and reported (:attr:`error`)."""
+        if self._error is None:
+            self._error = f"history {self.shown}: writes fail since {now()}: {reason}"
+            self._outage = time.monotonic()
+            log.error("history %s: %s failed (%s); every write is retrying until it succeeds (logged again once "
+                      "they do)", self.shown, what, reason)
+            self._report(self._error)
 
-        self._retried(f"session {sid}: {', '.join(values)}", write)
+    def _succeeded(self, what: str, failures: int) -> None:
+        """A write went through: the end of an outage is logged and reported."""
+        if self._error is not None:
+            log.warning("history %s: writes succeed again after %.0f s (%s written after %d failed tries)",
+                        self.shown, time.monotonic() - self._outage, what, failures)
+            self._error = None
+            self._report(None)
+
+    def _report(self, error: str | None) -> None:
+        if self.on_error is not None:
+            self.on_error(error)
+
+    @property
+    def error(self) -> str | None:
+        """Why the history cannot write now (its path or masked URL, since when, the database's reason: ``database
+        or disk is full``, ``database is locked``, ...); None while writes go through."""
+        return self._error
+
+    def _write(self, sid: str, deadline: float | None = None, **values: Any) -> None:
+        def write(db: sa.Connection) -> None:
+            if db.execute(_SESSIONS.update().where(_SESSIONS.c.id == sid).values(**values)).rowcount == 0:
+                raise LookupError(f"session {sid} is not in the history (its begin was not recorded)")
+
+        self._retried(f"session {sid}: {', '.join(values)}", write, deadline)
 
     def _read(self, query: sa.Select[Any]) -> list[RowMapping]:
-        with self._lock, self._engine.connect() as db:
-            return list(db.execute(query).mappings())
+        """The rows of ``query``; :class:`Unavailable` if the database cannot answer (locked, gone)."""
+        try:
+            with self._lock, self._engine.connect() as db:
+                return list(db.execute(query).mappings())
+        except sa.exc.OperationalError as exc:
+            raise Unavailable(f"history {self.shown}: {_reason(exc)}") from None
 
     def begin(self, sid: str, loop: str, user: str, request: dict[str, Any]) -> None:
         """Record a session that starts now on ``loop``, asked by ``user`` with ``request`` (settings in force)."""
         started = now()
 
-        def write() -> None:
-            with self._engine.begin() as db:
+        def write(db: sa.Connection) -> None:
+            try:
                 db.execute(_SESSIONS.insert().values(id=sid, loop=loop, user=user, started_at=started,
-                                                     state="running", request=json.dumps(request)))
+                                                     state="running", request=json.dumps(request), seq=_NEXT_SEQ))
+            except sa.exc.IntegrityError:
+                # Another writer (``tune --config`` beside the daemon, on PostgreSQL) took the same place in the
+                # order at the same time: its unique index refused ours; a new try takes the next one. (A try
+                # whose commit went through although it reported an error finds its row there.)
+                with self._engine.connect() as other:
+                    if other.execute(sa.select(_SESSIONS.c.id).where(_SESSIONS.c.id == sid)).first() is None:
+                        raise _Contended("another writer took the same place in the order") from None
 
         self._retried(f"session {sid}: begin", write)
 
     def saved(self, sid: str, saved: LoopState, relay_levels: tuple[float, ...] = (),
-              mv_range: tuple[float, float] | None = None) -> None:
+              mv_range: tuple[float, float] | None = None, deadline: float | None = None) -> None:
         """Record the loop's state before session ``sid`` touches it (what a restart after a crash restores), the
         MV levels the experiment will hold it at (``relay_levels``) and the range (low, high) of every MV the
         session may write (``mv_range``, MV units; recorded again, wider, before an MV outside it is written):
-        how a restart tells the loop as the session left it from one an operator changed."""
+        how a restart tells the loop as the session left it from one an operator changed. ``deadline``: see
+        :meth:`_retried` (the session touches the loop only once this is recorded; past it, never recorded)."""
         record = {**state_json(saved), "relay_levels": [float(x) for x in relay_levels]}
         if mv_range is not None:
             record["mv_range"] = [float(mv_range[0]), float(mv_range[1])]
-        self._write(sid, saved=json.dumps(record))
+        self._write(sid, deadline, saved=json.dumps(record))
 
     def finish(self, sid: str, result: ResultRecord, gains_after: Gains | None,
                trace: dict[str, list[float]] | None, state: str = "finished", applied_by: str | None = None) -> None:
@@ -268,9 +372,22 @@ class History:
                     trace=None if trace is None else json.dumps(trace, allow_nan=False),
                     applied_at=None if applied_by is None else at, applied_by=applied_by, **values)
 
-    def intend(self, sid: str, user: str, gains: Gains) -> None:
-        """Record, before they are written, that ``user`` has the ``gains`` of session ``sid`` written now."""
-        self._write(sid, gains_intent=json.dumps({"gains": gains.as_json(), "by": user, "at": now()}))
+    def intend(self, sid: str, user: str, gains: Gains, deadline: float | None = None) -> None:
+        """Record, before they are written, that ``user`` has the ``gains`` of session ``sid`` written now.
+        ``deadline``: see :meth:`_retried` (the gains are written only once this is recorded; past it, never
+        recorded)."""
+        self._write(sid, deadline, gains_intent=json.dumps({"gains": gains.as_json(), "by": user, "at": now()}))
+
+    def withdraw(self, sid: str, gains: Gains) -> None:
+        """Close session ``sid``'s intent to write ``gains`` (if it is still open) without a write: the intent
+        came in after its caller had given up on it, so the gains were never written."""
+        intent = json.dumps({"gains": gains.as_json()})[:-1]  # the start of the intent's JSON: {"gains": {...}
+
+        def write(db: sa.Connection) -> None:
+            still_open = _SESSIONS.c.gains_intent.startswith(intent, autoescape=True)
+            db.execute(_SESSIONS.update().where(_SESSIONS.c.id == sid, still_open).values(gains_intent=None))
+
+        self._retried(f"session {sid}: intent withdrawn", write)
 
     def restored(self, sid: str, state: str, message: str, code: int | None = None) -> None:
         """A ``not_restored`` session whose loop has now been dealt with: its final ``state``, a message that says
@@ -286,7 +403,7 @@ class History:
     def not_restored(self) -> list[dict[str, Any]]:
         """Sessions whose loops were not handed back (the daemon retries them)."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.state == "not_restored")
-                          .order_by(_SESSIONS.c.started_at))
+                          .order_by(*_OLDEST_FIRST))
         return [_record(row, with_trace=False) for row in rows]
 
     def applied(self, sid: str, user: str, gains_after: Gains) -> None:
@@ -297,21 +414,25 @@ class History:
     def open_intents(self) -> list[dict[str, Any]]:
         """Sessions whose gains write was intended but whose outcome was never recorded (a crash between)."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.gains_intent.is_not(None))
-                          .order_by(_SESSIONS.c.started_at))
+                          .order_by(*_OLDEST_FIRST))
         return [_record(row, with_trace=False) for row in rows]
 
     def resolve_intent(self, sid: str, read_back: Gains, applied: bool) -> None:
         """Close session ``sid``'s open intent with the gains ``read_back`` from the device.
 
         ``applied``: they are the intended gains, so the write happened: recorded
-        as applied by whoever intended it, at the intent's time. Else the
-        device never got them: only the gains after are recorded.
+        as applied by whoever intended it, at the intent's time, with them as the
+        gains after. Else the device never got them: the intent is closed, and the
+        gains after are recorded only if the session had none (it died before its
+        end) — a write that never happened does not rewrite a session's gains after.
         """
         record = self.get(sid)
         intent = None if record is None else record["gains_intent"]
-        values: dict[str, Any] = {"gains_after": json.dumps(read_back.as_json()), "gains_intent": None}
+        values: dict[str, Any] = {"gains_intent": None}
         if applied and intent is not None:
             values.update(applied_at=intent["at"], applied_by=intent["by"])
+        if applied or record is None or record["gains_after"] is None:
+            values["gains_after"] = json.dumps(read_back.as_json())
         self._write(sid, **values)
 
     def latest(self, loop: str) -> dict[str, Any] | None:
@@ -323,7 +444,7 @@ class History:
     def running(self) -> list[dict[str, Any]]:
         """Sessions recorded as running (after a crash: the ones whose loops must be put back)."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.state == "running")
-                          .order_by(_SESSIONS.c.started_at))
+                          .order_by(*_OLDEST_FIRST))
         return [_record(row, with_trace=False) for row in rows]
 
     def of_loop(self, loop: str, limit: int = 100) -> list[dict[str, Any]]:
@@ -336,6 +457,24 @@ class History:
         """Session ``sid`` in full, or None."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.id == sid))
         return _record(rows[0], with_trace=True) if rows else None
+
+
+class Unavailable(Exception):
+    """A read the database could not answer (an SQLite file locked by another process, a server gone)."""
+
+
+class Late(Exception):
+    """A write dropped because its deadline passed (its caller had given up on it): it is never written."""
+
+
+class _Contended(Exception):
+    """A session's INSERT lost its place in the order to another writer's at the same time (tried again)."""
+
+
+def _reason(exc: Exception) -> str:
+    """What a failed write says: the database driver's message when there is one."""
+    orig = getattr(exc, "orig", None)
+    return str(orig) if orig is not None else str(exc)
 
 
 def _load(text: str | None) -> Any:
@@ -352,6 +491,7 @@ def _record(row: RowMapping, with_trace: bool) -> dict[str, Any]:
     result = _result(row["result"])
     record = {
         "id": row["id"],
+        "seq": row["seq"],
         "loop": row["loop"],
         "user": row["user"],
         "started_at": row["started_at"],

@@ -41,6 +41,9 @@ from autotuner.service.design_pool import Outcome, designed
 
 # Handshake bits (TBSY, ite) and the watchdog's heartbeat are written this often, wall seconds.
 FLAGS_PERIOD = 0.5
+# Two heartbeats that may have reached the device this fraction of its watchdog's timeout apart (or more) make the
+# session read the device for the watchdog's hand-back (a margin for the device's own clock and cycle).
+WATCHDOG_SUSPECT = 0.5
 # Pauses between read-backs while the device tracks the saved MV, wall seconds (growing from the first).
 TRACK_POLL = (0.01, 0.1)
 # A sample the session itself starts late (its event loop, its machine — not the link) by more than what the
@@ -168,12 +171,28 @@ async def hand_back_once(link: Link, saved: LoopState, track_timeout: float) -> 
 
 
 def not_restored(saved: LoopState, why: str) -> str:
-    """The message of a loop that could not be handed back."""
+    """The message of a loop that could not be handed back, ``why`` being the last try's error (made here, once:
+    messages never nest)."""
     return f"LOOP NOT RESTORED ({why}): the daemon retries; or set mode {Mode(saved.mode).name} and MV {saved.mv:g} by hand"
 
 
+def watchdog_fell_back(flags: TuneFlags) -> bool:
+    """The device shows its watchdog's hand-back (TBSY cleared, TE and ite 22): that code is the device's word on
+    how the loop came back, and nothing the tuner writes afterwards may overwrite it."""
+    return not flags.tbsy and flags.te and flags.ite == float(Code.WATCHDOG_FALLBACK)
+
+
+async def fell_back(link: Link) -> bool:
+    """Whether the device shows its watchdog's hand-back now (False if its flags cannot be read)."""
+    try:
+        return watchdog_fell_back(await link.read_flags())
+    except LinkError:
+        return False
+
+
 async def hand_back(link: Link, saved: LoopState, handback: HandBack) -> str:
-    """Hand the loop back to ``saved``'s MV and mode, bumplessly; '' on success, else why it is not restored.
+    """Hand the loop back to ``saved``'s MV and mode, bumplessly; '' on success, else why it is not restored (the
+    last try's error: :func:`not_restored` makes the message).
 
     A loop left in MAN at a relay level is the worst outcome, so it keeps
     trying, with growing pauses, for ``handback.window`` seconds (and not
@@ -187,10 +206,10 @@ async def hand_back(link: Link, saved: LoopState, handback: HandBack) -> str:
             await hand_back_once(link, saved, handback.track_timeout)
             return ""
         except Fenced as exc:  # not ours any more: the loop's new owner restores it, this daemon writes nothing
-            return f"not handed back: {exc}"
+            return str(exc)
         except (LinkError, NotTracking) as exc:  # the cap is read each time: a shutdown may set it meanwhile
             if time.monotonic() + pause > min(deadline, handback.cap):
-                return not_restored(saved, str(exc))
+                return str(exc) or type(exc).__name__
             await asyncio.sleep(pause)
             pause = min(2.0 * pause, 2.0)
 
@@ -202,6 +221,14 @@ async def _publish(link: Link, flags: TuneFlags, heartbeat: int | None = None) -
             await link.write_heartbeat(heartbeat)
     except LinkError:
         pass  # the handshake is informative; the experiment's own I/O reports link faults
+
+
+async def _end_handshake(link: Link, restore_error: str, code: Code, ok: bool = False) -> None:
+    """The handshake bits at a session's end (:func:`_ended`); a loop not handed back whose device shows its
+    watchdog's hand-back keeps the device's 22 (the device did hand it back)."""
+    if restore_error and await fell_back(link):
+        return
+    await _publish(link, _ended(restore_error, code, ok))
 
 
 def _ended(restore_error: str, code: Code, ok: bool = False) -> TuneFlags:
@@ -347,19 +374,21 @@ async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = 
         failed = True
         raise
     finally:
-        restore_error = await hand_back(link, saved, plan.handback)
+        # A loop the device's watchdog has handed back is not handed back again (it is in its saved mode, its
+        # MV the controller's: the hand-back's tracking could never succeed, and its writes would overwrite 22).
+        restore_error = "" if sampling.fell_back else await hand_back(link, saved, plan.handback)
         if hooks.on_handed_back is not None:
             hooks.on_handed_back(restore_error)
         if failed:  # no result follows to end the handshake with
-            await _publish(link, _ended(restore_error, Code.ABORTED))
-    result = _restored(await _result(hooks, sampling.design_job(), sampling.trace()), restore_error)
+            await _end_handshake(link, restore_error, Code.ABORTED)
+    result = _restored(await _result(hooks, sampling.design_job(), sampling.trace()), saved, restore_error)
     if result.ok and plan.apply:
         try:
             await link.write_gains(result.design.gains)
         except LinkError as exc:
             result = TuneResult(Code.LINK_FAULT, f"gains not written: {exc}", controller,
                                 result.identification, result.design, result.trace)
-    await _publish(link, _ended(restore_error, result.code, result.ok))
+    await _end_handshake(link, restore_error, result.code, result.ok)
     if hooks.on_status is not None:
         hooks.on_status(experiment.status())
     return result
@@ -388,10 +417,13 @@ class _Sampling:
         self._start = 0.0
         self._flags_due = 0.0
         self._beats = 0
+        self._beat_sent = 0.0  # when the last heartbeat write started, or the watchdog was armed (monotonic)
+        self._suspect_until = -math.inf  # the device is read for its watchdog's hand-back until then
+        self.fell_back = False  # the device's watchdog handed the loop back during the experiment
 
     async def run(self) -> None:
         """Sample until the experiment ends (or ``hooks.stop`` aborts it); LinkError if the link fails."""
-        self._start = self._flags_due = time.monotonic()
+        self._start = self._flags_due = self._beat_sent = time.monotonic()  # the watchdog was armed just before
         stop, experiment = self.hooks.stop, self.experiment
         schedule = deadlines(self.plan.ts / self.plan.speed, stop, FLAGS_PERIOD)
         async with contextlib.aclosing(schedule):
@@ -401,6 +433,8 @@ class _Sampling:
                     return
                 if due is None:  # between samples: only the handshake and the heartbeat may be due
                     await self._handshake(experiment.status())
+                    if experiment.done:
+                        return
                 elif not await self._sample(due) or experiment.done:
                     return
 
@@ -450,14 +484,44 @@ class _Sampling:
         return True
 
     async def _handshake(self, status: Status) -> None:
-        """TBSY, ite and the heartbeat every :data:`FLAGS_PERIOD` (the heartbeat only to an armed watchdog)."""
+        """TBSY, ite and the heartbeat every :data:`FLAGS_PERIOD` (the heartbeat only to an armed watchdog).
+
+        Once two heartbeats may have reached the device a good part of the
+        watchdog's timeout apart (:data:`WATCHDOG_SUSPECT` of it, between the
+        start of one write and the end of the next: a slow link), the device is
+        read first, over the next timeout: when it shows its watchdog's hand-back
+        the experiment ends with its code 22, never overwritten by TBSY and a
+        countdown, and the loop is left as the device handed it back. (Not read
+        otherwise: a heartbeat on time cannot have let the watchdog fall back.)
+        """
         if time.monotonic() < self._flags_due:
             return
         self._flags_due = time.monotonic() + FLAGS_PERIOD
+        timeout = self.plan.handback.watchdog
+        if time.monotonic() < self._suspect_until and await self._taken_back():
+            self.fell_back = True
+            self.experiment.fail(Code.WATCHDOG_FALLBACK, f"{MESSAGES[Code.WATCHDOG_FALLBACK]}: its heartbeat came "
+                                 f"more than {timeout:g} s apart (a slow link); the loop is as the device handed it "
+                                 "back")
+            return
         self._beats += 1
-        await _publish(self.link, TuneFlags(tbsy=True, te=False, ite=status.ite),
-                       self._beats if self.plan.handback.watchdog > 0.0 else None)
+        sent = time.monotonic()
+        await _publish(self.link, TuneFlags(tbsy=True, te=False, ite=status.ite), self._beats if timeout > 0 else None)
         self.overload.io_end = time.monotonic()
+        if timeout > 0.0 and self.overload.io_end - self._beat_sent >= WATCHDOG_SUSPECT * timeout:
+            self._suspect_until = self.overload.io_end + timeout
+        self._beat_sent = sent
+
+    async def _taken_back(self) -> bool:
+        """Whether the armed watchdog has handed the loop back: the device shows it (TE, ite 22), or the loop is
+        out of MAN — a mode the session did not write, and the flags may not show it: a flag write of the
+        session's own, in flight on a slow link, can land after the device's and overwrite its 22. False when
+        the device cannot be read (the experiment's own I/O reports link faults)."""
+        try:
+            return watchdog_fell_back(await self.link.read_flags()) or \
+                (await self.link.read_state()).mode is not Mode.MAN
+        except LinkError:
+            return False
 
     def design_job(self) -> DesignJob:
         """What the design gets: the ended experiment's, or an overload's when the verdict may be the tuner's."""
@@ -488,10 +552,10 @@ async def _result(hooks: SessionHooks, job: DesignJob, trace: Trace) -> TuneResu
     return TuneResult(code, message, job.controller, job.identification, design, trace)
 
 
-def _restored(result: TuneResult, restore_error: str) -> TuneResult:
+def _restored(result: TuneResult, saved: LoopState, restore_error: str) -> TuneResult:
     """``result`` as the hand-back leaves it: a loop not handed back is a failure (LINK_FAULT if it was ok)."""
     if not restore_error:
         return result
     code = Code.LINK_FAULT if result.code is Code.OK else result.code
-    return TuneResult(code, f"{result.message}; {restore_error}", result.controller, result.identification,
-                      result.design, result.trace)
+    return TuneResult(code, f"{result.message}; {not_restored(saved, restore_error)}", result.controller,
+                      result.identification, result.design, result.trace)

@@ -6,7 +6,7 @@ write, durably (a session that cannot record them ends without touching the loop
 range: the widened range. Before a gains write: its *intent*. After the session: the gains the device holds,
 read back, so that the history says whether the gains were applied. Each record is awaited for at most
 :data:`RECORD_WAIT` seconds; a record not in by then counts as not recorded (the write it guards does not
-happen), while the history goes on retrying it.
+happen), and the history drops it (it carries that deadline): it is never recorded afterwards.
 
 :class:`Tap` is the link the session writes through: it calls those records before the writes they guard.
 """
@@ -26,8 +26,8 @@ from autotuner.engine.result import TuneResult
 
 # How long a session waits for the history to record what must be durable before it goes on (the saved state
 # before the loop is touched, a gains intent before the write), and for its end to be recorded before the loop is
-# idle again, wall seconds. Beyond it: the loop is not touched / the gains are not written / the end is recorded
-# later (writes are retried in the history's thread meanwhile; they never block the event loop).
+# idle again, wall seconds. Beyond it: the loop is not touched / the gains are not written, and those records are
+# dropped, never written late / the end is recorded later (retried in the history's thread; never on the event loop).
 RECORD_WAIT = 10.0
 
 # Largest number of points of a stored trace: a whole experiment at full resolution (the demo's take 300–1500
@@ -41,13 +41,12 @@ Durable = Callable[..., Awaitable[str]]
 log = logging.getLogger("autotuner.service.session_record")
 
 
-async def waited(record: asyncio.Future[Any]) -> str:
-    """Wait up to :data:`RECORD_WAIT` s for a history write under way (it goes on after); '' once recorded, else
-    why not."""
+async def waited(record: asyncio.Future[Any], wait: float = RECORD_WAIT) -> str:
+    """Wait up to ``wait`` s for a history write under way (it goes on after); '' once recorded, else why not."""
     try:
-        await asyncio.wait_for(asyncio.shield(record), RECORD_WAIT)
+        await asyncio.wait_for(asyncio.shield(record), max(wait, 0.0))
     except asyncio.TimeoutError:
-        return f"the history did not record it within {RECORD_WAIT:g} s (still retried)"
+        return f"the history did not record it within {wait:g} s (still retried)"
     except Exception as exc:  # the history's error after its retries
         return f"the history could not record it ({type(exc).__name__}: {exc})"
     return ""

@@ -18,9 +18,10 @@ from autotuner.engine.result import GainsRecord, ResultRecord
 from autotuner.service.config import LoopConfig, TuneRequest
 from autotuner.service.daemon.events import LoopEvents
 from autotuner.service.daemon.field import Reach
+from autotuner.service.daemon.recorder import HistoryHealth
 from autotuner.service.daemon.restore import Pending
 from autotuner.service.daemon.settings import settings_of
-from autotuner.service.daemon.status import LoopStatus, OwnerRecord, UnitsRecord
+from autotuner.service.daemon.status import BoundsRecord, LoopStatus, OwnerRecord, UnitsRecord
 from autotuner.service.link_session import not_restored
 
 
@@ -50,7 +51,8 @@ class Loop:
     (None: not read yet); ``latest``: the newest finished session in the
     history; ``result``: the running or last session's result (None while it
     runs); ``running``: the running session (None: idle); ``pending``: a
-    restore not done yet. ``reach``: the loop's device in a local field (None
+    restore not done yet. ``history``: whether the daemon's history takes writes (one record for every loop).
+    ``reach``: the loop's device in a local field (None
     in a sampler process): tests read its simulated PLC and may replace its
     connector.
     """
@@ -74,6 +76,7 @@ class Loop:
     owner: OwnerRecord | None = None  # in a fleet: the daemon holding the loop's lease
     events: LoopEvents = field(default_factory=LoopEvents)
     link_errors: int = 0  # failures of its watch's link and sessions ended by a link fault, since the start
+    history: HistoryHealth = field(default_factory=HistoryHealth)  # the daemon's history, shared by every loop
 
     @property
     def busy(self) -> bool:
@@ -136,9 +139,9 @@ class Loop:
             current_gains=None if self.gains is None else GainsRecord.of(self.gains),
             last_tuned_at=None if self.latest is None else self.latest["finished_at"],
             last_outcome=None if self.latest is None else self.latest["outcome"],
-            pending_gains=self.pending_gains, monitor_error=self.monitor_error,
-            defaults=settings_of(c, TuneRequest()), units=_units(c),
-            restore=None if p is None else p.status(), owner=self.owner)
+            pending_gains=self.pending_gains, monitor_error=self.monitor_error, history_error=self.history.error,
+            defaults=settings_of(c, TuneRequest()), bounds=BoundsRecord(c.max_amp, c.max_hysteresis),
+            units=_units(c), restore=None if p is None else p.status(), owner=self.owner)
 
     def as_json(self) -> dict[str, Any]:
         """The status as JSON (:meth:`status_record`)."""

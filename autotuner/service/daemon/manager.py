@@ -39,6 +39,7 @@ controller on request, reads them back and records who applied them.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
 import time
@@ -59,15 +60,15 @@ from autotuner.service.config import DaemonConfig, HandBackConfig, TuneRequest
 from autotuner.service.daemon.field import Field, LocalField
 from autotuner.service.daemon.fleet import Fleet
 from autotuner.service.daemon.loop import Loop, Session
+from autotuner.service.daemon.recorder import HISTORY_WAIT, Recorder
 from autotuner.service.daemon.status import OwnerRecord
-from autotuner.service.daemon.recorder import Recorder
 from autotuner.service.daemon.refused import Refused
 from autotuner.service.daemon.restore import Pending
 from autotuner.service.daemon.settings import Settings, plan_of, settings_of
 from autotuner.service.daemon.timing import Histogram, TimingBatch
 from autotuner.service.daemon.watch import Reading
 from autotuner.service.design_pool import Outcome, close_design_pool, designed
-from autotuner.service.history import History, downsample, state_of
+from autotuner.service.history import History, Unavailable, downsample, state_of
 from autotuner.service.link_session import NotTracking, SessionPlan
 from autotuner.service.session_record import mv_hull, same_gains, waited
 from autotuner.service.session_runner import SessionOutcome
@@ -117,9 +118,11 @@ class LoopManager:
         if fleet is not None:
             fleet.idle = self._releasable
         self.recorder = Recorder(history)
+        self.recorder.on_health = self._history_health
         self.field: Field = LocalField(config.loops) if field is None else field
         reaches = getattr(self.field, "reaches", {})
-        self.loops: dict[str, Loop] = {c.id: Loop(c, reaches.get(c.id)) for c in config.loops}
+        self.loops: dict[str, Loop] = {c.id: Loop(c, reaches.get(c.id), history=self.recorder.health)
+                                       for c in config.loops}
         self.handback_config: HandBackConfig = config.handback
         self._stopping = False
         self._shutdown: asyncio.Task[list[str]] | None = None
@@ -360,7 +363,12 @@ class LoopManager:
                                   Code.GROUP_BUSY)
         if settings.amp > loop.config.max_amp:
             raise Refused("invalid", f"amp: {settings.amp:g} is above loop {loop_id!r}'s largest relay amplitude "
-                          f"{loop.config.max_amp:g} MV units (the span of its MV limits, else its tuning.max_amp)")
+                          f"{loop.config.max_amp:g} MV units (the span of its MV limits, else its tuning.max_amp; "
+                          "its status' bounds.amp)")
+        if settings.hysteresis is not None and settings.hysteresis > loop.config.max_hysteresis:
+            raise Refused("invalid", f"hysteresis: {settings.hysteresis:g} is above loop {loop_id!r}'s largest "
+                          f"hysteresis {loop.config.max_hysteresis:g} PV units (its tuning.max_hysteresis, else a "
+                          "quarter of the span of its PV limits; its status' bounds.hysteresis)")
         return settings
 
     def _check_capacity(self, loop_id: str, plan: SessionPlan) -> None:
@@ -422,9 +430,11 @@ class LoopManager:
         if loop.busy or loop.applying:
             raise Refused("busy", f"loop {loop_id!r} is tuning or being written")
         loop.applying = True  # before the first await: a TUNE or another apply meanwhile is refused
+        deadline = time.monotonic() + HISTORY_WAIT  # the call waits behind the history this long at most
         try:
-            sid, gains = await self._designed_gains(loop_id, sid)
-            why = await self.recorder.durable(self.history.intend, sid, user, gains)
+            sid, gains = await self._designed_gains(loop_id, sid, deadline)
+            why = await self.recorder.guard(self.history.intend, sid, user, gains, wait=deadline - time.monotonic(),
+                                            undo=functools.partial(self.history.withdraw, sid, gains))
             if why:
                 raise Refused("history_unavailable", f"gains not written to loop {loop_id!r}: the intent to "
                               f"write them must be recorded first; {why}")
@@ -433,22 +443,30 @@ class LoopManager:
             raise Refused("link", f"gains not written to loop {loop_id!r}: {exc}") from None
         finally:
             loop.applying = False
-        why = await self.recorder.durable(self.history.applied, sid, user, after)
+        # Written: the record must land (retried until it does); the answer waits for it only what is left.
+        why = await self.recorder.durable(self.history.applied, sid, user, after, wait=deadline - time.monotonic())
         if why:
             log.error("loop %s: gains of session %s written, their record delayed: %s", loop_id, sid, why)
         loop.gains = after
         # Awaited (bounded): whoever reads the loop next — the REST client, the OPC UA reply's status — sees the
         # session applied (pending_gains false), not the record from before until the next refresh.
-        await waited(self._refresh_latest(loop))
+        await waited(self._refresh_latest(loop), deadline - time.monotonic())
         log.info("loop %s: gains of session %s applied by %s", loop_id, sid, user)
         self._publish(loop, "state", loop.as_json())
         return {"loop": loop_id, "session": sid, "gains": after.as_json()}
 
-    async def _designed_gains(self, loop_id: str, sid: str | None) -> tuple[str, Gains]:
+    async def _designed_gains(self, loop_id: str, sid: str | None, deadline: float) -> tuple[str, Gains]:
         """The session (None: the loop's newest finished one) whose gains an apply writes, and those gains; read
-        after the history's writes before (a session just ended is recorded first). Refused if there are none."""
-        record = await self.recorder.record(self.history.latest, loop_id) if sid is None else \
-            await self.recorder.record(self.history.get, sid)
+        after the history's writes before (a session just ended is recorded first), by ``deadline`` (monotonic).
+        Refused if there are none, or history_unavailable if the history does not answer in time."""
+        try:
+            record = await self.recorder.read(self.history.latest if sid is None else self.history.get,
+                                              loop_id if sid is None else sid, wait=deadline - time.monotonic())
+        except (TimeoutError, Unavailable) as exc:
+            why = self.recorder.health.error or str(exc) or "writes ahead of the read"
+            raise Refused("history_unavailable", f"gains not written to loop {loop_id!r}: the history did not "
+                          f"answer within {HISTORY_WAIT:g} s ({why}): which session's gains to write is not "
+                          "known") from None
         if record is None and sid is None:
             raise Refused("nothing_to_apply", f"loop {loop_id!r} has no finished session")
         if record is None or record["loop"] != loop_id:
@@ -482,6 +500,11 @@ class LoopManager:
         """The loop's trend kept in memory (:class:`~autotuner.service.trend.Trend`): the running or last
         session's samples from its start, then the monitor's; as columns."""
         return self.get(loop_id).events.trend.replay()
+
+    def _history_health(self) -> None:
+        """The history's outage began or ended: every loop's status says so (``history_error``)."""
+        for loop in self.loops.values():
+            self._publish(loop, "state", loop.as_json())
 
     @staticmethod
     def _publish(loop: Loop, event: str, data: dict[str, Any]) -> None:

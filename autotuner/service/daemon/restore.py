@@ -21,7 +21,7 @@ from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags, Watchdog
 from autotuner.engine.outcome import Code
 from autotuner.service.daemon.status import RestoreStatus
 from autotuner.service.history import now
-from autotuner.service.link_session import NotTracking, hand_back_once
+from autotuner.service.link_session import NotTracking, hand_back_once, watchdog_fell_back
 
 
 @dataclass
@@ -103,8 +103,11 @@ async def restore_once(link: Link, pending: Pending, track_timeout: float) -> Re
         await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(done.code)))
         return done
     except (LinkError, NotTracking):
-        with contextlib.suppress(LinkError):  # TE and ite 20 on the device, when it can be written
-            await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(Code.LOOP_NOT_RESTORED)))
+        # TE and ite 20 on the device, when it can be written — never over its watchdog's 22 (the device handed
+        # the loop back; the next try finds it so and records it).
+        with contextlib.suppress(LinkError):
+            if not watchdog_fell_back(await link.read_flags()):
+                await link.write_flags(TuneFlags(tbsy=False, te=True, ite=float(Code.LOOP_NOT_RESTORED)))
         raise
     finally:
         await link.close()

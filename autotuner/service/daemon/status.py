@@ -37,6 +37,17 @@ class UnitsRecord:
 
 
 @dataclass(frozen=True)
+class BoundsRecord:
+    """The loop's own bounds on a TUNE's settings, tighter than the OpenAPI schema's global ones (a static schema
+    cannot carry a bound per loop): a request above one is refused (422 invalid, naming the field)."""
+
+    amp: float = described("largest relay amplitude, MV units: the span of the MV limits, else tuning.max_amp",
+                           example=100.0)
+    hysteresis: float = described("largest relay hysteresis, PV units: tuning.max_hysteresis, else a quarter of "
+                                  "the span of the PV limits (25 without them)", example=25.0)
+
+
+@dataclass(frozen=True)
 class RestoreStatus:
     """A loop the daemon could not hand back yet (``ite`` 20), retried with back-off (docs/handback.md)."""
 
@@ -102,7 +113,14 @@ class LoopStatus:
     pending_gains: bool = described("idle, and the newest session succeeded with gains not applied yet",
                                     example=True)
     monitor_error: str | None = described("why the monitor cannot read the loop (null: fine)", example=None)
+    history_error: str | None = described(
+        "why the daemon's history cannot record now — its file (or database, password masked), since when, the "
+        "database's reason, e.g. database or disk is full — the same for every loop; meanwhile a TUNE ends before "
+        "it touches the loop (ite 27) and an apply is refused (503 history_unavailable); null: fine",
+        example=None)
     defaults: Settings = described("the settings a TUNE without a body runs with")
+    bounds: BoundsRecord = described("the loop's own bounds on a TUNE's amp and hysteresis (beside the schema's "
+                                     "global ones)")
     units: UnitsRecord = described("engineering units and display of the loop's values (the config's units)")
     restore: RestoreStatus | None = described("the loop is not handed back yet (te true, ite 20, TUNE refused); "
                                               "null when it is", None)
