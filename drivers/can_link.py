@@ -36,7 +36,7 @@ import cantools
 
 from autotuner.engine.control.gains import Gains
 
-from .link import BadValue, LinkError, LoopState, Mode, TuneFlags, Watchdog, checked, float32_step
+from .link import BadValue, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog, checked, float32_step
 
 #: Frames the node sends (cyclic status, gains on request) and the link reads.
 PROCESS, STATUS, SETPOINT = "AT_Process", "AT_Status", "AT_Setpoint"
@@ -510,6 +510,26 @@ class CanLink:
             raise LinkError(f"the CAN node sent invalid state: {exc}") from exc
         return LoopState(mode=mode, mv=checked("MV", float(v["MV"])), sp=checked("SP", float(v["SP"])),
                          gains=gains)
+
+    async def read_sample(self) -> Sample:
+        """PV and MV (AT_Process), mode (AT_Status) and SP (AT_Setpoint) from the latest cyclic frames; for those
+        older than the stale limit it waits up to ``timeout`` for fresh ones (none: BadValue, as a stale PV)."""
+        self._check()
+        now = time.monotonic()
+        limit = self._stale_limit()
+        stale = [n for n in (PROCESS, STATUS, SETPOINT) if n not in self._latest or now - self._latest[n][1] > limit]
+        if stale:
+            try:
+                await self._fresh(stale, now - limit)
+            except LinkError as exc:
+                raise BadValue(f"stale sample: {exc}") from None
+        v = {**self._latest[PROCESS][0], **self._latest[STATUS][0], **self._latest[SETPOINT][0]}
+        try:
+            mode = Mode(int(v["Mode"]))
+        except ValueError as exc:
+            raise LinkError(f"the CAN node sent invalid state: {exc}") from exc
+        return Sample(pv=checked("PV", float(v["PV"])), mv=checked("MV", float(v["MV"])),
+                      sp=checked("SP", float(v["SP"])), mode=mode)
 
     async def read_flags(self) -> TuneFlags:
         """The handshake bits from the latest AT_Status frame (a fresh one if it is stale)."""

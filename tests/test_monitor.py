@@ -41,7 +41,7 @@ def drain(queue: asyncio.Queue) -> list[dict]:
 
 
 class Switchable(SimLink):
-    """A SimLink whose every call fails while ``down[0]`` is true; counts its reads of the loop's state."""
+    """A SimLink whose every call fails while ``down[0]`` is true; counts the monitor's readings (``read_sample``)."""
 
     def __init__(self, plc, down: list[bool], reads: list[float]) -> None:
         super().__init__(plc)
@@ -52,9 +52,9 @@ class Switchable(SimLink):
         if self.down[0]:
             raise LinkError("simulated device unreachable")
 
-    async def read_state(self):
+    async def read_sample(self):
         self.reads.append((self, time.monotonic()))
-        return await super().read_state()
+        return await super().read_sample()
 
 
 def test_idle_loops_are_monitored_with_samples_and_state_on_mode_change():
