@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qs, unquote, urlsplit
 
@@ -99,6 +100,16 @@ def _spans(items: list[tuple[str, Register]], table_regs: Iterable[Register], li
     return spans
 
 
+@dataclass(frozen=True)
+class _Request:
+    """One read request of a plan: what it reads (for messages), its PDU, its first address and its signals."""
+
+    where: str
+    pdu: bytes
+    start: int
+    members: tuple[tuple[str, Register], ...]
+
+
 def _where(verb: str, table: str, start: int, count: int, members: list[tuple[str, Register]]) -> str:
     """E.g. ``reading pv (input register 0 (float32))`` or ``reading pv, mv (input 0..3)``."""
     names = ", ".join(n for n, _ in members)
@@ -134,6 +145,7 @@ class ModbusLink:
         self.retries = int(retries)
         self.pipeline = int(pipeline)
         self._device: Device | None = None  # held from open (or the first call) until close
+        self._plans: dict[tuple[str, ...], tuple[_Request, ...]] = {}
         self.requests = 0  # requests sent (for tests and statistics)
         self.failures = 0  # calls that failed (no answer after every attempt, exception response)
         self.last_error = ""
@@ -283,7 +295,8 @@ class ModbusLink:
         last = ""
         for _ in range(1 + self.retries):
             try:
-                await device.connect(self.timeout)
+                if not device.connected:
+                    await device.connect(self.timeout)
                 self.requests += 1
                 return answer_values(pdu, await device.request(self.unit, pdu, self.timeout))
             except (Unreachable, Unanswered) as exc:
@@ -301,29 +314,38 @@ class ModbusLink:
 
     # -- generic reads and writes -------------------------------------------------
 
-    async def _read(self, signals: Iterable[str]) -> dict[str, float]:
+    def _plan(self, signals: tuple[str, ...]) -> tuple[_Request, ...]:
+        """The read requests of ``signals`` (those in the map), in as few requests as the map allows; made once
+        per link and tuple of signals (a sample's PV read is the same request every time)."""
+        plan = self._plans.get(signals)
+        if plan is None:
+            by_table: dict[str, list[tuple[str, Register]]] = {}
+            for s in signals:
+                reg = self.map.get(s)
+                if reg is not None:
+                    by_table.setdefault(reg.table, []).append((s, reg))
+            plan = self._plans[signals] = tuple(
+                _Request(_where("reading", table, start, count, members), read_pdu(table, start, count), start,
+                         tuple(members))
+                for table, items in by_table.items()
+                for start, count, members in _spans(items, [r for r in self.map.registers.values()
+                                                            if r.table == table], _MAX_READ[table]))
+        return plan
+
+    async def _read(self, signals: tuple[str, ...]) -> dict[str, float]:
         """Engineering values of ``signals`` (those in the map), in as few requests as the map allows."""
-        by_table: dict[str, list[tuple[str, Register]]] = {}
-        for s in signals:
-            reg = self.map.get(s)
-            if reg is not None:
-                by_table.setdefault(reg.table, []).append((s, reg))
         out: dict[str, float] = {}
-        for table, items in by_table.items():
-            table_regs = [r for r in self.map.registers.values() if r.table == table]
-            for start, count, members in _spans(items, table_regs, _MAX_READ[table]):
-                data = await self._exchange(_where("reading", table, start, count, members),
-                                            read_pdu(table, start, count))
-                for name, reg in members:
-                    i = reg.address - start
-                    try:
-                        value = reg.decode(data[i:i + reg.size])
-                    except ValueError as exc:
-                        raise LinkError(f"{self.name}: {name}: cannot decode: {exc}") from None
-                    if not math.isfinite(value):
-                        raise BadValue(f"{self.name}: {name} is not a number ({value}) "
-                                        f"in {reg.describe()}")
-                    out[name] = value
+        for request in self._plan(signals):
+            data = await self._exchange(request.where, request.pdu)
+            for name, reg in request.members:
+                i = reg.address - request.start
+                try:
+                    value = reg.decode(data[i:i + reg.size])
+                except ValueError as exc:
+                    raise LinkError(f"{self.name}: {name}: cannot decode: {exc}") from None
+                if not math.isfinite(value):
+                    raise BadValue(f"{self.name}: {name} is not a number ({value}) in {reg.describe()}")
+                out[name] = value
         return out
 
     async def _write(self, values: dict[str, float]) -> None:

@@ -46,7 +46,8 @@ answer a Modbus exception), :meth:`ModbusPlcServer.hang` (requests, or those
 to one unit, get no answer) and :meth:`ModbusPlcServer.close` (the server
 stops; its clients are disconnected). NaN PV is the PLC's own fault
 (``plc.nan_pv = True``). :attr:`ModbusPlcServer.connections` and
-:attr:`ModbusPlcServer.accepted` count the clients' TCP connections.
+:attr:`ModbusPlcServer.accepted` count the clients' TCP connections,
+:attr:`ModbusPlcServer.held` the requests a hang holds.
 """
 
 from __future__ import annotations
@@ -208,6 +209,7 @@ class ModbusPlcServer:
         self._fail_writes = False
         self._hang = False
         self._hang_unit: int | None = None
+        self.held = 0  # requests held unanswered by hang() now
         self._release = asyncio.Event()
         self._server: _PipelinedTcpServer | None = None
         self._by_table: dict[str, list[tuple[str, Register]]] = {t: [] for t in _BLOCK_ORDER}
@@ -289,8 +291,14 @@ class ModbusPlcServer:
         else:
             self._release.set()
 
-    def _hung(self, unit: int) -> bool:
-        return self._hang and self._hang_unit in (None, unit)
+    async def _hold_if_hung(self, unit: int) -> None:
+        """While hung (for ``unit``), wait for the release, counted in :attr:`held`."""
+        if self._hang and self._hang_unit in (None, unit):
+            self.held += 1
+            try:
+                await self._release.wait()
+            finally:
+                self.held -= 1
 
     # -- the live datastore ------------------------------------------------------
 
@@ -319,8 +327,7 @@ class ModbusPlcServer:
                 raise NoSuchIdException(f"unit {device_id}")
             table = _FC_TABLE.get(func_code)
             if table in BIT_TABLES and not self._mapped_bits(table, address, count):
-                if self._hung(device_id):
-                    await self._release.wait()
+                await self._hold_if_hung(device_id)
                 return ExcCodes.ILLEGAL_ADDRESS
             return await served(device_id, func_code, address, count)
 
@@ -334,8 +341,7 @@ class ModbusPlcServer:
 
     async def _action(self, unit: int, plc: SimulatedPlc, func_code: int, start: int, address: int, count: int,
                       registers: list[int], values: list[int] | list[bool] | None) -> ExcCodes | None:
-        if self._hung(unit):
-            await self._release.wait()
+        await self._hold_if_hung(unit)
         table = _FC_TABLE.get(func_code)
         if table is None:
             return ExcCodes.ILLEGAL_FUNCTION

@@ -5,8 +5,10 @@ TCP endpoint (:class:`TcpAddress`). Each request gets a transaction id not
 outstanding on the connection and a future keyed by it; the answer carrying
 that id completes it, whichever order answers come in. Up to ``pipeline``
 requests are outstanding at once; the rest wait, in order, for a slot. No task
-is made per request: a timer per request (``loop.call_later``) and the
-protocol's ``data_received`` do all of it.
+and no timer is made per request: the protocol's ``data_received`` completes
+them, and one timer per device, set at the earliest deadline of the requests
+outstanding, expires them (moved only when a request with an earlier deadline
+comes — a link with a shorter timeout —, or when it rings: about once a timeout).
 
 Timeouts (each request's own, counted from the call, waiting for a slot
 included): a request that times out is forgotten; an answer that comes later
@@ -22,6 +24,7 @@ outside 2..254) means the stream is out of step: the connection is dropped too.
 from __future__ import annotations
 
 import asyncio
+import math
 import struct
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -37,6 +40,8 @@ MAX_PIPELINE = 128
 _MBAP = struct.Struct(">HHHB")
 # What the length field may say: the unit id and a PDU of 1..253 bytes.
 _LENGTHS = range(2, 255)
+# A timer may ring this much before its time (asyncio runs what is due within the clock's resolution), seconds.
+_EARLY = 1e-6
 
 
 @dataclass(frozen=True)
@@ -65,14 +70,14 @@ class TcpAddress:
 
 @dataclass(eq=False)
 class _Transaction:
-    """One request: to ``unit``, its ``pdu``, the future of its answer and its deadline's timer; ``tid`` once
-    sent (-1 while waiting for a slot), at ``sent`` (the loop's clock)."""
+    """One request: to ``unit``, its ``pdu``, its ``timeout`` and ``deadline`` (the loop's clock), the future of
+    its answer; ``tid`` once sent (-1 while waiting for a slot), at ``sent`` (the loop's clock)."""
 
     unit: int
     pdu: bytes
     timeout: float
+    deadline: float
     answer: asyncio.Future[bytes]
-    timer: asyncio.TimerHandle | None = None
     tid: int = -1
     sent: float = 0.0
 
@@ -108,6 +113,8 @@ class TcpDevice:
         self._waiting: deque[_Transaction] = deque()
         self._tid = 0
         self._heard = 0.0  # the loop's clock when the device last sent anything
+        self._alarm: asyncio.TimerHandle | None = None  # rings at the earliest deadline outstanding
+        self._alarm_at = math.inf
         self.connects = 0  # connections made
         self.dropped = 0  # connections dropped: the device silent for a request's timeout, or out of step
         self.late = 0  # answers to no outstanding request (timed out or cancelled), discarded
@@ -124,8 +131,9 @@ class TcpDevice:
         return min(self.holders, default=1)
 
     def health(self) -> dict[str, Any]:
-        return {"links": sum(self.holders.values()), "pipeline": self.pipeline, "connects": self.connects,
-                "dropped": self.dropped, "late_answers": self.late}
+        return {"links": sum(self.holders.values()), "pipeline": self.pipeline, "outstanding": len(self._sent),
+                "waiting": len(self._waiting), "connects": self.connects, "dropped": self.dropped,
+                "late_answers": self.late}
 
     # -- connecting ------------------------------------------------------------------------
 
@@ -158,12 +166,15 @@ class TcpDevice:
     # -- requests --------------------------------------------------------------------------
 
     async def request(self, unit: int, pdu: bytes, timeout: float) -> bytes:
-        await self.connect(timeout)
+        if self._wire is None:
+            await self.connect(timeout)
         wire = self._wire
         if wire is None:  # lost between the connection made and this line
             raise Unanswered("connection lost")
-        t = _Transaction(unit, pdu, timeout, wire.loop.create_future())
-        t.timer = wire.loop.call_later(timeout, self._expire, t)
+        loop = wire.loop
+        t = _Transaction(unit, pdu, timeout, loop.time() + timeout, loop.create_future())
+        if t.deadline < self._alarm_at:
+            self._set_alarm(loop, t.deadline)
         if len(self._sent) < self.pipeline:
             self._send(wire, t)
         else:
@@ -217,6 +228,22 @@ class TcpDevice:
                     Unanswered(f"the answer came from unit {unit}, not {t.unit}"), answer)
         self._fill()
 
+    def _set_alarm(self, loop: asyncio.AbstractEventLoop, deadline: float) -> None:
+        if self._alarm is not None:
+            self._alarm.cancel()
+        self._alarm, self._alarm_at = loop.call_at(deadline, self._ring, loop), deadline
+
+    def _ring(self, loop: asyncio.AbstractEventLoop) -> None:
+        """The earliest deadline: expire every request past its own, and set the alarm for the next one."""
+        self._alarm, self._alarm_at = None, math.inf
+        now = loop.time() + _EARLY
+        for t in [t for t in (*self._sent.values(), *self._waiting) if t.deadline <= now]:
+            if not t.answer.done():  # not failed already by a connection dropped for an earlier one
+                self._expire(t)
+        deadline = min((t.deadline for t in (*self._sent.values(), *self._waiting)), default=math.inf)
+        if deadline < math.inf:
+            self._set_alarm(loop, deadline)
+
     def _expire(self, t: _Transaction) -> None:
         """``t``'s timeout: it fails; if the device was silent all the while, the connection is dropped."""
         if self._sent.get(t.tid) is t:
@@ -234,8 +261,6 @@ class TcpDevice:
                               f"answers, pipeline {self.pipeline})"))
 
     def _forget(self, t: _Transaction) -> None:
-        assert t.timer is not None
-        t.timer.cancel()
         if self._sent.get(t.tid) is t:
             del self._sent[t.tid]
             self._fill()
@@ -266,6 +291,9 @@ class TcpDevice:
     def close(self) -> None:
         if self._connecting is not None:
             self._connecting.cancel()
+        if self._alarm is not None:
+            self._alarm.cancel()
+            self._alarm, self._alarm_at = None, math.inf
         wire, self._wire = self._wire, None
         if wire is not None and wire.transport is not None:
             wire.transport.close()
@@ -273,9 +301,7 @@ class TcpDevice:
 
 
 def _settle(t: _Transaction, error: Exception | None, answer: bytes = b"") -> None:
-    """Complete ``t`` with ``answer`` or ``error`` (if not done: a cancelled caller's is) and stop its timer."""
-    assert t.timer is not None
-    t.timer.cancel()
+    """Complete ``t`` with ``answer`` or ``error`` (if not done: a cancelled caller's is)."""
     if t.answer.done():
         return
     if error is None:
