@@ -226,6 +226,30 @@ def test_read_pv_is_the_plc_pv_after_a_tick():
     arun(main())
 
 
+def test_read_sample_is_pv_mv_sp_and_mode_from_the_cyclic_frames_and_stale_when_the_node_is_silent():
+    async def main():
+        async with rig(timeout=0.3) as (plc, node, link):
+            plc.mode = Mode.MAN
+            plc.hv = 80.0
+            plc.sp = 61.5
+            for _ in range(30):
+                plc.tick()
+            await new_frames(link, node)
+            sample = await link.read_sample()
+            assert (sample.pv, sample.mv, sample.sp, sample.mode) == (f32(plc.pv), f32(plc.mv), 61.5, Mode.MAN)
+            assert sample.pv != 50.0 and sample.mv == 80.0
+            node.silent = True
+            deadline = time.monotonic() + HANG
+            with pytest.raises(LinkError, match=r"stale sample: no fresh .*within 0.3 s"):
+                while time.monotonic() < deadline:  # reads succeed only while the last frames are fresh
+                    await link.read_sample()
+                    await asyncio.sleep(PERIOD)
+            node.silent = False
+            await new_frames(link, node)
+            assert (await link.read_sample()).sp == 61.5
+    arun(main())
+
+
 def test_writes_reach_the_plc():
     async def main():
         async with rig() as (plc, node, link):
