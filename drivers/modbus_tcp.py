@@ -159,6 +159,8 @@ class TcpDevice:
             raise Unreachable(f"cannot connect ({type(exc).__name__} {exc}) within {timeout:g} s") from None
         finally:
             self._connecting = None
+        if wire.transport is None or wire.transport.is_closing():
+            raise Unreachable("cannot connect (the device closed the connection at once)")
         self._wire = wire
         self._heard = loop.time()
         self.connects += 1
@@ -234,31 +236,28 @@ class TcpDevice:
         self._alarm, self._alarm_at = loop.call_at(deadline, self._ring, loop), deadline
 
     def _ring(self, loop: asyncio.AbstractEventLoop) -> None:
-        """The earliest deadline: expire every request past its own, and set the alarm for the next one."""
+        """The earliest deadline: every request past its own fails — if one was sent and the device was silent
+        all the while it waited, the connection is dropped —, and the alarm is set for the next deadline."""
         self._alarm, self._alarm_at = None, math.inf
         now = loop.time() + _EARLY
-        for t in [t for t in (*self._sent.values(), *self._waiting) if t.deadline <= now]:
-            if not t.answer.done():  # not failed already by a connection dropped for an earlier one
-                self._expire(t)
-        deadline = min((t.deadline for t in (*self._sent.values(), *self._waiting)), default=math.inf)
-        if deadline < math.inf:
-            self._set_alarm(loop, deadline)
-
-    def _expire(self, t: _Transaction) -> None:
-        """``t``'s timeout: it fails; if the device was silent all the while, the connection is dropped."""
-        if self._sent.get(t.tid) is t:
+        for t in [t for t in self._waiting if t.deadline <= now]:  # first: a slot freed below must not take them
+            self._waiting.remove(t)
+            _settle(t, Unanswered(f"no answer within {t.timeout:g} s (not sent: {len(self._sent)} requests waiting "
+                                  f"for their answers, pipeline {self.pipeline})"))
+        silent = None
+        for t in [t for t in self._sent.values() if t.deadline <= now]:
             del self._sent[t.tid]
             _settle(t, Unanswered(f"no answer within {t.timeout:g} s"))
             if self._heard < t.sent:
-                self._drop(f"connection dropped: no answer within {t.timeout:g} s to another request and nothing "
-                           "heard from the device since it was sent")
-            else:
-                self._fill()
-            return
-        ahead = len(self._sent)
-        self._waiting.remove(t)
-        _settle(t, Unanswered(f"no answer within {t.timeout:g} s (not sent: {ahead} requests waiting for their "
-                              f"answers, pipeline {self.pipeline})"))
+                silent = t
+        if silent is not None:
+            self._drop(f"connection dropped: no answer within {silent.timeout:g} s to another request and nothing "
+                       "heard from the device since it was sent")
+        else:
+            self._fill()
+        deadline = min((t.deadline for t in (*self._sent.values(), *self._waiting)), default=math.inf)
+        if deadline < math.inf:
+            self._set_alarm(loop, deadline)
 
     def _forget(self, t: _Transaction) -> None:
         if self._sent.get(t.tid) is t:

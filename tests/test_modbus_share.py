@@ -223,6 +223,27 @@ def test_a_device_silent_for_a_whole_timeout_is_reconnected_and_the_old_answer_n
     arun(main())
 
 
+def test_a_request_waiting_for_its_turn_times_out_by_its_own_timeout_without_touching_the_one_outstanding():
+    async def main():
+        server = await serve_units(plcs(2))
+        slow = ModbusLink.tcp("127.0.0.1", server.port, unit=1, timeout=10.0, retries=0)
+        hurried = ModbusLink.tcp("127.0.0.1", server.port, unit=2, timeout=0.3, retries=0)
+        try:
+            server.hang(True, unit=1)
+            outstanding = asyncio.create_task(slow.read_pv())
+            await until(lambda: server.held == 1, 5.0, "the slow link's request held")
+            with pytest.raises(LinkError, match=r"no answer within 0.3 s \(not sent: 1 requests waiting for their "
+                                                r"answers, pipeline 1\) \(gave up after 1 attempt\)"):
+                await hurried.read_pv()
+            assert not outstanding.done() and slow.health()["dropped"] == 0
+            server.hang(False)
+            assert await outstanding == 10.0
+            assert await hurried.read_pv() == 20.0 and server.accepted == 1
+        finally:
+            await close_all(slow, hurried, server)
+    arun(main())
+
+
 def test_a_call_cancelled_while_others_wait_leaves_them_their_answers():
     async def main():
         server = await serve_units(plcs(3))
