@@ -250,6 +250,36 @@ def test_read_sample_is_pv_mv_sp_and_mode_from_the_cyclic_frames_and_stale_when_
     arun(main())
 
 
+def test_links_on_one_channel_share_its_bus_until_the_last_closes():
+    # The watch's link and the session's of one loop, and a third asking another bit rate.
+    async def main():
+        async with rig() as (plc, node, link):
+            other = CanLink("virtual", link.channel, timeout=0.3)
+            faster = CanLink("virtual", link.channel, timeout=0.3, bitrate=1_000_000)
+            await other.open()
+            try:
+                assert other._bus is link._bus  # one python-can bus, one receive thread
+                await other.write_mv(21.0)
+                assert await until(lambda: plc.hv == 21.0)
+                await new_frames(link, node)
+                assert (await other.read_sample()).pv == (await link.read_sample()).pv == f32(plc.pv)
+                with pytest.raises(LinkError, match=r"open with defaults by other loops; this link asks for "
+                                                    r"\{'bitrate': 1000000\}"):
+                    await faster.open()
+                bus = link._bus
+                await other.close()
+                await new_frames(link, node)  # the first link still receives
+                assert link._bus is bus and not bus._is_shutdown and await link.read_pv() == f32(plc.pv)
+            finally:
+                await other.close()
+                await faster.close()
+            await link.close()
+            assert bus._is_shutdown  # the last link's close released the interface
+            await link.open()
+            assert link._bus is not bus
+    arun(main())
+
+
 def test_writes_reach_the_plc():
     async def main():
         async with rig() as (plc, node, link):
