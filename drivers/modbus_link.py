@@ -110,6 +110,16 @@ class _Request:
     members: tuple[tuple[str, Register], ...]
 
 
+@dataclass(frozen=True)
+class _Write:
+    """One write request of a plan: what it writes (for messages), its table, first address and signals."""
+
+    where: str
+    table: str
+    start: int
+    signals: tuple[str, ...]
+
+
 def _where(verb: str, table: str, start: int, count: int, members: list[tuple[str, Register]]) -> str:
     """E.g. ``reading pv (input register 0 (float32))`` or ``reading pv, mv (input 0..3)``."""
     names = ", ".join(n for n, _ in members)
@@ -145,7 +155,8 @@ class ModbusLink:
         self.retries = int(retries)
         self.pipeline = int(pipeline)
         self._device: Device | None = None  # held from open (or the first call) until close
-        self._plans: dict[tuple[str, ...], tuple[_Request, ...]] = {}
+        self._read_plans: dict[tuple[str, ...], tuple[_Request, ...]] = {}
+        self._write_plans: dict[tuple[str, ...], tuple[_Write, ...]] = {}
         self.requests = 0  # requests sent (for tests and statistics)
         self.failures = 0  # calls that failed (no answer after every attempt, exception response)
         self.last_error = ""
@@ -314,17 +325,17 @@ class ModbusLink:
 
     # -- generic reads and writes -------------------------------------------------
 
-    def _plan(self, signals: tuple[str, ...]) -> tuple[_Request, ...]:
+    def _read_plan(self, signals: tuple[str, ...]) -> tuple[_Request, ...]:
         """The read requests of ``signals`` (those in the map), in as few requests as the map allows; made once
         per link and tuple of signals (a sample's PV read is the same request every time)."""
-        plan = self._plans.get(signals)
+        plan = self._read_plans.get(signals)
         if plan is None:
             by_table: dict[str, list[tuple[str, Register]]] = {}
             for s in signals:
                 reg = self.map.get(s)
                 if reg is not None:
                     by_table.setdefault(reg.table, []).append((s, reg))
-            plan = self._plans[signals] = tuple(
+            plan = self._read_plans[signals] = tuple(
                 _Request(_where("reading", table, start, count, members), read_pdu(table, start, count), start,
                          tuple(members))
                 for table, items in by_table.items()
@@ -335,7 +346,7 @@ class ModbusLink:
     async def _read(self, signals: tuple[str, ...]) -> dict[str, float]:
         """Engineering values of ``signals`` (those in the map), in as few requests as the map allows."""
         out: dict[str, float] = {}
-        for request in self._plan(signals):
+        for request in self._read_plan(signals):
             data = await self._exchange(request.where, request.pdu)
             for name, reg in request.members:
                 i = reg.address - request.start
@@ -348,9 +359,22 @@ class ModbusLink:
                 out[name] = value
         return out
 
+    def _write_plan(self, signals: tuple[str, ...]) -> tuple[_Write, ...]:
+        """The write requests of ``signals`` (all in the map): adjacent ones of a table share a request — only the
+        signals being written (no read-modify-write); made once per link and tuple of signals."""
+        plan = self._write_plans.get(signals)
+        if plan is None:
+            by_table: dict[str, list[tuple[str, Register]]] = {}
+            for s in signals:
+                by_table.setdefault(self.map[s].table, []).append((s, self.map[s]))
+            plan = self._write_plans[signals] = tuple(
+                _Write(_where("writing", table, start, count, members), table, start, tuple(n for n, _ in members))
+                for table, items in by_table.items()
+                for start, count, members in _spans(items, [r for _, r in items], _MAX_WRITE[table]))
+        return plan
+
     async def _write(self, values: dict[str, float]) -> None:
         """Write engineering values (signals in the map), adjacent ones of a table in one request."""
-        by_table: dict[str, list[tuple[str, Register]]] = {}
         raw: dict[str, list[int]] = {}
         for s, v in values.items():
             reg = self.map[s]
@@ -360,13 +384,9 @@ class ModbusLink:
                 raw[s] = reg.encode(v)
             except ValueError as exc:
                 raise LinkError(f"{self.name}: cannot write {s} to {reg.describe()}: {exc}") from None
-            by_table.setdefault(reg.table, []).append((s, reg))
-        for table, items in by_table.items():
-            # Only the signals being written may share a request (no read-modify-write).
-            regs_written = [r for _, r in items]
-            for start, count, members in _spans(items, regs_written, _MAX_WRITE[table]):
-                words = [w for n, _ in members for w in raw[n]]
-                await self._exchange(_where("writing", table, start, count, members), write_pdu(table, start, words))
+        for request in self._write_plan(tuple(values)):
+            words = [w for n in request.signals for w in raw[n]]
+            await self._exchange(request.where, write_pdu(request.table, request.start, words))
 
     # -- the Link protocol ------------------------------------------------------
 
