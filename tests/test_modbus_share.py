@@ -16,6 +16,7 @@ from autotuner.engine.plant.expression import parse_process
 from drivers.link import LinkError, Mode, Sample
 from drivers.modbus_link import ModbusLink
 from drivers.modbus_map import DEFAULT_MAP, ModbusMap
+from drivers.modbus_plant import serve_plant
 from drivers.modbus_server import serve_units
 from drivers.simplc import SimulatedPlc
 
@@ -407,3 +408,19 @@ def test_bad_pipeline_options_are_clear_value_errors(url, needle):
 def test_pipeline_option_parsed():
     assert ModbusLink.from_url("modbus://h:5020/3?pipeline=16").pipeline == 16
     assert ModbusLink.from_url("modbus://h:5020/3").pipeline == 1
+
+
+def test_the_plant_gives_pipelined_urls_its_links_share_one_connection_per_server():
+    async def main():
+        async with await serve_plant(3, parse_process(PLANT), ts=0.1) as plant:
+            assert plant.url(2) == f"modbus://127.0.0.1:{plant.port}/2"
+            assert plant.url(2, 16) == f"modbus://127.0.0.1:{plant.port}/2?pipeline=16"
+            group = [ModbusLink.from_url(plant.url(k, 16)) for k in (1, 2, 3)]
+            try:
+                samples = await asyncio.gather(*(link.read_sample() for link in group))
+                assert samples == [Sample(pytest.approx(plc.pv, rel=1e-6), pytest.approx(plc.mv, rel=1e-6), plc.sp,
+                                          plc.mode) for plc in plant.plcs]
+                assert group[0].health()["pipeline"] == 16 and plant.servers[0].accepted == 1
+            finally:
+                await close_all(*group)
+    arun(main())

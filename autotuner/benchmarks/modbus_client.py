@@ -12,7 +12,14 @@ of its own, so its CPU is not counted. This process opens one :class:`~drivers.m
 Figures per way: the client's CPU time (user + system, ``time.process_time``) per request in µs, and requests
 per wall second. The loops idle in AUTO.
 
-Run: ``python -m autotuner.benchmarks.modbus_client [--loops 100] [--requests 20000] [--pipeline 1 16]``.
+With ``--paced T:M``, the load the daemon's sampler is sized for instead: T links sampled every ``--ts`` wall
+seconds (a PV read, then an MV write, on a deadline schedule, all in phase: sessions started together) and M
+monitored every second (``read_sample``, the gains with ``read_state`` every 10th), for ``--seconds``; figures:
+the lateness of each PV read's completion behind its due time (p50, p99, max, ms) and the client process's CPU
+(% of one core, its own scheduling of the T + M tasks included).
+
+Run: ``python -m autotuner.benchmarks.modbus_client [--loops 100] [--requests 20000] [--pipeline 1 16]`` or
+``python -m autotuner.benchmarks.modbus_client --paced 100:400 [--ts 0.1] [--seconds 60] [--pipeline 1 16]``.
 """
 
 from __future__ import annotations
@@ -106,6 +113,94 @@ def measure(n: int, requests: int, pipeline: int | None = None, plant: str = DEF
             child.kill()
 
 
+@dataclass(frozen=True)
+class Paced:
+    """A paced run: ``tuned`` links sampled every ``ts`` s, ``idle`` monitored every second, ``pipeline``; the PV
+    reads' lateness p50/p99/max (ms) over ``samples`` reads, the client's CPU (% of a core)."""
+
+    tuned: int
+    idle: int
+    ts: float
+    pipeline: int | None
+    samples: int
+    p50: float
+    p99: float
+    worst: float
+    cpu: float
+
+
+async def _sampled(link: Any, ts: float, until: float, late: list[float]) -> None:
+    start = time.monotonic()
+    k = 0
+    while (due := start + k * ts) < until:
+        await asyncio.sleep(max(due - time.monotonic(), 0.0))
+        await link.read_pv()
+        late.append(time.monotonic() - due)
+        await link.write_mv(50.0)  # the loops are in AUTO: the manual MV is not applied
+        k += 1
+
+
+async def _monitored(link: Any, until: float) -> None:
+    start = time.monotonic()
+    k = 0
+    while (due := start + k) < until:
+        await asyncio.sleep(max(due - time.monotonic(), 0.0))
+        await link.read_sample()
+        if k % 10 == 0:
+            await link.read_state()
+        k += 1
+
+
+async def _measure_paced(urls: list[str], tuned: int, ts: float, seconds: float, pipeline: int | None) -> Paced:
+    from drivers.modbus_link import ModbusLink
+
+    suffix = "" if pipeline is None else f"?pipeline={pipeline}"
+    links = [ModbusLink.from_url(url + suffix) for url in urls]
+    late: list[float] = []
+    try:
+        for link in links:
+            await link.open()
+        cpu0, wall0 = time.process_time(), time.monotonic()
+        until = wall0 + seconds
+        await asyncio.gather(*(_sampled(link, ts, until, late) for link in links[:tuned]),
+                             *(_monitored(link, until) for link in links[tuned:]))
+        cpu = 100.0 * (time.process_time() - cpu0) / (time.monotonic() - wall0)
+    finally:
+        for link in links:
+            await link.close()
+    late.sort()
+    return Paced(tuned, len(urls) - tuned, ts, pipeline, len(late), 1e3 * late[len(late) // 2],
+                 1e3 * late[int(0.99 * (len(late) - 1))], 1e3 * late[-1], cpu)
+
+
+def measure_paced(tuned: int, idle: int, ts: float, seconds: float, pipeline: int | None = None,
+                  plant: str = DEFAULT_PLANT) -> Paced:
+    """``tuned`` links sampled every ``ts`` wall seconds and ``idle`` monitored every second for ``seconds``
+    against a plant of ``tuned + idle`` loops of ``plant`` in a child process (module docstring)."""
+    ours, theirs = multiprocessing.Pipe()
+    child = multiprocessing.get_context("spawn").Process(target=_plant_main, args=(tuned + idle, plant, theirs),
+                                                         daemon=True)
+    child.start()
+    try:
+        return asyncio.run(_measure_paced(ours.recv(), tuned, ts, seconds, pipeline))
+    finally:
+        ours.send("stop")
+        child.join(30)
+        if child.is_alive():
+            child.kill()
+
+
+def paced_markdown(rows: list[Paced]) -> str:
+    """Paced runs as a markdown table."""
+    lines = ["| tuned | ts, s | monitored | pipeline | PV reads | late p50 ms | p99 ms | max ms | client CPU % |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        pipeline = "–" if r.pipeline is None else str(r.pipeline)
+        lines.append(f"| {r.tuned} | {r.ts:g} | {r.idle} | {pipeline} | {r.samples} | {r.p50:.2f} | {r.p99:.2f} | "
+                     f"{r.worst:.1f} | {r.cpu:.0f} |")
+    return "\n".join(lines)
+
+
 def markdown(rows: list[ClientCpu]) -> str:
     """The measurements as a markdown table."""
     lines = ["| loops | calls | pipeline | client CPU, µs per request | requests/s |", "|---:|---|---:|---:|---:|"]
@@ -121,8 +216,23 @@ def main() -> None:
     parser.add_argument("--requests", type=int, default=20000, help="read_pv calls per way")
     parser.add_argument("--pipeline", type=int, nargs="*", default=[], help="?pipeline= values (none: not given)")
     parser.add_argument("--plant", default=DEFAULT_PLANT)
+    parser.add_argument("--paced", metavar="T:M", help="T links sampled every --ts, M monitored every second")
+    parser.add_argument("--ts", type=float, default=0.1, help="sample time of the paced links, wall seconds")
+    parser.add_argument("--seconds", type=float, default=60.0, help="length of a paced run, wall seconds")
     args = parser.parse_args()
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
+    if args.paced:
+        try:
+            tuned, idle = (int(x) for x in args.paced.split(":"))
+        except ValueError:
+            parser.error(f"--paced takes T:M (two whole numbers), got {args.paced!r}")
+        paced = []
+        for pipeline in args.pipeline or [None]:
+            paced.append(measure_paced(tuned, idle, args.ts, args.seconds, pipeline, args.plant))
+            print(paced_markdown(paced[-1:]).splitlines()[-1], flush=True)
+        print(paced_markdown(paced))
+        print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+        return
     rows: list[ClientCpu] = []
     for n in args.loops:
         for pipeline in args.pipeline or [None]:
