@@ -71,6 +71,10 @@ class Endpoint(Protocol):
     def key(self) -> Hashable:
         """Equal for every link to the same device (the same connection)."""
 
+    @property
+    def name(self) -> str:
+        """How messages name the device, e.g. ``modbus tcp 10.0.0.5:502``."""
+
     def open_device(self) -> Device:
         """A new, unconnected device at this endpoint."""
 
