@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import os
 import pathlib
+import socket
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
@@ -28,18 +29,20 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from autotuner import __version__
 from autotuner.engine.design.analysis import analyse
 from autotuner.engine.outcome import MESSAGES, WARNINGS, Code
-from autotuner.service.config import DaemonConfig, Tuning, TuneRequest
+from autotuner.service.config import DaemonConfig, FleetConfig, Tuning, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
 from autotuner.service.daemon.sampler import SamplerField
-from autotuner.service.history import History
+from autotuner.service.daemon.fleet import Fleet
+from autotuner.service.history import History, database_url
+from autotuner.service.leases import Leases
 
 from . import docs, errors
 from .auth import Principal, Tokens, require
 from .events import LIVE_PERIOD, OpenStreams, Overview, overview, stream
 from .metrics import CONTENT_TYPE, exposition, registry_of
 from .gate import RequestGate
-from .models import (Accepted, Analysis, Applied, ApplyRequest, CodeOut, Health, LoopStatus, Session,
-                     SessionSummary, Whoami)
+from .models import (Accepted, Analysis, Applied, ApplyRequest, CodeOut, DrainRequest, FleetStatus, Health,
+                     LoopStatus, Session, SessionSummary, Whoami)
 from .opcua import StartError, start_opcua
 
 PREFIX = "/api/v1"
@@ -77,6 +80,7 @@ ANALYSES_KEPT = 64
 router = APIRouter(prefix=PREFIX)
 Viewer = Annotated[Principal, Depends(require("viewer"))]
 Operator = Annotated[Principal, Depends(require("operator"))]
+Admin = Annotated[Principal, Depends(require("admin"))]
 
 
 def _manager(request: Request) -> LoopManager:
@@ -295,6 +299,45 @@ async def metrics(request: Request, _: Viewer) -> Response:
     return Response(exposition(request.app.state.metrics), media_type=CONTENT_TYPE)
 
 
+def fleet_of(config: DaemonConfig, host: str, port: int) -> Fleet | None:
+    """This daemon's fleet on a PostgreSQL history (None: an SQLite one, one daemon): its leases' store, its name
+    and URL (the config's, else host:port)."""
+    if not config.leased:
+        return None
+    section = config.fleet or FleetConfig()
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+    name = section.name or f"{socket.gethostname()}:{port}"
+    url = section.url or f"http://{shown}:{port}"
+    leases = Leases(database_url(config.history), name, url, section.lease)
+    return Fleet(leases, [loop.id for loop in config.loops], section.renew_period, draining=section.drain)
+
+
+fleet_router = APIRouter(prefix=PREFIX)
+
+
+@fleet_router.get("/fleet", response_model=FleetStatus, tags=["fleet"], responses=_errors(401))
+async def fleet_status(manager: Manager, _: Viewer) -> dict[str, Any]:
+    """The daemons of the fleet alive now and who serves each loop (docs/fleet.md); without a fleet (an SQLite
+    history) this daemon alone."""
+    fleet = manager.fleet
+    if fleet is None:
+        return {"daemon": None, "draining": False, "members": [], "loops": {}}
+    return {"daemon": fleet.name, "draining": fleet.draining,
+            "members": [{"name": m.name, "url": m.url, "draining": m.draining} for m in fleet.members],
+            "loops": {loop_id: loop.owner for loop_id, loop in manager.loops.items()}}
+
+
+@fleet_router.post("/fleet/drain", response_model=FleetStatus, tags=["fleet"], responses=_errors(
+    401, 403, 400, 413, 422, e409="no_fleet: this daemon has no fleet (an SQLite history)"))
+async def drain(manager: Manager, _: Admin, body: Annotated[DrainRequest, Body()]) -> dict[str, Any]:
+    """Drain this daemon (``drain`` true: its idle loops go to the others within a renewal, the tuning ones once
+    done; it takes none) or take it back into service (false). Admin only."""
+    if manager.fleet is None:
+        raise errors.ApiError(409, "no_fleet", "this daemon has no fleet: its history is not PostgreSQL")
+    manager.fleet.draining = body.drain
+    return await fleet_status(manager, None)  # type: ignore[arg-type]
+
+
 class _Page(Mount):
     """The operator page's static files at ``/``, except under the API's prefix.
 
@@ -362,21 +405,31 @@ class SecurityHeaders:
         await self.app(scope, receive, send_with_headers)
 
 
-def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "127.0.0.1") -> FastAPI:
+def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "127.0.0.1",
+               port: int = 8000) -> FastAPI:
     """The API over the loops of ``config``; ``env_token`` (default: $AUTOTUNER_TOKEN) is an extra operator token.
 
     With ``config.opcua`` the OPC UA server (docs/opcua.md) runs beside it over
     the same loops, on ``config.opcua.host`` or else ``host``;
-    ``app.state.opcua_url`` is its endpoint.
+    ``app.state.opcua_url`` is its endpoint. On a PostgreSQL history the
+    daemon serves only the loops whose leases it holds (docs/fleet.md); its
+    default name and URL in the fleet are ``host:port`` and ``http://host:port``.
     """
     env = os.environ.get("AUTOTUNER_TOKEN") if env_token is None else env_token
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = History(config.history)
+        fleet = fleet_of(config, host, port)
         manager = LoopManager(config, store, None if config.samplers == 0 else SamplerField(config.loops,
-                                                                                              config.samplers))
-        await manager.start()
+                                                                                              config.samplers),
+                              fleet)
+        try:
+            await manager.start()
+        except BaseException:
+            if fleet is not None:
+                fleet.leases.close()
+            raise
         app.state.manager = manager
         app.state.metrics = registry_of(manager, app.state)
         opcua = None
@@ -395,6 +448,8 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
             app.state.unrestored = await manager.shutdown()
             await manager.stop()
             store.close()
+            if fleet is not None:
+                fleet.leases.close()
 
     app = FastAPI(title="autotuner", version=__version__, lifespan=lifespan,
                   description="Relay-feedback PID autotuner daemon: TUNE / TBRK / TBSY / TE over HTTP (docs/daemon.md).",
@@ -410,6 +465,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
     app.add_middleware(SecurityHeaders)
     app.add_middleware(StartupErrors)
     app.include_router(router)
+    app.include_router(fleet_router)
     app.include_router(metrics_router)
     docs.install(app, PREFIX)  # Swagger UI and ReDoc from the daemon itself (no CDN)
     app.router.routes.append(_Page("/", StaticFiles(directory=STATIC, html=True), name="page"))

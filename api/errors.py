@@ -62,8 +62,12 @@ def install(app: FastAPI) -> None:
         return error_response(exc.status, exc.code, exc.message, exc.headers)
 
     @app.exception_handler(Refused)
-    async def refused(_: Request, exc: Refused) -> JSONResponse:
-        status = {"not_found": 404, "invalid": 422, "history_unavailable": 503}.get(exc.code, 409)
+    async def refused(request: Request, exc: Refused) -> JSONResponse:
+        if exc.code == "not_owner" and exc.owner_url:  # the same request, at the daemon that serves the loop
+            target = exc.owner_url.rstrip("/") + request.url.path + (f"?{request.url.query}" if request.url.query
+                                                                     else "")
+            return error_response(307, exc.code, exc.message, {"Location": target})
+        status = {"not_found": 404, "invalid": 422, "history_unavailable": 503, "not_owner": 503}.get(exc.code, 409)
         return error_response(status, exc.code, exc.message)
 
     @app.exception_handler(RequestValidationError)

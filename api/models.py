@@ -16,9 +16,9 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from autotuner.engine.result import GainsRecord, PointRecord, ResultRecord
-from autotuner.service.daemon.status import LoopStatus, RestoreStatus, UnitsRecord
+from autotuner.service.daemon.status import LoopStatus, OwnerRecord, RestoreStatus, UnitsRecord
 
-__all__ = ["LoopStatus", "RestoreStatus", "UnitsRecord"]  # the loop's status: the daemon's own record
+__all__ = ["LoopStatus", "OwnerRecord", "RestoreStatus", "UnitsRecord"]  # the loop's status: the daemon's own record
 
 SID = "3f2c9a7e5b1d4c6a8e0f2b4d6a8c0e1f"
 WHEN = "2026-12-01T20:57:36.412Z"
@@ -50,6 +50,32 @@ class Whoami(BaseModel):
     name: str = _f("the token's name (recorded in the history as the user)", "hmi")
     role: Literal["viewer", "operator", "admin"] = _f("what it may do: viewer reads, operator also TUNE/TBRK/apply",
                                                       "operator")
+
+
+class DaemonMember(BaseModel):
+    """A daemon of the fleet alive now."""
+
+    name: str = _f("its name", "autotuner-a")
+    url: str = _f("where its API answers", "http://10.0.0.5:8000")
+    draining: bool = _f("drained: it serves no new loop", False)
+
+
+class FleetStatus(BaseModel):
+    """The fleet as this daemon sees it (docs/fleet.md)."""
+
+    daemon: str | None = _f("this daemon's name (null: no fleet, an SQLite history)", "autotuner-a")
+    draining: bool = _f("this daemon is drained", False)
+    members: list[DaemonMember] = _d("the daemons alive now (seen within a lease time)")
+    loops: dict[str, OwnerRecord | None] = _d("who serves each loop (null: nobody holds its lease now)")
+
+
+class DrainRequest(BaseModel):
+    """Body of ``POST /fleet/drain``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    drain: bool = Field(description="true: drain this daemon (its loops go to the others); false: serve again",
+                        examples=[True])
 
 
 class Accepted(BaseModel):

@@ -388,50 +388,49 @@ class ModbusPlcServer:
                 for a in range(max(reg.address, address), min(reg.end, end)):
                     words[a - reg.address] = int(values[a - address])
                 written[name] = reg.decode(words)
-        return _set_plc(plc, written)
+        return self._set_plc(plc, written)
 
-
-def _set_plc(plc: SimulatedPlc, written: dict[str, float]) -> ExcCodes | None:
-    """Apply the decoded ``written`` signals to ``plc``, or refuse them all (exception 3) if one is invalid."""
-    if any(not math.isfinite(v) for v in written.values()):
-        return ExcCodes.ILLEGAL_VALUE
-    for name in ("mode", "wd_mode"):
-        if name in written and written[name] not in (0.0, 1.0):
+    def _set_plc(self, plc: SimulatedPlc, written: dict[str, float]) -> ExcCodes | None:
+        """Apply the decoded ``written`` signals to ``plc``, or refuse them all (exception 3) if one is invalid."""
+        if any(not math.isfinite(v) for v in written.values()):
             return ExcCodes.ILLEGAL_VALUE
-    if written.get("wd_time", 0.0) < 0.0:
-        return ExcCodes.ILLEGAL_VALUE
-    gains = {s: written[s] for s in ("k", "ti", "td", "nd", "b", "c") if s in written}
-    new_gains = None
-    if gains:
-        if "ti" in gains:
-            gains["ti"] = ti_from_wire(gains["ti"])
-        try:
-            new_gains = dataclasses.replace(plc.gains, **gains)
-        except (TypeError, ValueError):
+        for name in ("mode", "wd_mode"):
+            if name in written and written[name] not in (0.0, 1.0):
+                return ExcCodes.ILLEGAL_VALUE
+        if written.get("wd_time", 0.0) < 0.0:
             return ExcCodes.ILLEGAL_VALUE
-    # Everything checked: apply.
-    if "mode" in written:
-        plc.mode = Mode(int(written["mode"]))
-    if "sp" in written:
-        plc.sp = written["sp"]
-    if "hv" in written:
-        plc.hv = written["hv"]
-    if new_gains is not None and new_gains != plc.gains:
-        plc.set_gains(new_gains)
-    if "heartbeat" in written:
-        plc.heartbeat = int(written["heartbeat"])
-    watchdog = {f: written[s] for s, f in _WATCHDOG_FIELDS.items() if s in written}
-    if watchdog:
-        if "mode" in watchdog:
-            watchdog["mode"] = Mode(int(watchdog["mode"]))
-        plc.watchdog = dataclasses.replace(plc.watchdog, **watchdog)
-    flags = {s: written[s] for s in ("tune", "tbrk", "tbsy", "te") if s in written}
-    update: dict[str, object] = {s: bool(v) for s, v in flags.items()}
-    if "ite" in written:
-        update["ite"] = written["ite"]
-    if update:
-        plc.flags = dataclasses.replace(plc.flags, **update)
-    return None
+        gains = {s: written[s] for s in ("k", "ti", "td", "nd", "b", "c") if s in written}
+        new_gains = None
+        if gains:
+            if "ti" in gains:
+                gains["ti"] = ti_from_wire(gains["ti"])
+            try:
+                new_gains = dataclasses.replace(plc.gains, **gains)
+            except (TypeError, ValueError):
+                return ExcCodes.ILLEGAL_VALUE
+        # Everything checked: apply.
+        if "mode" in written:
+            plc.mode = Mode(int(written["mode"]))
+        if "sp" in written:
+            plc.sp = written["sp"]
+        if "hv" in written:
+            plc.hv = written["hv"]
+        if new_gains is not None and new_gains != plc.gains:
+            plc.set_gains(new_gains)
+        if "heartbeat" in written:
+            plc.heartbeat = int(written["heartbeat"])
+        watchdog = {f: written[s] for s, f in _WATCHDOG_FIELDS.items() if s in written}
+        if watchdog:
+            if "mode" in watchdog:
+                watchdog["mode"] = Mode(int(watchdog["mode"]))
+            plc.watchdog = dataclasses.replace(plc.watchdog, **watchdog)
+        flags = {s: written[s] for s in ("tune", "tbrk", "tbsy", "te") if s in written}
+        update: dict[str, object] = {s: bool(v) for s, v in flags.items()}
+        if "ite" in written:
+            update["ite"] = written["ite"]
+        if update:
+            plc.flags = dataclasses.replace(plc.flags, **update)
+        return None
 
 
 def _set_bit(registers: list[int], start: int, bit_address: int, value: bool) -> None:

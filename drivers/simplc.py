@@ -7,7 +7,11 @@ so returning to AUTO is bumpless, as on the real block: the tuner writes
 the saved MV, waits until the actual MV reads it back (the unit has ticked
 in MAN with it and its state tracks it), and only then writes AUTO; the
 first AUTO output is then the saved MV (docs/handback.md). Faults can be
-injected for tests: a PV that reads NaN.
+injected for tests: a PV that reads NaN; and for the loop-health monitor
+(``faults``, :class:`autotuner.engine.plant.faults.Faults`): a sticky valve
+or a valve deadband between the PID unit and the process (the PLC shows the
+PID unit's output, not the valve's position), a stochastic load and a
+sinusoidal disturbance at the process input, a frozen PV sensor.
 
 The hand-back watchdog (:class:`drivers.link.Watchdog`): while ``watchdog``
 is armed and ``heartbeat`` has not changed for its timeout (plant seconds),
@@ -32,6 +36,7 @@ from dataclasses import dataclass, field
 from autotuner.engine.design.point_design import design
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.control.pid import PidUnit
+from autotuner.engine.plant.faults import Faults, FaultyLoop
 from autotuner.engine.plant.process import Process
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.design.process_data import exact_point, least_lag_point
@@ -71,7 +76,9 @@ class SimulatedPlc:
 
     ``loads``: (T, SIZE) load steps at the process input, SIZE MV units, T
     plant seconds after the PLC first ticks in MAN (a tuner taking the loop
-    over): a disturbance during an experiment over the link.
+    over): a disturbance during an experiment over the link. ``faults``: what
+    is wrong with the loop (none by default); the stochastic load's noise is
+    seeded from ``seed`` apart from the PV noise's.
     """
 
     process: Process
@@ -87,6 +94,7 @@ class SimulatedPlc:
     heartbeat: int = 0
     fallbacks: int = 0
     loads: tuple[tuple[float, float], ...] = ()
+    faults: Faults = Faults()
 
     def __post_init__(self) -> None:
         if self.ts <= 0.0:
@@ -94,6 +102,9 @@ class SimulatedPlc:
         self.sim = PlantSim(self.process, self.ts, pv0=self.pv0, mv0=self.mv0, noise_std=self.noise_std,
                             seed=self.seed, mv_limits=self.mv_limits)
         lo, hi = self.mv_limits
+        # None without faults: the plant is then driven exactly as before faults existed
+        self._faulty = (FaultyLoop(self.faults, self.sim, hi - lo, None if self.seed is None else [self.seed, 1])
+                        if self.faults.any else None)
         self.pid = PidUnit(safe_gains(self.process), kind="PI", lolim=lo, hilim=hi)
         self.sp = self.pv0
         self.hv = self.mv0
@@ -169,8 +180,12 @@ class SimulatedPlc:
         self.mv = self.pid.step(self.sim.t, self.sp, self.pv, man=man, hv=self.hv if man else None)
         if not man:
             self.hv = self.mv  # the manual value follows, so a switch to MAN is bumpless too
-        self.mv = self.sim.advance(self.mv)
-        self.pv = self.sim.measure()
+        if self._faulty is None:
+            self.mv = self.sim.advance(self.mv)
+            self.pv = self.sim.measure()
+        else:
+            self.mv = self._faulty.advance(self.mv)
+            self.pv = self._faulty.measure()
 
 
 async def run(plc: SimulatedPlc, speed: float = 1.0, stop: asyncio.Event | None = None) -> None:

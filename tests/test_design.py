@@ -319,3 +319,22 @@ def test_design_rejects_ms_out_of_range(ms):
 def test_design_propagates_model_errors():
     with pytest.raises(ValueError, match="lag"):
         design(point_of(0.5, 45.0, 1.0), 1.0, "PI")
+
+
+def test_a_pid_whose_slower_filter_finds_no_design_drops_its_derivative_instead_of_dividing_by_zero():
+    # The identification of exp(-0.55*s)/(2*s-1) under 1 % noise (tests/test_golden.py): lowering N for the noise
+    # budget left MIGO without a controller (k = 0), and the next pass divided by it.
+    from autotuner.engine.experiment.point import Point
+    from autotuner.engine.experiment.relay import Identification
+    from autotuner.engine.simulated_tuning import DesignJob
+
+    point = Point(1.8261248115570847, complex(-0.2527711246152208, -0.0775990979204372))
+    ident = Identification(point=point, static_gain=-1.0055906163480068, duration=30.0, periods=10.0, samples=3000,
+                           hysteresis=0.02, noise_std=0.00570887356594577)
+    code, message, des = DesignJob(ident, Code.OK, "ok", "PID", 1.4, 1.0).run()
+    if des is None:  # no design: said in words, with a code of its own
+        assert code in (Code.NO_DESIGN, Code.NOT_STABILISABLE, Code.UNSTABLE_DEAD_TIME_TOO_LONG), (code, message)
+        assert "noise" in message or "Ms" in message or "dead time" in message, message
+    else:
+        assert des.gains.k > 0.0 and code in (Code.DERIVATIVE_DROPPED, Code.DERIVATIVE_LIMITED,
+                                              Code.ROBUSTNESS_MISSED, Code.OK), (code, message)

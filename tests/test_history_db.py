@@ -9,17 +9,11 @@ tests run as root; each test gets a database of its own.
 from __future__ import annotations
 
 import asyncio
-import os
-import shutil
-import subprocess
-import tempfile
-import uuid
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
-import sqlalchemy as sa
 
+from autotuner.benchmarks.postgres import new_database, temporary_postgres
 from autotuner.service.config import ConfigError, load_config
 from autotuner.engine.control.gains import Gains
 from autotuner.service.history import History, database_url
@@ -32,37 +26,18 @@ from test_daemon import loop, manager, running
 SAVED = LoopState(mode=Mode.AUTO, mv=50.0, sp=50.0, gains=Gains(k=0.7, ti=3.0))
 
 
-def postgres_bin() -> Path:
-    """The directory of the distribution's PostgreSQL server programs; a clear failure without them."""
-    found = sorted(Path("/usr/lib/postgresql").glob("*/bin/pg_ctl"), key=lambda p: int(p.parts[-3]))
-    if os.environ.get("AUTOTUNER_PG_BIN"):
-        return Path(os.environ["AUTOTUNER_PG_BIN"])
-    if not found:
-        pytest.fail("the PostgreSQL history tests need a PostgreSQL server: apt-get install postgresql (Debian), "
-                    "or set AUTOTUNER_PG_BIN to the directory of initdb and pg_ctl", pytrace=False)
-    return found[-1].parent
-
-
 @pytest.fixture(scope="module")
 def postgres() -> Iterator[str]:
     """A PostgreSQL server of its own; the URL of its maintenance database."""
-    bin_dir = postgres_bin()
-    as_server = ["runuser", "-u", "postgres", "--"] if os.geteuid() == 0 else []
-    home = Path(tempfile.mkdtemp(prefix="autotuner-pg-"))
-    if as_server:
-        shutil.chown(home, "postgres")
-    data, port = home / "data", free_port()
-    subprocess.run([*as_server, str(bin_dir / "initdb"), "-D", str(data), "-A", "trust", "-U", "postgres",
-                    "-E", "UTF8", "--no-sync"], check=True, capture_output=True)
-    options = f"-p {port} -k {home} -c listen_addresses=127.0.0.1 -c fsync=off"
-    subprocess.run([*as_server, str(bin_dir / "pg_ctl"), "-D", str(data), "-o", options, "-l", str(home / "log"),
-                    "-w", "-t", "60", "start"], check=True, capture_output=True)
     try:
-        yield f"postgresql+psycopg://postgres@127.0.0.1:{port}/postgres"
+        server = temporary_postgres()
+        url = server.__enter__()
+    except FileNotFoundError as exc:
+        pytest.fail(f"the PostgreSQL history tests need a PostgreSQL server: {exc}", pytrace=False)
+    try:
+        yield url
     finally:
-        subprocess.run([*as_server, str(bin_dir / "pg_ctl"), "-D", str(data), "-m", "fast", "stop"],
-                       capture_output=True)
-        shutil.rmtree(home, ignore_errors=True)
+        server.__exit__(None, None, None)
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -70,13 +45,7 @@ def database(request, tmp_path) -> str:
     """A fresh, empty history database: an SQLite file path, or a PostgreSQL URL."""
     if request.param == "sqlite":
         return str(tmp_path / "history.db")
-    server = request.getfixturevalue("postgres")
-    name = f"history_{uuid.uuid4().hex[:12]}"
-    engine = sa.create_engine(server, isolation_level="AUTOCOMMIT")
-    with engine.connect() as db:
-        db.execute(sa.text(f"CREATE DATABASE {name}"))
-    engine.dispose()
-    return server.rsplit("/", 1)[0] + "/" + name
+    return new_database(request.getfixturevalue("postgres"))
 
 
 def test_sessions_round_trip_newest_first_and_survive_reopening(database):

@@ -168,8 +168,8 @@ class ThreadedPlc:
         self.server = server = await serve_modbus(self.plc, "127.0.0.1", 0, unit=1)
         set_plc = server._set_plc
 
-        def watched(written: dict[str, float]):
-            answer = set_plc(written)
+        def watched(plc: SimulatedPlc, written: dict[str, float]):
+            answer = set_plc(plc, written)
             if "k" in written and answer is None:
                 self.gains_written.set()
                 if self.freeze_after_gains:

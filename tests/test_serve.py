@@ -150,7 +150,3 @@ def test_serve_with_a_bad_config_exits_2_with_the_message(tmp_path):
     assert proc.returncode == 2
     assert "loops[0].tuning.amp" in proc.stderr and "Traceback" not in proc.stderr
 
-
-def test_the_compose_files_daemon_config_is_valid():
-    config = load_config(Path(__file__).parent.parent / "docker" / "daemon.yaml")
-    assert config.loops[0].link == "modbus://plant:5020/1" and config.history.startswith("/var/lib/autotuner")

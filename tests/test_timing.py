@@ -5,6 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from autotuner.service.config import DaemonConfig, TuneRequest
+from autotuner.service.daemon.capacity import DEFAULT_COST, MIN_SAMPLES, Cost
+from autotuner.service.daemon.field import nominal_rate
+from autotuner.service.daemon.settings import plan_of, settings_of
 from autotuner.service.daemon.timing import PER_DECADE, Histogram, Timings
 
 
@@ -35,11 +39,30 @@ def test_merged_histograms_count_every_value_and_an_empty_one_has_no_quantile():
 
 def test_timings_name_the_loops_late_by_the_fields_own_fault_and_hand_over_once():
     t = Timings()
-    t.add("A", 0.004, 0.001, overload=0.02)
-    t.add("B", 0.090, 0.050, overload=0.02)
-    t.add("B", 0.060, 0.030, overload=0.02)
+    t.add("A", 0.004, 0.001, tolerance=0.02)
+    t.add("B", 0.090, 0.050, tolerance=0.02)
+    t.add("B", 0.060, 0.030, tolerance=0.02)
     t.analysed(0.002)
     batch = t.take()
     assert batch.late.count == 3 and batch.analysis.count == 1
     assert batch.overloaded == 2 and batch.worst == {"B": 0.050}
-    assert t.take() is None  # handed over: nothing new since
+    again = t.take()  # handed over: nothing new since, but the process's CPU meanwhile
+    assert again.late.count == 0 and again.overloaded == 0 and again.cpu >= 0.0
+
+
+def test_the_cost_per_sample_follows_what_was_measured_and_a_load_is_cost_times_rate():
+    cost = Cost()
+    cost.update(0.5, MIN_SAMPLES - 1)  # too few samples to say anything
+    assert cost.per_sample == DEFAULT_COST
+    for _ in range(60):
+        cost.update(0.2, 1000)  # 200 µs per sample, again and again
+    assert cost.per_sample == pytest.approx(200e-6, rel=1e-4)
+    assert cost.load(1500.0) == pytest.approx(0.3, rel=1e-4)
+
+
+def test_the_nominal_rate_counts_sessions_by_their_plan_and_idle_loops_by_their_monitor():
+    config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
+        {"id": f"L{k}", "link": f"modbus://10.0.0.1:502/{k}", "ts": 0.1, "monitor_period": 2.0} for k in range(4)]})
+    plan = plan_of(config.loops[0], settings_of(config.loops[0], TuneRequest()))
+    assert nominal_rate(config.loops, {}) == pytest.approx(4 * 0.5)
+    assert nominal_rate(config.loops, {"L0": plan, "L1": plan}) == pytest.approx(2 * 10.0 + 2 * 0.5)

@@ -53,7 +53,7 @@ from asyncua import Node, Server, ua
 from pydantic import ValidationError
 
 from api.errors import validation_message
-from autotuner.service.channel import forward_logs
+from autotuner.service.channel import child_start
 from autotuner.service.config import TuneRequest
 
 from .address_space import FOLDER, NAMESPACE, LoopNodes, event_type, node_id
@@ -358,12 +358,10 @@ async def _orphaned(parent: int) -> None:
 
 async def serve(fd: int) -> None:
     """The process' work: the daemon's init over the socket ``fd``, then the server until told to stop."""
-    channel = await Channel.open(socket.socket(fileno=fd))
-    message = await channel.receive()
-    if message is None or message[0] != "init":
+    started = await child_start(fd)
+    if started is None:
         return
-    init: Init = message[1]
-    forward_logs(channel, init.levels)
+    channel, init = started
     try:
         await OpcUaServer(init, channel).run()
     finally:

@@ -123,7 +123,7 @@ def _plant_main(spec: LoadSpec, conn: Any) -> None:
     asyncio.run(main())
 
 
-def _clients_main(port: int, token: str, loop_ids: list[str], count: int, conn: Any) -> None:
+def clients_main(port: int, token: str, loop_ids: list[str], count: int, conn: Any) -> None:
     """Child process: ``count`` event streams over ``loop_ids`` (round robin), the even ones read, the odd ones
     never; "ready" once all are open, then on "stop" (events read, CPU % of a core)."""
 
@@ -281,7 +281,7 @@ async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: 
     tuned = [loop_id for loop_id in manager.loops if loop_id.startswith("L")]
     clients = scada = None
     if spec.clients:
-        clients = children.start(_clients_main, (port, viewer, tuned, spec.clients), "clients")
+        clients = children.start(clients_main, (port, viewer, tuned, spec.clients), "clients")
         await loop.run_in_executor(None, _receive, *clients, "clients")
     if spec.opcua:
         scada = children.start(_scada_main, (app.state.opcua_url, operator, list(manager.loops),

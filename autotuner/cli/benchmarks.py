@@ -25,10 +25,20 @@ def bench(
     field: Annotated[bool, typer.Option("--field", help="Field conditions: every process under load steps, "
                                         "drift, noise, quantisation and a non-steady start "
                                         "(docs/field-benchmark.md).")] = False,
+    health: Annotated[bool, typer.Option("--health", help="The loop-health monitor instead: simulated loops with "
+                                         "and without faults, detection and false-alarm rates per flag "
+                                         "(docs/health.md).")] = False,
+    repeats: Annotated[int, typer.Option(min=1, max=100, help="With --health: loops per fault, severity and "
+                                         "process (healthy ones 3× as many).")] = 5,
 ) -> None:
     """Benchmark the experiment and the design on every process of a batch against the usual relay tuners."""
     if field and design_only:
         bad_input("--field and --design-only exclude each other")
+    if health:
+        if field or design_only or batch is not None:
+            bad_input("--health takes no batch, --field or --design-only")
+        _health_bench(repeats, workers, output)
+        return
     from autotuner.benchmarks.design_bench import default_batch, format_table, load_batch, run_batch
     from autotuner.engine.plant.expression import parse_process
 
@@ -59,6 +69,18 @@ def bench(
     if output is not None:
         output.write_text(table + "\n")
     stderr.print(f"{len(rows)} processes in {time.perf_counter() - start:.1f} s wall time", highlight=False)
+
+
+def _health_bench(repeats: int, workers: int | None, output: Path | None) -> None:
+    from autotuner.benchmarks.health_bench import run, table
+
+    start = time.perf_counter()
+    outcomes = run(repeats, workers)
+    text = table(outcomes)
+    print(text)
+    if output is not None:
+        output.write_text(text + "\n")
+    stderr.print(f"{len(outcomes)} loops in {time.perf_counter() - start:.1f} s wall time", highlight=False)
 
 
 @app.command("loadbench")
@@ -121,3 +143,36 @@ def loadbench_command(
         stdout.print(table)
     if any(r.tuned < r.spec.loops for r in results):
         raise typer.Exit(EXIT_FAILED)
+
+
+@app.command("failover")
+def failover_command(
+    daemons: Annotated[int, typer.Option(min=2, max=16, help="Daemons in the fleet.")] = 3,
+    loops: Annotated[int, typer.Option(min=2, max=2000, help="Loops they share.")] = 300,
+    tuning: Annotated[int, typer.Option(min=0, max=500, help="Loops of the killed daemon tuning when it dies.")] = 20,
+    lease: Annotated[float, typer.Option(min=2.0, max=600.0, help="Lease time, seconds.")] = 10.0,
+    database: Annotated[str | None, typer.Option(help="PostgreSQL URL (postgresql+psycopg://…) of an empty database. "
+                                                 "Default: a server of the benchmark's own (the distribution's "
+                                                 "PostgreSQL programs).")] = None,
+    as_markdown: Annotated[bool, typer.Option("--markdown", help="Print a markdown table.")] = False,
+) -> None:
+    """Benchmark: a fleet of daemons on one PostgreSQL, one killed while it tunes; how soon its loops have an owner
+    again and its sessions are recovered (docs/fleet.md). Real processes on this machine; a few minutes."""
+    from autotuner.benchmarks.failover import HEADERS, FailoverSpec, markdown, run_failover, table_rows
+
+    if tuning > loops // daemons:
+        bad_input(f"--tuning {tuning} is more than the killed daemon's share of the loops ({loops // daemons})")
+    try:
+        result = run_failover(FailoverSpec(daemons, loops, tuning, lease, database=database))
+    except FileNotFoundError as exc:
+        bad_input(str(exc))
+    title = f"failover: {daemons} daemons, {loops} loops, lease {lease:g} s; one daemon killed (SIGKILL)"
+    if as_markdown:
+        print(f"{title}\n\n{markdown([result])}")
+        return
+    table = Table(title=title, title_justify="left")
+    for name in HEADERS:
+        table.add_column(name, justify="right")
+    for row in table_rows([result]):
+        table.add_row(*row)
+    stdout.print(table)

@@ -145,6 +145,18 @@ def forward_logs(channel: Channel, levels: dict[str, int]) -> None:
         logging.getLogger(name or None).setLevel(level)
 
 
+async def child_start(fd: int) -> tuple[Channel, Any] | None:
+    """In a child process: its channel to the daemon over the socket ``fd`` and the daemon's ``("init", init)``
+    (its log records forwarded from now on, the loggers at ``init.levels``); None if the daemon sends no init."""
+    channel = await Channel.open(socket.socket(fileno=fd))
+    message = await channel.receive()
+    if message is None or message[0] != "init":
+        await channel.close()
+        return None
+    forward_logs(channel, message[1].levels)
+    return channel, message[1]
+
+
 class PeerLost(ConnectionError):
     """The process at the other end of a channel ended (or closed it) before it answered."""
 

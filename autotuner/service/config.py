@@ -321,6 +321,35 @@ class HandBackConfig(Strict):
         return self
 
 
+class FleetConfig(Strict):
+    """This daemon in a fleet sharing a PostgreSQL history (docs/fleet.md).
+
+    name: its name among the daemons (default: host:port of its API).
+    url: where the other daemons' clients reach its API (default:
+    http://host:port as served). lease: how long a loop's lease holds
+    without renewal, seconds — a dead daemon's loops are taken over after
+    it. renew: how often the leases are renewed, seconds (default: a third
+    of ``lease``). drain: start drained (serving no loop; for maintenance).
+    """
+
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.:@-]{0,127}$")] | None = None
+    url: Annotated[str, Field(pattern=r"^https?://[^\s]+$", max_length=1000)] | None = None
+    lease: Annotated[float, Field(ge=2.0, le=600.0)] = 10.0
+    renew: Annotated[float, Field(gt=0.0, le=200.0)] | None = None
+    drain: bool = False
+
+    @model_validator(mode="after")
+    def _renew_within_lease(self) -> FleetConfig:
+        if self.renew is not None and self.renew > self.lease / 2:
+            raise ValueError(f"renew ({self.renew:g} s) must be at most half the lease ({self.lease:g} s)")
+        return self
+
+    @property
+    def renew_period(self) -> float:
+        """How often the leases are renewed, seconds."""
+        return self.lease / 3.0 if self.renew is None else self.renew
+
+
 class DaemonConfig(Strict):
     """The whole file: the history database, the tokens, the loops and how they are handed back.
 
@@ -332,6 +361,11 @@ class DaemonConfig(Strict):
     (0: in the API's process, which clients can then slow down; docs/daemon.md,
     "A plant"). ``max_sessions``: most loops tuned at once; a TUNE beyond is
     refused (``overloaded``); None: as many as the samplers keep on time.
+    ``sampler_load``: the share of a core a sampler may be predicted to need
+    with a new session before that TUNE is refused (``overloaded``).
+    ``fleet``: this daemon among others on one PostgreSQL history (a
+    PostgreSQL history always holds leases; the section sets their name and
+    times); not with an SQLite history.
     """
 
     history: str = "autotuner-history.db"
@@ -341,6 +375,8 @@ class DaemonConfig(Strict):
     handback: HandBackConfig = HandBackConfig()
     samplers: Annotated[int, Field(ge=0, le=64)] = 1
     max_sessions: Annotated[int, Field(ge=1, le=100000)] | None = None
+    sampler_load: Annotated[float, Field(gt=0.0, le=1.0)] = 0.6
+    fleet: FleetConfig | None = None
 
     @field_validator("history")
     @classmethod
@@ -356,6 +392,18 @@ class DaemonConfig(Strict):
         elif not history:
             raise ValueError("empty: give an SQLite file, ':memory:' or a database URL")
         return history
+
+    @model_validator(mode="after")
+    def _fleet_on_postgres(self) -> DaemonConfig:
+        if self.fleet is not None and not self.history.startswith(("postgresql", "postgres")):
+            raise ValueError("fleet: several daemons share a plant through a PostgreSQL history; this history is "
+                             "not one (an SQLite history has one daemon)")
+        return self
+
+    @property
+    def leased(self) -> bool:
+        """The history is a PostgreSQL database: this daemon holds leases for the loops it serves."""
+        return self.history.startswith(("postgresql", "postgres"))
 
     @model_validator(mode="after")
     def _unique_ids(self) -> DaemonConfig:

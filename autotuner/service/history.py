@@ -91,7 +91,7 @@ def database_url(history: str) -> str:
     return "sqlite://" if history == ":memory:" else f"sqlite:///{history}"
 
 
-def _sqlite_file(url: str) -> str | None:
+def sqlite_file(url: str) -> str | None:
     """The file of an SQLite URL (``sqlite:///path``), None for any other database or for :memory:."""
     if not url.startswith("sqlite:///"):
         return None
@@ -159,7 +159,7 @@ class History:
         url = database_url(history)
         memory = url == "sqlite://"
         self.retry_for = retry_for
-        file = _sqlite_file(url)
+        file = sqlite_file(url)
         self.shown = file or shown_url(url)
         if file is not None and not init_empty and os.path.isfile(file) and os.path.getsize(file) == 0:
             raise ValueError(f"history database {file} is an empty file (0 bytes), not a history: if it is new "

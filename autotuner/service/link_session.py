@@ -43,13 +43,11 @@ from autotuner.service.design_pool import Outcome, designed
 FLAGS_PERIOD = 0.5
 # Pauses between read-backs while the device tracks the saved MV, wall seconds (growing from the first).
 TRACK_POLL = (0.01, 0.1)
-# A sample the session itself takes this many sample times late (its event loop, its machine — not the link)
-# leaves a gap the experiment cannot use (its stall rule: 3 sample intervals without a sample).
-OVERLOAD_LATE = 2.0
-# More than OVERLOAD_COUNT such samples among the last OVERLOAD_WINDOW, or one OVERLOAD_STALL sample times late:
-# the session ends OVERLOADED (an isolated stall only costs the estimates around it).
+# A sample the session itself starts late (its event loop, its machine — not the link) by more than what the
+# experiment tolerates (RelayExperiment.stall_tolerance: a tenth of a period, at least 3 sample intervals) leaves
+# a gap its estimates cannot use. More than OVERLOAD_COUNT such samples among the last OVERLOAD_WINDOW: the session
+# ends OVERLOADED (an isolated one only costs the estimates around it).
 OVERLOAD_COUNT, OVERLOAD_WINDOW = 5, 100
-OVERLOAD_STALL = 10.0
 # Codes that blame the process (or its surroundings); after an overload the tuner's lateness may be the cause.
 BLAMES_PROCESS = frozenset({Code.NO_OSCILLATION, Code.NOT_CONVERGED, Code.DISTURBANCE, Code.NOISE_TOO_HIGH,
                             Code.NOT_STABILISABLE, Code.UNSTABLE_DEAD_TIME_TOO_LONG})
@@ -64,25 +62,31 @@ async def deadlines(period: float, stop: asyncio.Event | None = None,
     ``stop``, a wait ends as soon as it is set (yielding None: TBRK acts at
     once, not a sample later); with ``beat``, no wait lasts longer than
     ``beat`` seconds (yielding None between samples: the handshake and the
-    device watchdog's heartbeat go on however long the sample time).
+    device watchdog's heartbeat go on however long the sample time). One
+    waiter on ``stop`` serves every wait (no task per sample); close the
+    generator (``contextlib.aclosing``) to end it.
     """
     start = time.monotonic()
     k = 0
-    while True:
-        due = start + k * period
-        now = time.monotonic()
-        wake = due if beat is None else min(due, now + beat)
-        if wake > now:
-            if stop is None:
-                await asyncio.sleep(wake - now)
+    stopped = None if stop is None else asyncio.ensure_future(stop.wait())
+    try:
+        while True:
+            due = start + k * period
+            now = time.monotonic()
+            wake = due if beat is None else min(due, now + beat)
+            if wake > now:
+                if stopped is None:
+                    await asyncio.sleep(wake - now)
+                else:
+                    await asyncio.wait({stopped}, timeout=wake - now)
+            if time.monotonic() >= due and not (stop is not None and stop.is_set()):
+                yield due
+                k += 1
             else:
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(stop.wait(), wake - now)
-        if time.monotonic() >= due and not (stop is not None and stop.is_set()):
-            yield due
-            k += 1
-        else:
-            yield None
+                yield None
+    finally:
+        if stopped is not None:
+            stopped.cancel()
 
 
 @dataclass
@@ -102,6 +106,10 @@ class HandBack:
     track_timeout: float = 5.0
     watchdog: float = 0.0
     cap: float = math.inf
+
+
+class Fenced(LinkError):
+    """This daemon no longer holds the loop's lease: nothing more may be written to it (its new owner restores it)."""
 
 
 class NotTracking(Exception):
@@ -169,7 +177,8 @@ async def hand_back(link: Link, saved: LoopState, handback: HandBack) -> str:
 
     A loop left in MAN at a relay level is the worst outcome, so it keeps
     trying, with growing pauses, for ``handback.window`` seconds (and not
-    past ``handback.cap``).
+    past ``handback.cap``) — but not once the daemon is fenced off the loop
+    (:class:`Fenced`: its lease lost, the new owner restores it).
     """
     deadline = time.monotonic() + handback.window
     pause = 0.1
@@ -177,6 +186,8 @@ async def hand_back(link: Link, saved: LoopState, handback: HandBack) -> str:
         try:
             await hand_back_once(link, saved, handback.track_timeout)
             return ""
+        except Fenced as exc:  # not ours any more: the loop's new owner restores it, this daemon writes nothing
+            return f"not handed back: {exc}"
         except (LinkError, NotTracking) as exc:  # the cap is read each time: a shutdown may set it meanwhile
             if time.monotonic() + pause > min(deadline, handback.cap):
                 return not_restored(saved, str(exc))
@@ -237,9 +248,10 @@ class SessionHooks:
     touching the loop (HISTORY_UNAVAILABLE): a loop taken over without its
     saved state on record could not be restored after a crash.
     ``on_handed_back(error)``: once the hand-back is over ('' or why not).
-    ``on_timing(late, own)``: per sample, wall seconds its PV read completed
-    behind its due time, and the part of that the session's own process caused
-    (not the link: the event loop, the analysis, a starved CPU).
+    ``on_timing(late, own, tolerance)``: per sample, wall seconds its PV read
+    completed behind its due time, the part of that the session's own process
+    caused (not the link: the event loop, the analysis, a starved CPU), and the
+    own lateness the experiment tolerates now (:class:`Overload`).
     ``on_analysis(cpu)``: per period, the CPU seconds its analysis took.
     ``design(job)``: the design of the ended experiment (default: the design
     pool of this process).
@@ -249,7 +261,7 @@ class SessionHooks:
     on_status: Callable[[Status], None] | None = None
     on_saved: Callable[[LoopState, tuple[float, ...]], Awaitable[str]] | None = None
     on_handed_back: Callable[[str], None] | None = None
-    on_timing: Callable[[float, float], None] | None = None
+    on_timing: Callable[[float, float, float], None] | None = None
     on_analysis: Callable[[float], None] | None = None
     design: Callable[[DesignJob], Awaitable[Outcome]] = designed
 
@@ -257,28 +269,27 @@ class SessionHooks:
 class Overload:
     """The session's own lateness, sample by sample, judged against what the experiment tolerates.
 
-    ``period``: the sample time, wall seconds. A sample whose read the
-    session started more than :data:`OVERLOAD_LATE` sample times late for
-    reasons of its own (not waiting on the link) is late by the session's
-    fault; the session can no longer keep its schedule when more than
-    :data:`OVERLOAD_COUNT` of the last :data:`OVERLOAD_WINDOW` samples are, or
-    one is :data:`OVERLOAD_STALL` sample times late. ``count``: such samples
-    so far; ``worst``: the longest such delay, wall seconds.
+    A sample whose read the session started late for reasons of its own (not
+    waiting on the link) by more than ``tolerance`` (wall seconds: the
+    experiment's stall tolerance) is late by the session's fault; the session
+    can no longer keep its schedule when more than :data:`OVERLOAD_COUNT` of
+    the last :data:`OVERLOAD_WINDOW` samples are. ``count``: such samples so
+    far; ``worst``: the longest such delay, wall seconds.
     """
 
-    def __init__(self, period: float) -> None:
-        self.period = period
+    def __init__(self) -> None:
         self.count = 0
         self.worst = 0.0
         self.io_end = -math.inf  # when the session's last link call ended (monotonic)
         self._samples = 0
         self._late: collections.deque[int] = collections.deque()  # the numbers of the late samples in the window
 
-    def sample(self, due: float, read_start: float) -> float:
-        """The session's own part of the lateness of the read started at ``read_start`` for ``due``."""
+    def sample(self, due: float, read_start: float, tolerance: float) -> float:
+        """The session's own part of the lateness of the read started at ``read_start`` for ``due`` (monotonic
+        wall seconds), judged against ``tolerance`` (wall seconds)."""
         self._samples += 1
         own = max(read_start - max(due, self.io_end), 0.0)
-        if own > OVERLOAD_LATE * self.period:
+        if own > tolerance:
             self.count += 1
             self.worst = max(self.worst, own)
             self._late.append(self._samples)
@@ -289,14 +300,14 @@ class Overload:
     @property
     def exceeded(self) -> bool:
         """True when the session can no longer keep its schedule within the experiment's tolerance."""
-        return len(self._late) > OVERLOAD_COUNT or self.worst > OVERLOAD_STALL * self.period
+        return len(self._late) > OVERLOAD_COUNT
 
     def message(self, speed: float) -> str:
         """The overload's message (what the experiment saw, in plant seconds)."""
-        return (f"{MESSAGES[Code.OVERLOADED]}: {self.count} samples were taken more than {OVERLOAD_LATE:g} sample "
-                f"times late by the tuner itself (the longest {self.worst * speed:.3g} s, not the link's "
-                "delay): its machine or process is loaded beyond what the experiment tolerates; the loop was "
-                "handed back — retry when fewer loops tune at once")
+        return (f"{MESSAGES[Code.OVERLOADED]}: {self.count} samples were taken later than the experiment tolerates "
+                f"by the tuner itself (the longest {self.worst * speed:.3g} s late, not the link's delay): its "
+                "machine or process is loaded beyond what the experiment tolerates; the loop was handed back — "
+                "retry when fewer loops tune at once")
 
 
 async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = None) -> TuneResult:
@@ -311,86 +322,24 @@ async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = 
     process, may be its cause.
     """
     hooks = SessionHooks() if hooks is None else hooks
-    controller, handback, speed = plan.controller, plan.handback, plan.speed
+    controller = plan.controller
     try:
         saved = await link.read_state()
     except LinkError as exc:
         return TuneResult.failed(Code.LINK_FAULT, f"cannot read the loop: {exc}", controller)
-
     experiment = RelayExperiment(plan.relay, mv0=saved.mv)
     if hooks.on_saved is not None and (why := await hooks.on_saved(saved, experiment.levels)):
         return TuneResult.failed(Code.HISTORY_UNAVAILABLE, f"{MESSAGES[Code.HISTORY_UNAVAILABLE]}: {why}", controller)
-    stop = hooks.stop
-    if stop is not None and stop.is_set():
+    if hooks.stop is not None and hooks.stop.is_set():
         return TuneResult.failed(Code.ABORTED, f"{MESSAGES[Code.ABORTED]} before the loop was touched", controller)
     if experiment.done:  # refused before it starts (the relay cannot move the MV): the loop is not touched
         await _publish(link, _ended("", experiment.code))
         return TuneResult.failed(experiment.code, experiment.message, controller)
-    record = _Record()
-    overload = Overload(plan.ts / speed)
+    sampling = _Sampling(link, experiment, plan, hooks)
     failed = False
-    beats = 0
     try:
-        await _publish(link, TuneFlags(tbsy=True, te=False, ite=0.0))
-        await link.write_mv(saved.mv)
-        if handback.watchdog > 0.0:
-            await link.write_watchdog(Watchdog(timeout=handback.watchdog * speed, mv=saved.mv, mode=saved.mode))
-        await link.write_mode(Mode.MAN)
-        start = time.monotonic()
-        flags_due = start
-
-        async def handshake(status: Status) -> None:  # TBSY, ite and the heartbeat every FLAGS_PERIOD
-            nonlocal flags_due, beats
-            if time.monotonic() >= flags_due:
-                flags_due = time.monotonic() + FLAGS_PERIOD
-                beats += 1  # the heartbeat only feeds an armed watchdog: no extra request otherwise
-                await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite),
-                               beats if handback.watchdog > 0.0 else None)
-                overload.io_end = time.monotonic()
-
-        async for due in deadlines(plan.ts / speed, stop, FLAGS_PERIOD):
-            if stop is not None and stop.is_set():
-                experiment.abort()
-                break
-            if due is None:  # between samples: only the handshake and the heartbeat may be due
-                await handshake(experiment.status())
-                continue
-            before = time.monotonic()
-            own = overload.sample(due, before)
-            pv = await link.read_pv()
-            after = time.monotonic()
-            if hooks.on_timing is not None:
-                hooks.on_timing(after - due, own)
-            if overload.exceeded:
-                experiment.fail(Code.OVERLOADED, overload.message(speed))
-                break
-            age = link.pv_age
-            t = ((0.5 * (before + after) if age is None else after - age) - start) * speed
-            if record.t and t <= record.t[-1]:
-                overload.io_end = time.monotonic()
-                continue  # the same time-stamped value again: nothing new to act on
-            mv = experiment.step(t, pv)
-            if experiment.done:
-                break
-            before = time.monotonic()
-            await link.write_mv(mv)
-            overload.io_end = time.monotonic()
-            # When the MV reached the device: a write the link or a busy machine delayed left the previous MV
-            # on the process meanwhile, and the estimates must integrate the MV as the process held it.
-            experiment.applied((0.5 * (before + overload.io_end) - start) * speed)
-            record.add(t, pv, mv)
-            if experiment.analysis_pending:
-                # A period ended: its analysis runs off the event loop, so the other loops of this process and
-                # the handshake keep their time.
-                cpu = await asyncio.to_thread(_analysed, experiment)
-                if hooks.on_analysis is not None:
-                    hooks.on_analysis(cpu)
-                if experiment.done:
-                    break
-            status = experiment.status()
-            if hooks.on_status is not None:
-                hooks.on_status(status)
-            await handshake(status)
+        await _take_over(link, saved, plan)
+        await sampling.run()
     except LinkError as exc:
         experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
     except (asyncio.CancelledError, Exception):  # cancelled, or a bug: handed back below, TBSY must not stay set
@@ -398,16 +347,12 @@ async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = 
         failed = True
         raise
     finally:
-        restore_error = await hand_back(link, saved, handback)
+        restore_error = await hand_back(link, saved, plan.handback)
         if hooks.on_handed_back is not None:
             hooks.on_handed_back(restore_error)
         if failed:  # no result follows to end the handshake with
             await _publish(link, _ended(restore_error, Code.ABORTED))
-    job = DesignJob.of(experiment, controller, plan.ms)
-    if overload.count and job.code in BLAMES_PROCESS:
-        job = DesignJob(None, Code.OVERLOADED, f"{overload.message(speed)} (the experiment had ended: "
-                        f"{job.message})", controller, plan.ms, plan.relay.amp)
-    result = _restored(await _result(hooks, job, record.trace()), restore_error)
+    result = _restored(await _result(hooks, sampling.design_job(), sampling.trace()), restore_error)
     if result.ok and plan.apply:
         try:
             await link.write_gains(result.design.gains)
@@ -420,29 +365,120 @@ async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = 
     return result
 
 
+async def _take_over(link: Link, saved: LoopState, plan: SessionPlan) -> None:
+    """TBSY, the saved MV as the manual one, the watchdog armed (if asked) with the saved state, then MAN."""
+    await _publish(link, TuneFlags(tbsy=True, te=False, ite=0.0))
+    await link.write_mv(saved.mv)
+    if plan.handback.watchdog > 0.0:
+        await link.write_watchdog(Watchdog(timeout=plan.handback.watchdog * plan.speed, mv=saved.mv,
+                                           mode=saved.mode))
+    await link.write_mode(Mode.MAN)
+
+
+class _Sampling:
+    """The experiment driven through ``link`` on the schedule of ``plan``, reported through ``hooks``; the
+    samples it took (``t`` plant seconds, ``pv``, ``mv``) and its own lateness (``overload``)."""
+
+    def __init__(self, link: Link, experiment: RelayExperiment, plan: SessionPlan, hooks: SessionHooks) -> None:
+        self.link, self.experiment, self.plan, self.hooks = link, experiment, plan, hooks
+        self.t: list[float] = []
+        self.pv: list[float] = []
+        self.mv: list[float] = []
+        self.overload = Overload()
+        self._start = 0.0
+        self._flags_due = 0.0
+        self._beats = 0
+
+    async def run(self) -> None:
+        """Sample until the experiment ends (or ``hooks.stop`` aborts it); LinkError if the link fails."""
+        self._start = self._flags_due = time.monotonic()
+        stop, experiment = self.hooks.stop, self.experiment
+        schedule = deadlines(self.plan.ts / self.plan.speed, stop, FLAGS_PERIOD)
+        async with contextlib.aclosing(schedule):
+            async for due in schedule:
+                if stop is not None and stop.is_set():
+                    experiment.abort()
+                    return
+                if due is None:  # between samples: only the handshake and the heartbeat may be due
+                    await self._handshake(experiment.status())
+                elif not await self._sample(due) or experiment.done:
+                    return
+
+    async def _sample(self, due: float) -> bool:
+        """One sample due at ``due``: PV read, the experiment's step, MV written, the period's analysis; False
+        once the experiment has ended."""
+        link, experiment, speed, hooks = self.link, self.experiment, self.plan.speed, self.hooks
+        before = time.monotonic()
+        tolerance = experiment.stall_tolerance / speed
+        own = self.overload.sample(due, before, tolerance)
+        pv = await link.read_pv()
+        after = time.monotonic()
+        if hooks.on_timing is not None:
+            hooks.on_timing(after - due, own, tolerance)
+        if self.overload.exceeded:
+            experiment.fail(Code.OVERLOADED, self.overload.message(speed))
+            return False
+        age = link.pv_age
+        t = ((0.5 * (before + after) if age is None else after - age) - self._start) * speed
+        if self.t and t <= self.t[-1]:
+            self.overload.io_end = time.monotonic()
+            return True  # the same time-stamped value again: nothing new to act on
+        mv = experiment.step(t, pv)
+        if experiment.done:
+            return False
+        before = time.monotonic()
+        await link.write_mv(mv)
+        self.overload.io_end = time.monotonic()
+        # When the MV reached the device: a write the link or a busy machine delayed left the previous MV on the
+        # process meanwhile, and the estimates must integrate the MV as the process held it.
+        experiment.applied((0.5 * (before + self.overload.io_end) - self._start) * speed)
+        self.t.append(t)
+        self.pv.append(pv)
+        self.mv.append(mv)
+        if experiment.analysis_pending:
+            # A period ended: its analysis runs off the event loop, so the other loops of this process and the
+            # handshake keep their time.
+            cpu = await asyncio.to_thread(_analysed, experiment)
+            if hooks.on_analysis is not None:
+                hooks.on_analysis(cpu)
+            if experiment.done:
+                return False
+        status = experiment.status()
+        if hooks.on_status is not None:
+            hooks.on_status(status)
+        await self._handshake(status)
+        return True
+
+    async def _handshake(self, status: Status) -> None:
+        """TBSY, ite and the heartbeat every :data:`FLAGS_PERIOD` (the heartbeat only to an armed watchdog)."""
+        if time.monotonic() < self._flags_due:
+            return
+        self._flags_due = time.monotonic() + FLAGS_PERIOD
+        self._beats += 1
+        await _publish(self.link, TuneFlags(tbsy=True, te=False, ite=status.ite),
+                       self._beats if self.plan.handback.watchdog > 0.0 else None)
+        self.overload.io_end = time.monotonic()
+
+    def design_job(self) -> DesignJob:
+        """What the design gets: the ended experiment's, or an overload's when the verdict may be the tuner's."""
+        plan, overload = self.plan, self.overload
+        job = DesignJob.of(self.experiment, plan.controller, plan.ms)
+        if overload.count and job.code in BLAMES_PROCESS:
+            job = DesignJob(None, Code.OVERLOADED, f"{overload.message(plan.speed)} (the experiment had ended: "
+                            f"{job.message})", plan.controller, plan.ms, plan.relay.amp)
+        return job
+
+    def trace(self) -> Trace:
+        """The samples taken."""
+        return Trace(np.asarray(self.t, dtype=float), np.asarray(self.pv, dtype=float),
+                     np.asarray(self.mv, dtype=float))
+
+
 def _analysed(experiment: RelayExperiment) -> float:
     """Run the pending analysis of ``experiment`` (in a worker thread); the CPU seconds it took."""
     start = time.thread_time()
     experiment.analyse()
     return time.thread_time() - start
-
-
-class _Record:
-    """The samples a session took: times (plant s), PV and the MV held from each."""
-
-    def __init__(self) -> None:
-        self.t: list[float] = []
-        self.pv: list[float] = []
-        self.mv: list[float] = []
-
-    def add(self, t: float, pv: float, mv: float) -> None:
-        self.t.append(t)
-        self.pv.append(pv)
-        self.mv.append(mv)
-
-    def trace(self) -> Trace:
-        return Trace(np.asarray(self.t, dtype=float), np.asarray(self.pv, dtype=float),
-                     np.asarray(self.mv, dtype=float))
 
 
 async def _result(hooks: SessionHooks, job: DesignJob, trace: Trace) -> TuneResult:

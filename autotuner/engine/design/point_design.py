@@ -330,11 +330,17 @@ def _within_noise_budget(best: MigoResult, family: list[tuple[Process, float]], 
             break
         best = max((migo([_plant(m, margin) for m, margin in family], omega, ms, r, nd, w) for r in TD_RATIOS[1:]),
                    key=lambda m: m.ki)
+        if best.k <= 0.0:  # no PID with this slower filter meets the target on the family: the derivative goes
+            nd = -math.inf
+            break
     if nd >= ND_MIN and best.k * (1.0 + nd) * noise_std <= budget * (1.0 + 1e-6):
         return best, nd, (Code.DERIVATIVE_LIMITED, (
             f"derivative filter N lowered from {start:g} to {nd:.3g}: with the measured noise σ = {noise_std:.3g} "
             f"the MV noise stays within {MV_NOISE_BUDGET:g} × amp = {budget:.3g}"))
     pi = migo([_plant(m, margin) for m, margin in family], omega, ms, 0.0, start, w)
+    if pi.k <= 0.0:
+        raise ValueError(f"with the measured noise σ = {noise_std:.3g} no PID keeps the MV noise within "
+                         f"{MV_NOISE_BUDGET:g} × amp = {budget:.3g}, and no PI meets Ms {ms:g} on the model family")
     return pi, start, (Code.DERIVATIVE_DROPPED, (
         f"PID was asked for, but with the measured noise σ = {noise_std:.3g} even N = {ND_MIN:g} would put "
         f"more than {MV_NOISE_BUDGET:g} × amp = {budget:.3g} of noise on the MV: derivative action dropped, "

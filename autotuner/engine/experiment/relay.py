@@ -461,6 +461,14 @@ class RelayExperiment:
         """When the first ``n`` recorded MVs reached the process (s): the times their holds start from."""
         return np.asarray(self._s[:n])
 
+    @property
+    def stall_tolerance(self) -> float:
+        """The longest time without a sample (s) that leaves the estimates usable: a tenth of the period as well
+        as it is known now, and at least three sample intervals (a longer stall leaves its estimates out)."""
+        t = self._t
+        dt = (t[-1] - t[0]) / (len(t) - 1) if len(t) >= 2 else None
+        return max(_STALL * self._period_guess(dt), _GAP * (dt or 0.0))
+
     def status(self) -> Status:
         """Stage, progress (0–1), ite and the live relay/filter state."""
         if self.done:

@@ -22,10 +22,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 from drivers.link import Link, LinkError
 from drivers.simplc import SimulatedPlc, run
@@ -34,12 +35,13 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.experiment.relay import Status
 from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.config import LoopConfig
+from autotuner.service.daemon.capacity import Cost
 from autotuner.service.daemon.reach import connector, fresh_check, simulated_plc
 from autotuner.service.daemon.restore import Pending, Restored, restore_once
 from autotuner.service.daemon.timing import FLUSH_PERIOD, TimingBatch, Timings
 from autotuner.service.daemon.watch import Watch, WatchSink
 from autotuner.service.design_pool import Outcome
-from autotuner.service.link_session import OVERLOAD_LATE, SessionHooks, SessionPlan
+from autotuner.service.link_session import Fenced, SessionHooks, SessionPlan
 from autotuner.service.session_record import SessionRecord, read_gains
 from autotuner.service.session_runner import SessionOutcome, run_session
 
@@ -77,7 +79,17 @@ class Field(Protocol):
         """Start the simulated plants."""
 
     def watch(self) -> None:
-        """Start the watch of every loop (monitor, handshake)."""
+        """Serve every loop: start its watch (monitor, handshake); its writes never fenced (one daemon, no leases)."""
+
+    def serve(self, loop_id: str, until: float) -> None:
+        """Serve the loop (a lease taken): start its watch, allow writes to it until ``until`` (monotonic)."""
+
+    def grant(self, loop_id: str, until: float) -> None:
+        """Allow writes to a loop served until ``until`` (monotonic: a lease renewed)."""
+
+    def unserve(self, loop_id: str) -> None:
+        """Stop serving the loop at once (its lease lost or released): its watch ends, every write to it is refused
+        (:class:`~autotuner.service.link_session.Fenced`), a session on it ends without writing another word."""
 
     async def check(self, loop_id: str) -> None:
         """The fresh check before a TUNE touches the loop (raises Refused)."""
@@ -85,8 +97,13 @@ class Field(Protocol):
     async def run(self, loop_id: str, sid: str, user: str, plan: SessionPlan) -> SessionOutcome:
         """Session ``sid`` asked by ``user``: the loop taken over, sampled, handed back; its outcome."""
 
-    def abort(self, loop_id: str) -> None:
-        """TBRK: abort the loop's running session (nothing if none runs)."""
+    def abort(self, loop_id: str, sid: str) -> None:
+        """TBRK: abort session ``sid`` of the loop, at once or as soon as it starts here (an abort may arrive
+        before the session's own start, never after its end matters)."""
+
+    def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
+        """The share of a core the loop's sampler is predicted to need (:mod:`~autotuner.service.daemon.capacity`),
+        with a session of ``plan`` on the loop added (None: as it runs now)."""
 
     def cap(self, seconds: float) -> None:
         """No hand-back try of a running session starts later than ``seconds`` wall seconds from now."""
@@ -105,6 +122,38 @@ class Field(Protocol):
 
     async def stop(self) -> None:
         """End everything: the watches, then the simulated plants (after the sessions have ended)."""
+
+
+def nominal_rate(loops: list[LoopConfig], sessions: dict[str, SessionPlan]) -> float:
+    """Samples per second (wall) of ``sessions`` (by loop id) and of the monitor of the other ``loops``."""
+    rate = 0.0
+    for loop in loops:
+        plan = sessions.get(loop.id)
+        rate += 1.0 / loop.monitor_period if plan is None else plan.speed / plan.ts
+    return rate
+
+
+class FencedLink:
+    """``link`` with every write refused (:class:`~autotuner.service.link_session.Fenced`) unless ``allowed()``:
+    a daemon that lost loop ``loop_id``'s lease writes nothing more to it; reads go through."""
+
+    WRITES = frozenset({"write_mv", "write_mode", "write_gains", "write_flags", "write_watchdog", "write_heartbeat"})
+
+    def __init__(self, link: Link, allowed: Callable[[], bool], loop_id: str) -> None:
+        self._link, self._allowed, self._loop_id = link, allowed, loop_id
+
+    def __getattr__(self, name: str) -> Any:
+        attribute = getattr(self._link, name)
+        if name not in self.WRITES:
+            return attribute
+
+        async def fenced(*args: Any) -> Any:
+            if not self._allowed():
+                raise Fenced(f"loop {self._loop_id}: this daemon's lease on it has expired or was taken over; "
+                             "nothing more is written to it (its owner restores it)")
+            return await attribute(*args)
+
+        return fenced
 
 
 @dataclass
@@ -131,13 +180,18 @@ class LocalField:
         for idle in self._idle.values():
             idle.set()
         self._sessions: dict[str, tuple[asyncio.Event, SessionPlan]] = {}
+        self._sids: dict[str, str] = {}  # the session id running on each loop
+        self._aborted: set[str] = set()  # sessions aborted before they started here
         self._halt = asyncio.Event()
         self._plants_halt = asyncio.Event()
-        self._watches: list[asyncio.Task[None]] = []
+        self._watches: dict[str, asyncio.Task[None]] = {}
+        # Until when (monotonic) each loop may be written; None: every loop always (no leases).
+        self._grants: dict[str, float] | None = None
         self._plants: list[asyncio.Task[None]] = []
         self._sink: FieldSink | None = None
         self._timings = Timings()
         self._flusher: asyncio.Task[None] | None = None
+        self.cost = Cost()
 
     def bind(self, sink: FieldSink) -> None:
         self._sink = sink
@@ -149,22 +203,55 @@ class LocalField:
                 self._plants.append(asyncio.create_task(run(reach.plc, reach.config.speed, self._plants_halt)))
 
     def watch(self) -> None:
+        for loop_id in self.reaches:
+            self._start_watch(loop_id)
+
+    def serve(self, loop_id: str, until: float) -> None:
+        self.grant(loop_id, until)
+        self._start_watch(loop_id)
+
+    def grant(self, loop_id: str, until: float) -> None:
+        if self._grants is None:
+            self._grants = {}
+        self._grants[loop_id] = until
+
+    def unserve(self, loop_id: str) -> None:
+        if self._grants is None:
+            self._grants = {}
+        self._grants.pop(loop_id, None)
+        watch = self._watches.pop(loop_id, None)
+        if watch is not None:
+            watch.cancel()
+
+    def _start_watch(self, loop_id: str) -> None:
         sink = self._sink
-        assert sink is not None, "the field is not started"
-        for loop_id, reach in self.reaches.items():
-            # The reach's connector is read at each use: a test may replace it.
-            watch = Watch(reach.config, lambda r=reach: r.connect(), sink, self._idle[loop_id], self._halt)
-            self._watches.append(asyncio.create_task(watch.run()))
+        assert sink is not None, "the field is not bound to its loop manager"
+        if loop_id not in self._watches:
+            watch = Watch(self.reaches[loop_id].config, lambda: self._connect(loop_id), sink, self._idle[loop_id],
+                          self._halt, self._timings.read)
+            self._watches[loop_id] = asyncio.create_task(watch.run())
+
+    def writable(self, loop_id: str) -> bool:
+        """The loop may be written now (no leases, or its lease valid here)."""
+        return self._grants is None or time.monotonic() < self._grants.get(loop_id, -math.inf)
+
+    def _connect(self, loop_id: str) -> Link:
+        """A new link to the loop, its writes fenced by the loop's lease. (The reach's connector is read at each
+        use: a test may replace it.)"""
+        return FencedLink(self.reaches[loop_id].connect(), lambda: self.writable(loop_id), loop_id)
 
     async def check(self, loop_id: str) -> None:
-        reach = self.reaches[loop_id]
-        await fresh_check(reach.config, reach.connect)
+        await fresh_check(self.reaches[loop_id].config, lambda: self._connect(loop_id))
 
     async def run(self, loop_id: str, sid: str, user: str, plan: SessionPlan) -> SessionOutcome:
         sink = self._sink
         assert sink is not None, "the field is not started"
         stop = asyncio.Event()
+        if sid in self._aborted:
+            self._aborted.discard(sid)
+            stop.set()  # aborted before it started: it ends before it touches the loop
         self._sessions[loop_id] = (stop, plan)
+        self._sids[loop_id] = sid
         self._idle[loop_id].clear()
         try:
             record = SessionRecord(lambda name, *args: sink.durable(loop_id, name, *args), sid, loop_id, user)
@@ -173,23 +260,32 @@ class LocalField:
                 tap = record.tap
                 sink.status(loop_id, s, tap.pv if tap else float("nan"), tap.mv if tap else float("nan"))
 
-            overload = OVERLOAD_LATE * plan.ts / plan.speed
             hooks = SessionHooks(stop=stop, on_status=status,
                                  on_handed_back=lambda error: sink.handed_back(loop_id, error),
-                                 on_timing=lambda late, own: self._timings.add(loop_id, late, own, overload),
+                                 on_timing=lambda late, own, tolerance: self._timings.add(loop_id, late, own,
+                                                                                          tolerance),
                                  on_analysis=self._timings.analysed, design=sink.design)
-            return await run_session(self.reaches[loop_id].connect, plan, record, hooks)
+            return await run_session(lambda: self._connect(loop_id), plan, record, hooks)
         finally:
             del self._sessions[loop_id]
+            del self._sids[loop_id]
             self._idle[loop_id].set()
 
-    def running(self) -> list[str]:
-        """The loops whose session runs now."""
-        return list(self._sessions)
+    def running(self) -> dict[str, str]:
+        """The sessions running now: session id by loop id."""
+        return dict(self._sids)
 
-    def abort(self, loop_id: str) -> None:
-        if loop_id in self._sessions:
+    def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
+        sessions = {loop: p for loop, (_, p) in self._sessions.items()}
+        if plan is not None:
+            sessions[loop_id] = plan
+        return self.cost.load(nominal_rate([r.config for r in self.reaches.values()], sessions))
+
+    def abort(self, loop_id: str, sid: str) -> None:
+        if self._sids.get(loop_id) == sid:
             self._sessions[loop_id][0].set()
+        else:
+            self._aborted.add(sid)
 
     def cap(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds
@@ -197,7 +293,7 @@ class LocalField:
             plan.handback.cap = deadline
 
     async def write_gains(self, loop_id: str, gains: Gains) -> Gains:
-        link = self.reaches[loop_id].connect()
+        link = self._connect(loop_id)
         try:
             await link.open()
             await link.write_gains(gains)
@@ -210,7 +306,7 @@ class LocalField:
 
     async def read_gains(self, loop_id: str) -> Gains | None:
         try:
-            link = self.reaches[loop_id].connect()
+            link = self._connect(loop_id)
         except LinkError:
             return None
         try:
@@ -222,22 +318,24 @@ class LocalField:
             await link.close()
 
     async def restore(self, loop_id: str, pending: Pending, track_timeout: float) -> Restored:
-        return await restore_once(self.reaches[loop_id].connect(), pending, track_timeout)
+        return await restore_once(self._connect(loop_id), pending, track_timeout)
 
     async def halt_watches(self) -> None:
         self._halt.set()
-        for watch in self._watches:
+        watches, self._watches = list(self._watches.values()), {}
+        for watch in watches:
             watch.cancel()
-        if self._watches:
-            await asyncio.wait(self._watches, timeout=STOP_WAIT)
-        self._watches = []
+        if watches:
+            await asyncio.wait(watches, timeout=STOP_WAIT)
 
     async def _flush(self) -> None:
         """Every :data:`FLUSH_PERIOD`: the sessions' timings since the last batch, to the sink."""
         while True:
             await asyncio.sleep(FLUSH_PERIOD)
             batch = self._timings.take()
-            if batch is not None and self._sink is not None:
+            self.cost.update(batch.cpu, batch.late.count + batch.readings)
+            batch.cost = self.cost.per_sample
+            if self._sink is not None:
                 self._sink.timings(batch)
 
     async def stop(self) -> None:

@@ -20,7 +20,7 @@ from autotuner.service.daemon.events import LoopEvents
 from autotuner.service.daemon.field import Reach
 from autotuner.service.daemon.restore import Pending
 from autotuner.service.daemon.settings import settings_of
-from autotuner.service.daemon.status import LoopStatus, UnitsRecord
+from autotuner.service.daemon.status import LoopStatus, OwnerRecord, UnitsRecord
 from autotuner.service.link_session import not_restored
 
 
@@ -71,6 +71,7 @@ class Loop:
     applying: bool = False
     pending: Pending | None = None
     restorer: asyncio.Task[None] | None = None
+    owner: OwnerRecord | None = None  # in a fleet: the daemon holding the loop's lease
     events: LoopEvents = field(default_factory=LoopEvents)
     link_errors: int = 0  # failures of its watch's link and sessions ended by a link fault, since the start
 
@@ -137,7 +138,7 @@ class Loop:
             last_outcome=None if self.latest is None else self.latest["outcome"],
             pending_gains=self.pending_gains, monitor_error=self.monitor_error,
             defaults=settings_of(c, TuneRequest()), units=_units(c),
-            restore=None if p is None else p.status())
+            restore=None if p is None else p.status(), owner=self.owner)
 
     def as_json(self) -> dict[str, Any]:
         """The status as JSON (:meth:`status_record`)."""

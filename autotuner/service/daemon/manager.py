@@ -53,11 +53,13 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.design.analysis import usable_gains
 from autotuner.engine.experiment.relay import Stage, Status
 from autotuner.engine.outcome import Code
-from autotuner.engine.result import ResultRecord, TuneResult
+from autotuner.engine.result import TuneResult
 from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.config import DaemonConfig, HandBackConfig, TuneRequest
 from autotuner.service.daemon.field import Field, LocalField
+from autotuner.service.daemon.fleet import Fleet
 from autotuner.service.daemon.loop import Loop, Session
+from autotuner.service.daemon.status import OwnerRecord
 from autotuner.service.daemon.recorder import Recorder
 from autotuner.service.daemon.refused import Refused
 from autotuner.service.daemon.restore import Pending
@@ -66,7 +68,7 @@ from autotuner.service.daemon.timing import Histogram, TimingBatch
 from autotuner.service.daemon.watch import Reading
 from autotuner.service.design_pool import Outcome, close_design_pool, designed
 from autotuner.service.history import History, downsample, state_of
-from autotuner.service.link_session import NotTracking
+from autotuner.service.link_session import NotTracking, SessionPlan
 from autotuner.service.session_record import mv_hull, same_gains, waited
 from autotuner.service.session_runner import SessionOutcome
 
@@ -104,10 +106,16 @@ class Sampling:
 
 class LoopManager:
     """All loops of ``config``; sessions recorded in ``history``; their devices reached through ``field``
-    (default: a :class:`~autotuner.service.daemon.field.LocalField` on this event loop)."""
+    (default: a :class:`~autotuner.service.daemon.field.LocalField` on this event loop); with ``fleet``, only the
+    loops whose leases this daemon holds are served (the others' commands refused as not_owner)."""
 
-    def __init__(self, config: DaemonConfig, history: History, field: Field | None = None) -> None:
+    def __init__(self, config: DaemonConfig, history: History, field: Field | None = None,
+                 fleet: Fleet | None = None) -> None:
         self.history = history
+        self.fleet = fleet
+        self._fleet_task: asyncio.Task[None] | None = None
+        if fleet is not None:
+            fleet.idle = self._releasable
         self.recorder = Recorder(history)
         self.field: Field = LocalField(config.loops) if field is None else field
         reaches = getattr(self.field, "reaches", {})
@@ -117,7 +125,7 @@ class LoopManager:
         self._shutdown: asyncio.Task[list[str]] | None = None
         self._streams_closed = False
         self._reconcilers: list[asyncio.Task[None]] = []
-        self.max_sessions = config.max_sessions
+        self.max_sessions, self.sampler_load = config.max_sessions, config.sampler_load
         self.sampling = Sampling()
         self.outcomes: Counter[int] = Counter()  # sessions ended since the start, by code
         self._overloaded_until = -math.inf
@@ -127,28 +135,95 @@ class LoopManager:
 
     async def start(self) -> None:
         """Start the field (simulated plants); put back the loops of sessions a crash left running or not restored;
-        then watch every loop.
+        then watch every loop. In a fleet, only the loops whose leases this daemon takes (a first round of
+        :class:`~autotuner.service.daemon.fleet.Fleet`, then one every ``renew`` seconds).
 
         One try each, at once and together; a loop that cannot be handed back
         yet (its device offline) is retried in the background: the start
         never waits for a device.
         """
         await self.field.start()
+        if self.fleet is None:
+            await self._take_over(set(self.loops), orphans=True)
+            self.field.watch()  # after the restores: a watch never reads a loop a restore is still putting back
+            return
+        await self._fleet_round(orphans=True)
+        self._fleet_task = asyncio.create_task(self._fleet_rounds())
+
+    async def _take_over(self, loop_ids: set[str], orphans: bool = False) -> None:
+        """Take ``loop_ids`` over: recover their sessions left running or not restored (one restore try each, the
+        failed ones retried in the background), reconcile their open gains intents, read their newest session.
+        ``orphans``: also close the sessions of loops no longer configured (at the start)."""
         left = await self.recorder.record(lambda: (*self.history.running(), *self.history.not_restored()))
-        recovered = [loop for record in left if (loop := self._recover(record)) is not None]
+        mine = [record for record in left
+                if record["loop"] in loop_ids or (orphans and record["loop"] not in self.loops)]
+        recovered = [loop for record in mine if (loop := self._recover(record)) is not None]
         done = await asyncio.gather(*(self._try_restore(loop) for loop in recovered))
         for loop, ok in zip(recovered, done):
             if not ok:
                 loop.restorer = asyncio.create_task(self._restore_until_held(loop))
         for record in await self.recorder.record(self.history.open_intents):
-            self._reconcilers.append(asyncio.create_task(self._reconcile(record)))
-        for loop_id, loop in self.loops.items():
+            if record["loop"] in loop_ids:
+                self._reconcilers.append(asyncio.create_task(self._reconcile(record)))
+        for loop_id in loop_ids:
+            loop = self.loops[loop_id]
             loop.latest = await self.recorder.record(self.history.latest, loop_id)
             if loop.latest is not None:  # its trace, so a page opened after the restart draws the last experiment
                 record = await self.recorder.record(self.history.get, loop.latest["id"])
                 if record is not None:
                     loop.events.trend.seed(record, loop.config.speed)
-        self.field.watch()  # after the restores: a watch never reads a loop a restore is still putting back
+
+    async def _fleet_rounds(self) -> None:
+        """A fleet round every ``renew`` seconds until the daemon stops (a round that fails is logged and retried:
+        meanwhile the leases held run out, and their loops' writes with them)."""
+        assert self.fleet is not None
+        while not self._stopping:
+            await asyncio.sleep(self.fleet.renew)
+            try:
+                await self._fleet_round()
+            except Exception as exc:  # the database unreachable: the leases run out, writes are fenced meanwhile
+                log.error("fleet: the leases could not be renewed (%s: %s); retrying", type(exc).__name__, exc)
+
+    async def _fleet_round(self, orphans: bool = False) -> None:
+        """Renew, give up and take leases (:meth:`Fleet.round`); serve what was gained, stop serving what was lost
+        (``orphans``: see :meth:`_take_over`)."""
+        fleet = self.fleet
+        assert fleet is not None
+        done = await fleet.round()
+        for loop_id in done.lost | done.released:
+            self.field.unserve(loop_id)  # fenced at once: a session on it ends without another write
+        if done.released:
+            log.info("fleet: released %d idle loop(s) to the other daemons (%s): %s", len(done.released),
+                     "drained" if fleet.draining else "evening the loops out", ", ".join(sorted(done.released)))
+        for loop_id in fleet.held:
+            self.field.grant(loop_id, done.valid_until)
+        if done.gained:
+            log.info("fleet: took over %d loop(s): %s", len(done.gained), ", ".join(sorted(done.gained)))
+            await self._take_over(set(done.gained), orphans)
+            for loop_id in done.gained:
+                self.field.serve(loop_id, done.valid_until)
+        for loop_id, loop in self.loops.items():
+            owner = fleet.owners.get(loop_id)
+            record = None if owner is None or not owner.live else OwnerRecord(owner.name, owner.url, owner.epoch)
+            if record != loop.owner:
+                loop.owner = record
+                self._publish(loop, "state", loop.as_json())
+
+    def _releasable(self, loop_id: str) -> bool:
+        """The loop may go to another daemon now: no session, no restore pending, no gains being written."""
+        loop = self.loops[loop_id]
+        return not loop.busy and loop.pending is None and not loop.applying
+
+    def _check_owner(self, loop: Loop) -> None:
+        """Refused('not_owner') unless this daemon holds the loop's lease (always, without a fleet)."""
+        if self.fleet is None or self.fleet.valid(loop.config.id):
+            return
+        owner = loop.owner
+        if owner is None:
+            raise Refused("not_owner", f"no daemon of the fleet holds loop {loop.config.id!r} right now (its lease "
+                          "is free or being taken over): retry in a few seconds")
+        raise Refused("not_owner", f"loop {loop.config.id!r} is served by daemon {owner.name} at {owner.url} "
+                      f"(lease epoch {owner.epoch}): ask it", owner_url=owner.url)
 
     async def shutdown(self) -> list[str]:
         """Abort every session (TBRK) and hand every loop back first, within ``handback.shutdown`` seconds, then
@@ -168,8 +243,8 @@ class LoopManager:
             restorer.cancel()
         tasks = [loop.running.task for loop in self.loops.values() if loop.running and loop.running.task]
         for loop_id, loop in self.loops.items():
-            if loop.busy:
-                self.field.abort(loop_id)
+            if loop.running is not None:
+                self.field.abort(loop_id, loop.running.sid)
         self.field.cap(bound)  # no hand-back try of a session starts past the bound
         log.log(logging.WARNING if tasks or restorers else logging.INFO,
                 "stopping: %d experiment(s) aborted, every loop handed back first (at most %g s)", len(tasks), bound)
@@ -219,8 +294,16 @@ class LoopManager:
         return self._stopping
 
     async def stop(self) -> None:
-        """:meth:`shutdown` (if not done yet), then stop the field (its plants) and the design's workers."""
+        """:meth:`shutdown` (if not done yet), then give up the fleet's leases (another daemon takes the loops at
+        once), stop the field (its plants) and the design's workers."""
         await self.shutdown()
+        if self._fleet_task is not None:
+            self._fleet_task.cancel()
+        if self.fleet is not None:
+            try:
+                await self.fleet.leave()
+            except Exception as exc:  # the leases then run out by themselves
+                log.warning("fleet: the leases could not be released (%s); they expire", exc)
         for reconciler in self._reconcilers:
             reconciler.cancel()
         await self.recorder.drain(STOP_WAIT)  # what the sessions' ends still have to record
@@ -259,6 +342,7 @@ class LoopManager:
         loop_id = loop.config.id
         if self._stopping:
             raise Refused("stopping", "the daemon is stopping")
+        self._check_owner(loop)
         if loop.busy:
             raise Refused("busy", f"loop {loop_id!r} is tuning (session {loop.session})")
         if loop.pending is not None:
@@ -266,26 +350,32 @@ class LoopManager:
                                           f"{loop.pending.error}")
         if loop.applying:
             raise Refused("busy", f"gains are being written to loop {loop_id!r}")
-        self._check_capacity(loop_id)
+        settings = settings_of(loop.config, request)
+        self._check_capacity(loop_id, plan_of(loop.config, settings))
         group = loop.config.group
         if group is not None:
             for other in self.loops.values():
                 if other.busy and other.config.group == group:
                     raise Refused("group_busy", f"loop {other.config.id!r} of exclusion group {group!r} is tuning",
                                   Code.GROUP_BUSY)
-        settings = settings_of(loop.config, request)
         if settings.amp > loop.config.max_amp:
             raise Refused("invalid", f"amp: {settings.amp:g} is above loop {loop_id!r}'s largest relay amplitude "
                           f"{loop.config.max_amp:g} MV units (the span of its MV limits, else its tuning.max_amp)")
         return settings
 
-    def _check_capacity(self, loop_id: str) -> None:
-        """Refused('overloaded') while the daemon tunes ``max_sessions`` loops, or while its samples are late by its
-        own fault (:data:`OVERLOAD_HOLD` seconds after the last such sample, while any session runs)."""
+    def _check_capacity(self, loop_id: str, plan: SessionPlan) -> None:
+        """Refused('overloaded') while the daemon tunes ``max_sessions`` loops, while the loop's sampler would need
+        more than ``sampler_load`` of a core with ``plan``'s session added (:mod:`~autotuner.service.daemon.capacity`),
+        or while its samples are late by its own fault (:data:`OVERLOAD_HOLD` seconds after the last such sample,
+        while any session runs)."""
         tuning = sum(loop.busy for loop in self.loops.values())
         if self.max_sessions is not None and tuning >= self.max_sessions:
             raise Refused("overloaded", f"loop {loop_id!r} not tuned: the daemon tunes {tuning} loops, its "
                           f"max_sessions; retry when one has ended", Code.REFUSED_OVERLOADED)
+        if (load := self.field.load(loop_id, plan)) > self.sampler_load:
+            raise Refused("overloaded", f"loop {loop_id!r} not tuned: with it, its sampler would need {load:.0%} of "
+                          f"a core, beyond its sampler_load {self.sampler_load:.0%} ({tuning} loops tuning); retry "
+                          "when fewer tune", Code.REFUSED_OVERLOADED)
         if tuning and time.monotonic() < self._overloaded_until:
             raise Refused("overloaded", f"loop {loop_id!r} not tuned: the daemon's samples of the {tuning} loops "
                           "it tunes are late by its own fault (a loaded machine); retry when fewer tune",
@@ -311,8 +401,9 @@ class LoopManager:
         """TBRK: abort the running session (the loop is restored); its id. Refused('idle') if none runs."""
         loop = self.get(loop_id)
         if loop.running is None:
+            self._check_owner(loop)  # another daemon's session: asked of the wrong daemon
             raise Refused("idle", f"loop {loop_id!r} is not tuning")
-        self.field.abort(loop_id)
+        self.field.abort(loop_id, loop.running.sid)
         return loop.running.sid
 
     async def apply(self, loop_id: str, sid: str | None, user: str) -> dict[str, Any]:
@@ -327,6 +418,7 @@ class LoopManager:
         nothing recorded).
         """
         loop = self.get(loop_id)
+        self._check_owner(loop)
         if loop.busy or loop.applying:
             raise Refused("busy", f"loop {loop_id!r} is tuning or being written")
         loop.applying = True  # before the first await: a TUNE or another apply meanwhile is refused
@@ -412,11 +504,11 @@ class LoopManager:
     # -- the session --------------------------------------------------------------------------------------------
 
     async def _session(self, loop: Loop, running: Session, user: str, settings: Settings) -> None:
+        """Run the session in the field; record its end (:meth:`_ended`), whatever way it ends."""
         sid, loop_id = running.sid, loop.config.id
         plan = plan_of(loop.config, settings, self.handback_config.session())
         outcome: SessionOutcome | None = None
         state, why_none = "finished", "aborted: the daemon stopped"
-        pending: Pending | None = None
         try:
             outcome = await self.field.run(loop_id, sid, user, plan)
         except asyncio.CancelledError:
@@ -426,53 +518,68 @@ class LoopManager:
             log.error("loop %s: session %s lost: %s", loop_id, sid, exc)
             state, why_none = "interrupted", f"interrupted: {exc}"
         finally:
-            try:
-                if outcome is None:  # cancelled (the field has handed the loop back, or said why not) or lost
-                    result: ResultRecord = TuneResult.failed(Code.ABORTED, why_none, settings.controller).record()
-                    restore_error = running.restore_error
-                    if restore_error is None:  # the hand-back never reported: not known to be done
-                        restore_error = "" if state == "finished" else why_none
-                    gains_after, trace, applied_by, intended = None, None, None, running.intended
-                else:
-                    result, restore_error, gains_after = outcome.result.record(), outcome.restore_error, \
-                        outcome.gains_after
-                    trace, applied_by, intended = downsample(outcome.result.trace), outcome.applied_by, \
-                        outcome.intended
-                loop.result = result
-                self.outcomes[result.ite] += 1
-                if result.ite == Code.LINK_FAULT:
-                    loop.link_errors += 1
-                if restore_error and running.saved is not None:  # shown with the idle loop, not while still busy
-                    pending = Pending(sid, running.saved, running.mv_range or mv_hull(running.saved.mv,
-                                                                                      *running.levels),
-                                      Code(result.ite), state, restore_error)
-                    log.error("loop %s: LOOP NOT RESTORED at the end of session %s (%s); retrying", loop_id, sid,
-                              restore_error)
-                end = (self.history.finish, sid, result, gains_after, trace,
-                       "not_restored" if pending is not None else state, applied_by)
-                if self._stopping:  # the shutdown's bound is for the hand-back: the record goes on in its thread
-                    self.recorder.record(*end)
-                elif why := await self.recorder.durable(*end):
-                    log.error("loop %s: the end of session %s is not recorded yet: %s", loop_id, sid, why)
-                if intended is not None and gains_after is None:  # unknown whether the write happened: ask later
-                    self._reconcilers.append(asyncio.create_task(self._reconcile(
-                        {"id": sid, "loop": loop_id, "gains_intent": {"gains": intended.as_json()}})))
-                refreshed = self._refresh_latest(loop)
-                if not self._stopping:
-                    # Awaited (bounded) before the loop shows idle: a client that sees TBSY fall reads this
-                    # session as the last one (last_outcome, pending_gains), not the one before it.
-                    await waited(refreshed)
-                if running.saved is not None and pending is None:  # what the session left: its mode, the gains
-                    loop.mode, loop.gains, loop.sp = Mode(running.saved.mode), gains_after, running.saved.sp
-                if math.isfinite(running.pv):  # the session's last values, not the monitor's
-                    loop.pv = running.pv
-                    loop.mv = running.mv if math.isfinite(running.mv) else loop.mv
-            finally:  # whatever failed above, the loop is idle again (TUNE accepted, TBRK refused)
+            if self.fleet is not None and not self.fleet.valid(loop_id):
+                # The lease is gone: the loop's new owner recovers this session from the history and restores the
+                # loop; this daemon records and writes nothing more for it.
+                log.warning("loop %s: session %s ended after this daemon lost the loop's lease; its new owner "
+                            "recovers it", loop_id, sid)
                 loop.running = None
-                loop.pending = pending
-                if pending is not None and not self._stopping:
-                    loop.restorer = asyncio.create_task(self._restore_until_held(loop))
                 self._publish(loop, "state", loop.as_json())
+            else:
+                if outcome is None:  # cancelled (the field has handed the loop back, or said why not) or lost
+                    outcome = self._unfinished(running, settings, state, why_none)
+                await self._ended(loop, running, outcome, state)
+
+    @staticmethod
+    def _unfinished(running: Session, settings: Settings, state: str, why: str) -> SessionOutcome:
+        """The outcome of a session cancelled or lost in the field: aborted, ``why``; handed back as its hand-back
+        reported (not known to be handed back if it never did, unless it ended normally)."""
+        restore_error = running.restore_error
+        if restore_error is None:  # the hand-back never reported: not known to be done
+            restore_error = "" if state == "finished" else why
+        return SessionOutcome(TuneResult.failed(Code.ABORTED, why, settings.controller), None, restore_error, None,
+                              running.intended)
+
+    async def _ended(self, loop: Loop, running: Session, outcome: SessionOutcome, state: str) -> None:
+        """Record the session's end; the loop idle again — or pending its restore, retried — whatever fails here."""
+        sid, loop_id = running.sid, loop.config.id
+        pending: Pending | None = None
+        try:
+            result = loop.result = outcome.result.record()
+            self.outcomes[result.ite] += 1
+            if result.ite == Code.LINK_FAULT:
+                loop.link_errors += 1
+            if outcome.restore_error and running.saved is not None:  # shown with the idle loop, not while busy
+                pending = Pending(sid, running.saved, running.mv_range or mv_hull(running.saved.mv, *running.levels),
+                                  Code(result.ite), state, outcome.restore_error)
+                log.error("loop %s: LOOP NOT RESTORED at the end of session %s (%s); retrying", loop_id, sid,
+                          outcome.restore_error)
+            trace = downsample(outcome.result.trace) if len(outcome.result.trace.t) else None
+            end = (self.history.finish, sid, result, outcome.gains_after, trace,
+                   "not_restored" if pending is not None else state, outcome.applied_by)
+            if self._stopping:  # the shutdown's bound is for the hand-back: the record goes on in its thread
+                self.recorder.record(*end)
+            elif why := await self.recorder.durable(*end):
+                log.error("loop %s: the end of session %s is not recorded yet: %s", loop_id, sid, why)
+            if outcome.intended is not None and outcome.gains_after is None:  # unknown whether it was written
+                self._reconcilers.append(asyncio.create_task(self._reconcile(
+                    {"id": sid, "loop": loop_id, "gains_intent": {"gains": outcome.intended.as_json()}})))
+            refreshed = self._refresh_latest(loop)
+            if not self._stopping:
+                # Awaited (bounded) before the loop shows idle: a client that sees TBSY fall reads this session as
+                # the last one (last_outcome, pending_gains), not the one before it.
+                await waited(refreshed)
+            if running.saved is not None and pending is None:  # what the session left: its mode, the gains
+                loop.mode, loop.gains, loop.sp = Mode(running.saved.mode), outcome.gains_after, running.saved.sp
+            if math.isfinite(running.pv):  # the session's last values, not the monitor's
+                loop.pv = running.pv
+                loop.mv = running.mv if math.isfinite(running.mv) else loop.mv
+        finally:  # whatever failed above, the loop is idle again (TUNE accepted, TBRK refused)
+            loop.running = None
+            loop.pending = pending
+            if pending is not None and not self._stopping:
+                loop.restorer = asyncio.create_task(self._restore_until_held(loop))
+            self._publish(loop, "state", loop.as_json())
 
     # -- what the field reports (FieldSink) ---------------------------------------------------------------------
 

@@ -16,17 +16,20 @@ class Refused(Exception):
     daemon tunes as many loops at once as it can), or — TUNE on a fresh read of
     the loop (:func:`~autotuner.service.daemon.reach.fresh_check`) —
     pv_out_of_limits, pv_invalid (not finite, or stale), link_unhealthy,
-    device_busy (the device already shows TBSY: another tuner owns the loop).
+    device_busy (the device already shows TBSY: another tuner owns the loop);
+    not_owner (another daemon of the fleet holds the loop's lease: ``owner_url``
+    is its API, where the request belongs).
     ``ite``: what a refused TUNE from the device shows it (TE set); None:
     nothing is written to the device.
     """
 
-    def __init__(self, code: str, message: str, ite: Code | None = None) -> None:
+    def __init__(self, code: str, message: str, ite: Code | None = None, owner_url: str | None = None) -> None:
         super().__init__(message)
         self.code = code
         self.message = message
         self.ite = ite
+        self.owner_url = owner_url
 
-    def __reduce__(self) -> tuple[type[Refused], tuple[str, str, Code | None]]:
-        # Refusals cross the channel to a sampler process: pickled with their three arguments.
-        return Refused, (self.code, self.message, self.ite)
+    def __reduce__(self) -> tuple[type[Refused], tuple[str, str, Code | None, str | None]]:
+        # Refusals cross the channel to a sampler process: pickled with their arguments.
+        return Refused, (self.code, self.message, self.ite, self.owner_url)

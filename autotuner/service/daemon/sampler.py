@@ -11,7 +11,7 @@ sampler over a socket pair (:class:`~autotuner.service.channel.Peer`):
 front → sampler
     calls ``start``, ``check``, ``run``, ``write_gains``, ``read_gains``,
     ``restore``, ``halt_watches``, ``stop``; notifications ``watch``,
-    ``abort``, ``cap``.
+    ``serve``, ``grant``, ``unserve`` (a fleet's leases), ``abort``, ``cap``.
 sampler → front
     calls ``durable`` (a session's record in the history), ``design`` (in the
     daemon's worker pool), ``edges`` (the device's TUNE/TBRK bits changed);
@@ -28,12 +28,14 @@ are restored as after a crash of the daemon (docs/handback.md).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import os
 import signal
-import socket
 import subprocess
 import sys
 from collections.abc import Awaitable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,10 +45,11 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.experiment.relay import Status
 from autotuner.engine.outcome import Code
 from autotuner.engine.simulated_tuning import DesignJob
-from autotuner.service.channel import (Channel, Peer, PeerLost, cpu_seconds, forward_logs, log_levels, log_record,
+from autotuner.service.channel import (Channel, Peer, PeerLost, child_start, cpu_seconds, log_levels, log_record,
                                        start_child)
 from autotuner.service.config import LoopConfig
-from autotuner.service.daemon.field import FieldSink, LocalField
+from autotuner.service.daemon.capacity import Cost
+from autotuner.service.daemon.field import FieldSink, LocalField, nominal_rate
 from autotuner.service.daemon.refused import Refused
 from autotuner.service.daemon.restore import Pending, Restored
 from autotuner.service.daemon.timing import TimingBatch
@@ -58,15 +61,26 @@ from autotuner.service.session_runner import SessionOutcome
 MODULE = "autotuner.service.daemon.sampler"
 # What each side serves of the other's messages.
 SAMPLER_CALLS = frozenset({"start", "check", "run", "write_gains", "read_gains", "restore", "halt_watches", "stop"})
-SAMPLER_NOTES = frozenset({"watch", "abort", "cap"})
+SAMPLER_NOTES = frozenset({"watch", "serve", "grant", "unserve", "abort", "cap"})
 FRONT_CALLS = frozenset({"durable", "design", "edges"})
 FRONT_NOTES = frozenset({"status", "handed_back", "timings", "reading", "link_failed", "link_back"})
+# Threads a sampler analyses its sessions' periods in (one period's analysis is bounded: docs/experiment.md).
+ANALYSIS_THREADS = 2
 # How long a sampler whose daemon is gone may take to hand its loops back, wall seconds.
 LOST_HANDBACK = 20.0
 # How long the daemon waits for a sampler to start (imports, plants) and to stop, wall seconds.
 START_WAIT, STOP_WAIT = 60.0, 30.0
 # Pause before a sampler that died is started again, wall seconds.
 RESTART_PAUSE = 1.0
+# A sampler asks the kernel for real-time round-robin scheduling at this priority (1–99): it then runs as soon as it
+# wakes for a sample, before any ordinary process, however busy the machine (and whatever its sessions' groups:
+# nice values only count within one). Its analysis threads get a lower real-time priority: above every ordinary
+# process, so one holding the GIL is never starved while the event loop waits for it, below the event loop.
+# Without the privilege (CAP_SYS_NICE), nice PRIORITY_NICE, else nothing. (The kernel caps real-time tasks at 95 %
+# of a core each second by default, so a runaway sampler cannot freeze the machine.)
+RT_PRIORITY, ANALYSIS_RT_PRIORITY, PRIORITY_NICE = 20, 10, -5
+# The GIL's switch interval in a sampler, seconds: the event loop waits at most this for an analysis thread's GIL.
+SWITCH_INTERVAL = 0.001
 # The loggers whose levels a sampler takes from the daemon's.
 LEVELS = ("", "autotuner", "pymodbus", "can")
 log = logging.getLogger("autotuner.service.daemon")
@@ -142,12 +156,14 @@ class _Sampler:
 async def serve(fd: int) -> None:
     """The sampler's work: the daemon's init over the socket ``fd``, then its calls until told to stop or the
     daemon is gone (then every loop is handed back first)."""
-    channel = await Channel.open(socket.socket(fileno=fd))
-    message = await channel.receive()
-    if message is None or message[0] != "init":
+    started = await child_start(fd)
+    if started is None:
         return
-    init: SamplerInit = message[1]
-    forward_logs(channel, init.levels)
+    channel, init = started
+    realtime = _raise_priority(init.shard)
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    asyncio.get_running_loop().set_default_executor(ThreadPoolExecutor(
+        ANALYSIS_THREADS, thread_name_prefix="analysis", initializer=_analysis_priority if realtime else None))
     field = LocalField(init.loops)
     sampler = _Sampler(field)
     peer = Peer(channel, sampler, SAMPLER_CALLS, SAMPLER_NOTES)
@@ -155,12 +171,38 @@ async def serve(fd: int) -> None:
     channel.send("ready")
     await peer.serve()
     if not sampler.stopped.is_set():  # the daemon is gone: its sessions' loops are handed back before the end
-        for loop_id in field.running():
-            field.abort(loop_id)
+        for loop_id, sid in field.running().items():
+            field.abort(loop_id, sid)
         field.cap(LOST_HANDBACK)
         await peer.drain(LOST_HANDBACK + 5.0)
         await field.stop()
     await channel.close()
+
+
+def _raise_priority(shard: int) -> bool:
+    """Real-time scheduling for this (the event loop's) thread, else a higher nice value, else nothing (said once);
+    True with real time."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(RT_PRIORITY))
+        log.info("sampler %d runs with real-time priority (SCHED_RR %d)", shard, RT_PRIORITY)
+        return True
+    except (PermissionError, OSError):
+        pass
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, PRIORITY_NICE)
+        log.info("sampler %d runs at nice %d (no real-time priority: it needs CAP_SYS_NICE and, where the kernel "
+                 "schedules real time by groups, a real-time budget for its cgroup: docs/daemon.md)", shard,
+                 PRIORITY_NICE)
+    except PermissionError:
+        log.info("sampler %d runs at the same priority as the API (a higher one needs CAP_SYS_NICE): a machine "
+                 "busy with other programs can delay its samples", shard)
+    return False
+
+
+def _analysis_priority() -> None:
+    """In an analysis thread of a real-time sampler: a lower real-time priority than the event loop's."""
+    with contextlib.suppress(PermissionError, OSError):
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(ANALYSIS_RT_PRIORITY))
 
 
 def main(argv: list[str]) -> int:
@@ -180,11 +222,14 @@ class _Shard:
 
     def __init__(self, number: int, loops: list[LoopConfig]) -> None:
         self.number, self.loops = number, loops
+        self.cost = Cost()  # the sampler's own estimate, from its timings
+        self.sessions: dict[str, SessionPlan] = {}  # running here, by loop id
+        self.served: dict[str, float] = {}  # a fleet's loops served here and until when they may be written
         self.process: subprocess.Popen[bytes] | None = None
         self.peer: Peer | None = None
         self.watching = False
         self.stopping = False
-        self._served: asyncio.Task[None] | None = None
+        self._serving: asyncio.Task[None] | None = None
 
     async def start(self, sink: FieldSink) -> None:
         """Start the process and its field (plants); back once it is ready."""
@@ -197,11 +242,13 @@ class _Shard:
             await channel.close()
             self._kill()
             raise
-        self.peer = Peer(channel, sink, FRONT_CALLS, FRONT_NOTES)
-        self._served = asyncio.create_task(self._serve(sink))
+        self.peer = Peer(channel, _FromSampler(self, sink), FRONT_CALLS, FRONT_NOTES)
+        self._serving = asyncio.create_task(self._serve(sink))
         await self.peer.call("start")
-        if self.watching:
+        if self.watching:  # (a sampler started again: what the one before did)
             self.peer.note("watch")
+        for loop_id, until in self.served.items():
+            self.peer.note("serve", loop_id, until)
 
     async def _ready(self, channel: Channel) -> None:
         while (message := await channel.receive()) is not None:
@@ -252,8 +299,8 @@ class _Shard:
             log.warning("sampler %d did not stop cleanly: %s", self.number, exc)
         if self.peer is not None:
             await self.peer.channel.close()
-        if self._served is not None:
-            await asyncio.gather(self._served, return_exceptions=True)
+        if self._serving is not None:
+            await asyncio.gather(self._serving, return_exceptions=True)
         try:
             await asyncio.to_thread(self._wait, STOP_WAIT)
         except subprocess.TimeoutExpired:
@@ -270,6 +317,20 @@ class _Shard:
         if self.process is not None and self.process.poll() is None:
             self.process.kill()
             self.process.wait()
+
+
+class _FromSampler:
+    """What a sampler tells the daemon goes to its sink; its timings also update the shard's cost estimate."""
+
+    def __init__(self, shard: _Shard, sink: FieldSink) -> None:
+        self.shard, self.sink = shard, sink
+
+    def timings(self, batch: TimingBatch) -> None:
+        self.shard.cost.per_sample = batch.cost
+        self.sink.timings(batch)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.sink, name)
 
 
 def shards_of(loops: list[LoopConfig], count: int) -> list[list[LoopConfig]]:
@@ -332,6 +393,21 @@ class SamplerField:
             shard.watching = True
             shard.note("watch")
 
+    def serve(self, loop_id: str, until: float) -> None:
+        shard = self._of[loop_id]
+        shard.served[loop_id] = until
+        shard.note("serve", loop_id, until)
+
+    def grant(self, loop_id: str, until: float) -> None:
+        shard = self._of[loop_id]
+        shard.served[loop_id] = until
+        shard.note("grant", loop_id, until)
+
+    def unserve(self, loop_id: str) -> None:
+        shard = self._of[loop_id]
+        shard.served.pop(loop_id, None)
+        shard.note("unserve", loop_id)
+
     async def check(self, loop_id: str) -> None:
         try:
             await self._of[loop_id].call("check", loop_id)
@@ -339,10 +415,20 @@ class SamplerField:
             raise Refused("link_unhealthy", f"loop {loop_id!r} not tuned: {exc}", Code.REFUSED_LINK) from None
 
     async def run(self, loop_id: str, sid: str, user: str, plan: SessionPlan) -> SessionOutcome:
-        return await self._of[loop_id].call("run", loop_id, sid, user, plan)
+        shard = self._of[loop_id]
+        shard.sessions[loop_id] = plan
+        try:
+            return await shard.call("run", loop_id, sid, user, plan)
+        finally:
+            del shard.sessions[loop_id]
 
-    def abort(self, loop_id: str) -> None:
-        self._of[loop_id].note("abort", loop_id)
+    def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
+        shard = self._of[loop_id]
+        sessions = shard.sessions if plan is None else {**shard.sessions, loop_id: plan}
+        return shard.cost.load(nominal_rate(shard.loops, sessions))
+
+    def abort(self, loop_id: str, sid: str) -> None:
+        self._of[loop_id].note("abort", loop_id, sid)
 
     def cap(self, seconds: float) -> None:
         for shard in self._shards:

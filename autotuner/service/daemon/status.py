@@ -49,6 +49,16 @@ class RestoreStatus:
 
 
 @dataclass(frozen=True)
+class OwnerRecord:
+    """The daemon of the fleet that serves a loop (holds its lease): only it tunes, applies and restores it."""
+
+    name: str = described("the daemon's name in the fleet", example="autotuner-a")
+    url: str = described("where its API answers (commands for the loop go there)", example="http://10.0.0.5:8000")
+    epoch: int = described("the lease's epoch: it grows by one each time another daemon takes the loop over",
+                           example=3)
+
+
+@dataclass(frozen=True)
 class LoopStatus:
     """A loop: the PIDAT outputs (tbsy, te, ite), the stage and progress, the last session's point and gains, and
     the live values."""
@@ -96,6 +106,8 @@ class LoopStatus:
     units: UnitsRecord = described("engineering units and display of the loop's values (the config's units)")
     restore: RestoreStatus | None = described("the loop is not handed back yet (te true, ite 20, TUNE refused); "
                                               "null when it is", None)
+    owner: OwnerRecord | None = described("the daemon of the fleet that serves the loop (docs/fleet.md); null "
+                                          "without a fleet, or while no daemon holds the loop's lease", None)
 
     def to_json(self) -> dict[str, Any]:
         """The status as JSON (nested records as objects, ranges as lists)."""

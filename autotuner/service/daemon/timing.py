@@ -15,6 +15,7 @@ while samples are late by the daemon's own fault.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -77,13 +78,18 @@ class Histogram:
 class TimingBatch:
     """The timings of the samples since the last batch: ``late`` and ``own`` (wall seconds, see the module), the
     samples late enough by the field's own fault to hurt an experiment (``overloaded``) and per loop the worst
-    of them (``worst``, seconds); ``analysis``: the CPU seconds of each period's analysis."""
+    of them (``worst``, seconds); ``analysis``: the CPU seconds of each period's analysis; ``readings``: the
+    monitor's readings; ``cpu``: the CPU seconds the field's process spent meanwhile; ``cost``: the field's
+    estimate of its CPU seconds per sample (:mod:`~autotuner.service.daemon.capacity`)."""
 
     late: Histogram = field(default_factory=Histogram)
     own: Histogram = field(default_factory=Histogram)
     analysis: Histogram = field(default_factory=Histogram)
     overloaded: int = 0
     worst: dict[str, float] = field(default_factory=dict)
+    readings: int = 0
+    cpu: float = 0.0
+    cost: float = 0.0
 
 
 class Timings:
@@ -91,14 +97,15 @@ class Timings:
 
     def __init__(self) -> None:
         self._batch = TimingBatch()
+        self._cpu = time.process_time()
 
-    def add(self, loop_id: str, late: float, own: float, overload: float) -> None:
-        """A sample of ``loop_id``: ``late`` and ``own`` seconds; ``overload``: the own lateness (seconds) past
+    def add(self, loop_id: str, late: float, own: float, tolerance: float) -> None:
+        """A sample of ``loop_id``: ``late`` and ``own`` seconds; ``tolerance``: the own lateness (seconds) past
         which a sample hurts the experiment."""
         batch = self._batch
         batch.late.add(late)
         batch.own.add(own)
-        if own > overload:
+        if own > tolerance:
             batch.overloaded += 1
             batch.worst[loop_id] = max(own, batch.worst.get(loop_id, 0.0))
 
@@ -106,10 +113,13 @@ class Timings:
         """A period's analysis took ``cpu`` CPU seconds."""
         self._batch.analysis.add(cpu)
 
-    def take(self) -> TimingBatch | None:
-        """The batch since the last take (None: nothing since)."""
-        batch = self._batch
-        if batch.late.count == 0 and batch.analysis.count == 0:
-            return None
-        self._batch = TimingBatch()
+    def read(self) -> None:
+        """The monitor read a loop."""
+        self._batch.readings += 1
+
+    def take(self) -> TimingBatch:
+        """The batch since the last take, with the process's CPU seconds since."""
+        batch, self._batch = self._batch, TimingBatch()
+        now = time.process_time()
+        batch.cpu, self._cpu = now - self._cpu, now
         return batch

@@ -75,12 +75,14 @@ class Watch:
     """The watch of loop ``config`` through links from ``connect``, reporting to ``sink``.
 
     ``idle``: set while no session runs on the loop; the watch ends when
-    ``halt`` is set (or it is cancelled).
+    ``halt`` is set (or it is cancelled); ``counted`` is called at each
+    monitor reading (the field's capacity counts them).
     """
 
     def __init__(self, config: LoopConfig, connect: Callable[[], Link], sink: WatchSink, idle: asyncio.Event,
-                 halt: asyncio.Event) -> None:
+                 halt: asyncio.Event, counted: Callable[[], None] = lambda: None) -> None:
         self.config, self.connect, self.sink, self.idle, self.halt = config, connect, sink, idle, halt
+        self.counted = counted
         self.failing = False
 
     async def run(self) -> None:
@@ -145,6 +147,7 @@ class Watch:
         started meanwhile)."""
         sample = await link.read_sample()
         read = (await link.read_state()).gains if gains else None
+        self.counted()
         if self.idle.is_set():
             self.sink.reading(self.config.id, Reading(sample, read, time.time()))
 
