@@ -5,6 +5,10 @@ hands every received frame to the event loop, where it is decoded with the
 DBC and kept, signal by signal, with its receive time (``time.monotonic``).
 Reads return the latest values; writes encode command frames and send them.
 
+Every CanLink of the process on one interface and channel shares one
+python-can bus and receive thread (:mod:`drivers.can_bus`): the watch and
+the session of a loop, and the loops of other nodes on the same bus.
+
 The frames and signals are those of the default DBC ``drivers/data/autotuner.dbc``
 (see docs/can.md). Another DBC may be used as long as it has the same message
 and signal names; the ids, lengths, layouts, byte orders and scalings are its own.
@@ -36,7 +40,8 @@ import cantools
 
 from autotuner.engine.control.gains import Gains
 
-from .link import BadValue, LinkError, LoopState, Mode, TuneFlags, Watchdog, checked, float32_step
+from . import can_bus
+from .link import BadValue, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog, checked, float32_step
 
 #: Frames the node sends (cyclic status, gains on request) and the link reads.
 PROCESS, STATUS, SETPOINT = "AT_Process", "AT_Status", "AT_Setpoint"
@@ -68,9 +73,6 @@ REQUIRED: dict[str, tuple[str, ...]] = {
     REQUEST: ("All",),
 }
 
-# How often the notifier's receive thread wakes to see whether it is stopped (s);
-# close() waits for it, so this bounds the time close() takes. The simulated node uses it too.
-RX_POLL = 0.05
 # A frame's interface timestamp is taken as its bus time only if it lies within this many seconds
 # before the frame reached the link (an interface whose timestamps are not on the wall clock, e.g.
 # a hardware counter from 0, is far outside it: the arrival time is used instead).
@@ -189,30 +191,6 @@ def encode(db: cantools.database.can.Database, name: str, values: dict[str, Any]
                        data=data, is_fd=msg.is_fd)
 
 
-def open_bus(interface: str, channel: str, **kwargs: Any) -> can.BusABC:
-    """A python-can bus; any failure (unknown interface, no device, driver missing) is a LinkError."""
-    try:
-        return can.Bus(interface=interface, channel=channel, **kwargs)
-    except (can.CanError, ValueError, ImportError, OSError, TypeError) as exc:
-        raise LinkError(f"cannot open CAN interface {interface!r} channel {channel!r}: {exc}") from exc
-
-
-class _Receiver(can.Listener):
-    """Runs in the event loop (the notifier is given the loop): decode and keep the latest values."""
-
-    def __init__(self, link: "CanLink") -> None:
-        self.link = link
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.link._received(msg)
-
-    def on_error(self, exc: Exception) -> None:
-        self.link._bus_error(exc)
-
-    def stop(self) -> None:
-        pass
-
-
 class CanLink:
     """A loop behind a CAN node, per the DBC ``dbc`` (default: the shipped one).
 
@@ -240,10 +218,11 @@ class CanLink:
         self.timeout = float(timeout)
         self.stale_after = stale_after
         self.bus_kwargs = bus_kwargs
-        self._bus: can.BusABC | None = None
-        self._notifier: can.Notifier | None = None
+        self._shared: can_bus.SharedBus | None = None  # the bus, shared with the process's other links on it
+        self._bus: can.BusABC | None = None  # its python-can bus while the link is open
         self._ids = {m.frame_id: m for m in self.db.messages
                      if m.name in (PROCESS, STATUS, SETPOINT, *GAINS)}
+        self.frame_ids = frozenset(self._ids)
         # name -> (decoded signals, monotonic bus time: see bus_time)
         self._latest: dict[str, tuple[dict[str, Any], float]] = {}
         # Replaced (and the old one set) on every frame: waiters wake and look again.
@@ -293,7 +272,8 @@ class CanLink:
 
     # ----------------------------------------------------------------- receive
 
-    def _received(self, msg: can.Message) -> None:
+    def received(self, msg: can.Message) -> None:
+        """A frame from the bus (in the event loop): decoded and kept, with its bus time."""
         arrival = time.monotonic()
         now = bus_time(float(msg.timestamp), arrival, time.time() - arrival)
         if msg.is_error_frame:
@@ -329,15 +309,17 @@ class CanLink:
         changed, self._changed = self._changed, asyncio.Event()
         changed.set()
 
-    def _bus_error(self, exc: Exception) -> None:
+    def bus_error(self, exc: Exception) -> None:
+        """The bus's receive thread failed: every call from now on is a LinkError."""
         self._error = exc
         self._wake()
 
     def _check(self) -> None:
         if self._bus is None:
             raise LinkError(f"{self!r} is not open")
-        if self._error is None and self._notifier is not None and self._notifier.exception is not None:
-            self._error = self._notifier.exception  # the receive thread failed; its report may be on the way
+        notifier = None if self._shared is None else self._shared.notifier
+        if self._error is None and notifier is not None and notifier.exception is not None:
+            self._error = notifier.exception  # the receive thread failed; its report may be on the way
         if self._error is not None:
             raise LinkError(f"CAN bus error on {self.interface}/{self.channel}: {self._error}")
 
@@ -407,36 +389,22 @@ class CanLink:
     # ------------------------------------------------------------------- Link
 
     async def open(self) -> None:
-        """Open the bus and start receiving (it does not wait for a frame: reads do)."""
-        if self._bus is not None:
+        """Take the interface's shared bus (opened if no link of the process has it) and start receiving (it does
+        not wait for a frame: reads do)."""
+        if self._shared is not None:
             return
-        self._bus = open_bus(self.interface, self.channel, **self.bus_kwargs)
         self._changed = asyncio.Event()
         self._error = None
         self._latest.clear()
-        try:
-            self._notifier = can.Notifier(self._bus, [_Receiver(self)], timeout=RX_POLL,
-                                          loop=asyncio.get_running_loop())
-        except (can.CanError, ValueError, OSError) as exc:
-            self._bus.shutdown()
-            self._bus = None
-            raise LinkError(f"cannot receive on {self.interface}/{self.channel}: {exc}") from exc
+        self._shared = can_bus.hold(self.interface, self.channel, self.bus_kwargs, self)
+        self._bus = self._shared.bus
 
     async def close(self) -> None:
-        """Stop receiving and release the bus; never raises."""
-        notifier, bus = self._notifier, self._bus
-        self._notifier = self._bus = None
+        """Stop receiving and give the bus back (the last link's close releases the interface); never raises."""
+        shared, self._shared, self._bus = self._shared, None, None
         self._wake()  # waiters see the link closed
-        try:
-            if notifier is not None:
-                notifier.stop(timeout=RX_POLL + 1.0)
-        except Exception:  # noqa: BLE001 - close never raises
-            pass
-        try:
-            if bus is not None:
-                bus.shutdown()
-        except Exception:  # noqa: BLE001
-            pass
+        if shared is not None:
+            can_bus.let_go(shared, self)
 
     async def __aenter__(self) -> "CanLink":
         await self.open()
@@ -510,6 +478,26 @@ class CanLink:
             raise LinkError(f"the CAN node sent invalid state: {exc}") from exc
         return LoopState(mode=mode, mv=checked("MV", float(v["MV"])), sp=checked("SP", float(v["SP"])),
                          gains=gains)
+
+    async def read_sample(self) -> Sample:
+        """PV and MV (AT_Process), mode (AT_Status) and SP (AT_Setpoint) from the latest cyclic frames; for those
+        older than the stale limit it waits up to ``timeout`` for fresh ones (none: BadValue, as a stale PV)."""
+        self._check()
+        now = time.monotonic()
+        limit = self._stale_limit()
+        stale = [n for n in (PROCESS, STATUS, SETPOINT) if n not in self._latest or now - self._latest[n][1] > limit]
+        if stale:
+            try:
+                await self._fresh(stale, now - limit)
+            except LinkError as exc:
+                raise BadValue(f"stale sample: {exc}") from None
+        v = {**self._latest[PROCESS][0], **self._latest[STATUS][0], **self._latest[SETPOINT][0]}
+        try:
+            mode = Mode(int(v["Mode"]))
+        except ValueError as exc:
+            raise LinkError(f"the CAN node sent invalid state: {exc}") from exc
+        return Sample(pv=checked("PV", float(v["PV"])), mv=checked("MV", float(v["MV"])),
+                      sp=checked("SP", float(v["SP"])), mode=mode)
 
     async def read_flags(self) -> TuneFlags:
         """The handshake bits from the latest AT_Status frame (a fresh one if it is stale)."""

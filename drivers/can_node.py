@@ -30,9 +30,10 @@ import can
 from autotuner.engine.checks import finite
 from autotuner.engine.control.gains import Gains
 
+from .can_bus import RX_POLL, open_bus
 from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, CMD_WATCHDOG, GAINS, HEARTBEAT,
-                       PROCESS, REQUEST, RX_POLL, SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire,
-                       has_watchdog, load_dbc, open_bus)
+                       PROCESS, REQUEST, SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire,
+                       has_watchdog, load_dbc)
 from .link import LinkError, Mode, Watchdog
 from .simplc import SimulatedPlc
 

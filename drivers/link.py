@@ -42,6 +42,16 @@ class LoopState:
 
 
 @dataclass(frozen=True)
+class Sample:
+    """What the monitor of an idle loop shows, read together: PV, actual MV and SP (engineering units) and mode."""
+
+    pv: float
+    mv: float
+    sp: float
+    mode: Mode
+
+
+@dataclass(frozen=True)
 class TuneFlags:
     """The autotuner handshake of the PIDAT block: TUNE/TBRK in, TBSY/TE/ite out."""
 
@@ -111,6 +121,9 @@ class Link(Protocol):
 
     async def read_state(self) -> LoopState:
         """Mode, MV, SP and gains of the loop."""
+
+    async def read_sample(self) -> Sample:
+        """PV, MV, SP and mode of the loop, in as few requests as the transport allows (a monitor's reading)."""
 
     async def write_mode(self, mode: Mode) -> None:
         """Switch the loop to MAN or AUTO."""

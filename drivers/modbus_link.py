@@ -1,40 +1,47 @@
-"""The :class:`~drivers.link.Link` over Modbus TCP or RTU (pymodbus 3.16 async clients).
+"""The :class:`~drivers.link.Link` over Modbus TCP or RTU, one connection per device shared by its links.
+
+Every link of the process to the same device — the same Modbus TCP host and
+port, or the same serial port — sends through one connection
+(:mod:`drivers.modbus_device`): :class:`~drivers.modbus_tcp.TcpDevice`, a
+lean client multiplexing the links' requests by MBAP transaction id with up
+to ``pipeline`` outstanding at once, or :class:`~drivers.modbus_rtu.RtuDevice`,
+one pymodbus client per serial line, one request at a time. :meth:`ModbusLink.open`
+takes the link's share of the device (and connects), :meth:`ModbusLink.close`
+gives it back; the last link closed closes the connection.
 
 Every call is bounded: connecting and each request wait at most ``timeout``
 seconds, and a call makes at most ``1 + retries`` attempts, so a call returns
 or raises :class:`~drivers.link.LinkError` within about
-``(1 + retries) · 2 · timeout``. After a timeout or a lost connection the
-client is dropped and the next attempt (or the next call) connects anew —
-a PLC that restarts is picked up again without the caller doing anything.
-A Modbus exception response is the device's answer and is not retried.
-A NaN or infinite value is never returned as data: it raises LinkError
-naming the signal.
+``(1 + retries) · 2 · timeout``. A request that times out is forgotten (a
+late answer is discarded by its transaction id, never taken for another
+request); a connection lost, or silent for a whole timeout, is dropped and
+the next attempt (or the next call) connects anew — a PLC that restarts is
+picked up again without the caller doing anything. A Modbus exception
+response is the device's answer and is not retried. A NaN or infinite value
+is never returned as data: it raises LinkError naming the signal.
 
 Requests per call: signals of the same table whose addresses are adjacent
 (or separated only by other mapped signals) are read or written in one
-request, so with :data:`~drivers.modbus_map.DEFAULT_MAP` ``read_pv`` is one
-request (pv alone), ``read_state`` two, ``write_gains`` one, ``read_flags``
-and ``write_flags`` two each.
+request, so with :data:`~drivers.modbus_map.DEFAULT_MAP` ``read_pv`` and
+``read_sample`` are one request each, ``read_state`` two, ``write_gains``
+one, ``read_flags`` and ``write_flags`` two each.
 """
 
 from __future__ import annotations
 
-import asyncio
 import math
-from collections.abc import Awaitable, Callable, Iterable
-from contextlib import suppress
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 from urllib.parse import parse_qs, unquote, urlsplit
 
-from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import ModbusException
 
 from autotuner.engine.control.gains import Gains
 
-from .link import BadValue, LinkError, LoopState, Mode, TuneFlags, Watchdog
+from .link import BadValue, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog
+from .modbus_device import Device, Endpoint, Unanswered, Unreachable, hold, let_go
 from .modbus_map import (
-    BIT_TABLES,
     COIL,
     DEFAULT_MAP,
     DISCRETE,
@@ -46,6 +53,9 @@ from .modbus_map import (
     ti_from_wire,
     ti_to_wire,
 )
+from .modbus_pdu import BadAnswer, Refused, answer_values, read_pdu, write_pdu
+from .modbus_rtu import SerialLine
+from .modbus_tcp import MAX_PIPELINE, TcpAddress
 
 __all__ = ["ModbusLink"]
 
@@ -90,30 +100,65 @@ def _spans(items: list[tuple[str, Register]], table_regs: Iterable[Register], li
     return spans
 
 
+@dataclass(frozen=True)
+class _Request:
+    """One read request of a plan: what it reads (for messages), its PDU, its first address and its signals."""
+
+    where: str
+    pdu: bytes
+    start: int
+    members: tuple[tuple[str, Register], ...]
+
+
+@dataclass(frozen=True)
+class _Write:
+    """One write request of a plan: what it writes (for messages), its table, first address and signals."""
+
+    where: str
+    table: str
+    start: int
+    signals: tuple[str, ...]
+
+
+def _where(verb: str, table: str, start: int, count: int, members: list[tuple[str, Register]]) -> str:
+    """E.g. ``reading pv (input register 0 (float32))`` or ``reading pv, mv (input 0..3)``."""
+    names = ", ".join(n for n, _ in members)
+    place = members[0][1].describe() if len(members) == 1 else f"{table} {start}..{start + count - 1}"
+    return f"{verb} {names} ({place})"
+
+
 class ModbusLink:
-    """A loop in a Modbus device (TCP or RTU), addressed by ``unit``, laid out by ``map``."""
+    """A loop in a Modbus device (TCP or RTU) at ``endpoint``, addressed by ``unit``, laid out by ``map``.
+
+    ``pipeline`` (TCP): how many requests the device may have outstanding at once on its one connection, all
+    its links together (the smallest any of them asks for is used; a serial line takes one).
+    """
 
     #: A Modbus value is taken while the request is served: no timestamp of its own.
     pv_age: float | None = None
 
-    def __init__(self, make_client: Callable[[], Any], name: str, unit: int = 1,
-                 map: ModbusMap = DEFAULT_MAP, timeout: float = 1.0, retries: int = 2) -> None:
+    def __init__(self, endpoint: TcpAddress | SerialLine, unit: int = 1, map: ModbusMap = DEFAULT_MAP,
+                 timeout: float = 1.0, retries: int = 2, pipeline: int = 1) -> None:
         if not 0 <= unit <= 255:
             raise ValueError(f"unit id must be 0..255, got {unit}")
         if not timeout > 0:
             raise ValueError(f"timeout must be > 0 seconds, got {timeout}")
         if retries < 0:
             raise ValueError(f"retries must be >= 0, got {retries}")
-        self._make_client = make_client
-        self.name = name
+        if not 1 <= pipeline <= MAX_PIPELINE:
+            raise ValueError(f"pipeline must be 1..{MAX_PIPELINE}, got {pipeline}")
+        self.endpoint: Endpoint = endpoint
+        self.name = endpoint.name
         self.unit = unit
         self.map = map
         self.timeout = float(timeout)
         self.retries = int(retries)
-        self._client: Any = None
-        self._lock = asyncio.Lock()
+        self.pipeline = int(pipeline)
+        self._device: Device | None = None  # held from open (or the first call) until close
+        self._read_plans: dict[tuple[str, ...], tuple[_Request, ...]] = {}
+        self._write_plans: dict[tuple[str, ...], tuple[_Write, ...]] = {}
         self.requests = 0  # requests sent (for tests and statistics)
-        self.failures = 0  # attempts that failed (timeout, lost connection, exception response)
+        self.failures = 0  # calls that failed (no answer after every attempt, exception response)
         self.last_error = ""
 
     def __repr__(self) -> str:
@@ -123,26 +168,19 @@ class ModbusLink:
 
     @classmethod
     def tcp(cls, host: str, port: int = DEFAULT_PORT, unit: int = 1, map: ModbusMap = DEFAULT_MAP,
-            timeout: float = 1.0, retries: int = 2) -> "ModbusLink":
-        """Modbus TCP to ``host:port``."""
-        def make() -> AsyncModbusTcpClient:
-            # reconnect_delay=0: no background reconnection, we reconnect on demand;
-            # retries=0: the link does its own retries (with a reconnect in between).
-            return AsyncModbusTcpClient(host, port=port, timeout=timeout, retries=0, reconnect_delay=0)
-        shown = f"[{host}]" if ":" in host else host
-        return cls(make, f"modbus tcp {shown}:{port}", unit, map, timeout, retries)
+            timeout: float = 1.0, retries: int = 2, pipeline: int = 1) -> "ModbusLink":
+        """Modbus TCP to ``host:port`` (the connection shared with every other link to the same host and port)."""
+        return cls(TcpAddress(host, port), unit, map, timeout, retries, pipeline)
 
     @classmethod
     def rtu(cls, port: str, baudrate: int = 19200, unit: int = 1, map: ModbusMap = DEFAULT_MAP,
             timeout: float = 1.0, retries: int = 2, parity: str = "N", stopbits: int = 1,
             bytesize: int = 8) -> "ModbusLink":
-        """Modbus RTU on serial ``port`` (e.g. ``/dev/ttyUSB0``, ``COM3``)."""
+        """Modbus RTU on serial ``port`` (e.g. ``/dev/ttyUSB0``, ``COM3``; the line shared with every other link
+        to a unit on it)."""
         if parity not in ("N", "E", "O"):
             raise ValueError(f"parity must be N, E or O, got {parity!r}")
-        def make() -> AsyncModbusSerialClient:
-            return AsyncModbusSerialClient(port, baudrate=baudrate, parity=parity, stopbits=stopbits,
-                                           bytesize=bytesize, timeout=timeout, retries=0, reconnect_delay=0)
-        return cls(make, f"modbus rtu {port}@{baudrate}", unit, map, timeout, retries)
+        return cls(SerialLine(port, baudrate, parity, stopbits, bytesize), unit, map, timeout, retries)
 
     @classmethod
     def from_url(cls, url: str, map_path: str | None = None) -> "ModbusLink":
@@ -150,6 +188,7 @@ class ModbusLink:
 
         * ``modbus://HOST[:PORT][/UNIT]`` — TCP, port 502 and unit 1 by default
           (``modbus+tcp://`` also accepted; IPv6 as ``modbus://[::1]:5020/1``);
+          option ``pipeline`` (1..128, default 1): requests outstanding at once on the device's connection;
         * ``modbus+rtu://DEVICE[?baudrate=19200&unit=1&parity=N&stopbits=1]`` —
           serial RTU, e.g. ``modbus+rtu:///dev/ttyUSB0?baudrate=9600&unit=3``;
         * query options for both: ``timeout`` (seconds), ``retries``.
@@ -189,9 +228,12 @@ class ModbusLink:
                 unit = int(path)
             if not 0 <= unit <= 255:
                 raise ValueError(f"bad Modbus URL {url!r}: unit id {unit} is outside 0..255")
+            pipeline = take("pipeline", int, 1)
+            if not 1 <= pipeline <= MAX_PIPELINE:
+                raise ValueError(f"bad Modbus URL {url!r}: pipeline={pipeline} is outside 1..{MAX_PIPELINE}")
             if query:
                 raise ValueError(f"bad Modbus URL {url!r}: unknown option(s) {', '.join(sorted(query))}")
-            return cls.tcp(parts.hostname, port, unit, mp, timeout, retries)
+            return cls.tcp(parts.hostname, port, unit, mp, timeout, retries, pipeline)
         if scheme == "modbus+rtu":
             device = unquote(parts.netloc + parts.path)
             if not device:
@@ -202,6 +244,9 @@ class ModbusLink:
             stopbits = take("stopbits", int, 1)
             if not 0 <= unit <= 255:
                 raise ValueError(f"bad Modbus URL {url!r}: unit id {unit} is outside 0..255")
+            if "pipeline" in query:
+                raise ValueError(f"bad Modbus URL {url!r}: pipeline is for Modbus TCP (a serial line carries one "
+                                 "request at a time)")
             if query:
                 raise ValueError(f"bad Modbus URL {url!r}: unknown option(s) {', '.join(sorted(query))}")
             return cls.rtu(device, baudrate, unit, mp, timeout, retries, parity=parity, stopbits=stopbits)
@@ -210,13 +255,18 @@ class ModbusLink:
     # -- connection ---------------------------------------------------------------
 
     async def open(self) -> None:
-        """Connect; LinkError if the device cannot be reached within the timeout."""
-        async with self._lock:
-            await self._connect("connecting")
+        """Take the link's share of the device and connect; LinkError if the device cannot be reached within the
+        timeout (the share is given back then)."""
+        device = self._hold()
+        try:
+            await device.connect(self.timeout)
+        except Unreachable as exc:
+            self._let_go()
+            raise LinkError(f"{self.name}: connecting: {exc}") from None
 
     async def close(self) -> None:
-        """Disconnect; never raises."""
-        self._drop()
+        """Give the link's share of the device back (the last link's closes the connection); never raises."""
+        self._let_go()
 
     async def __aenter__(self) -> "ModbusLink":
         await self.open()
@@ -225,122 +275,106 @@ class ModbusLink:
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
-    def _drop(self) -> None:
-        client, self._client = self._client, None
-        if client is not None:
-            with suppress(Exception):
-                client.close()
+    def _hold(self) -> Device:
+        if self._device is None:
+            try:
+                self._device = hold(self.endpoint, self.pipeline)
+            except ValueError as exc:
+                raise LinkError(f"{self.name}: {exc}") from None
+        return self._device
+
+    def _let_go(self) -> None:
+        device, self._device = self._device, None
+        if device is not None:
+            let_go(self.endpoint, device, self.pipeline)
 
     def _failed(self, text: str) -> None:
         self.failures += 1
         self.last_error = text
 
     def health(self) -> dict[str, Any]:
-        """Connection state and request counters of the link."""
-        connected = self._client is not None and bool(self._client.connected)
-        return {"transport": "modbus", "device": self.name, "connected": connected, "requests": self.requests,
-                "failures": self.failures, "last_error": self.last_error}
+        """Connection state and request counters of the link, and of its device's connection (``links`` sharing
+        it, its ``pipeline``, ``connects``, ``dropped`` connections, ``late_answers`` discarded)."""
+        device = self._device
+        shared = {} if device is None else device.health()
+        return {"transport": "modbus", "device": self.name, "connected": device is not None and device.connected,
+                "requests": self.requests, "failures": self.failures, "last_error": self.last_error, **shared}
 
-    async def _connect(self, what: str) -> Any:
-        if self._client is not None and self._client.connected:
-            return self._client
-        self._drop()
-        try:
-            client = self._make_client()
-        except Exception as exc:  # bad serial port name, pyserial missing, ...
-            raise LinkError(f"{self.name}: {what}: cannot create the client: {exc}") from exc
-        try:
-            ok = await asyncio.wait_for(client.connect(), self.timeout)
-        except (asyncio.TimeoutError, OSError, ModbusException) as exc:
-            ok = False
-            reason = f"{type(exc).__name__} {exc}".strip()
-        else:
-            reason = "connection refused or no answer"
-        if not ok or not client.connected:
-            with suppress(Exception):
-                client.close()
-            raise LinkError(f"{self.name}: {what}: cannot connect ({reason}) within {self.timeout:g} s")
-        self._client = client
-        return client
-
-    async def _request(self, what: str, call: Callable[[Any], Awaitable[Any]]) -> Any:
-        """One Modbus request with retries and reconnection; the response, or LinkError."""
-        async with self._lock:
-            last = ""
-            for _ in range(1 + self.retries):
-                try:
-                    client = await self._connect(what)
-                except LinkError as exc:
-                    last = str(exc)
-                    continue
-                try:
-                    self.requests += 1
-                    response = await asyncio.wait_for(call(client), self.timeout)
-                except asyncio.CancelledError:
-                    self._drop()  # the caller gave up (Ctrl-C): the answer must not meet the next request
-                    raise
-                except asyncio.TimeoutError:
-                    last = f"{self.name}: {what}: no answer within {self.timeout:g} s"
-                    self._drop()  # a late answer must not be taken for the next one
-                    continue
-                except (ModbusException, OSError) as exc:
-                    last = f"{self.name}: {what}: {type(exc).__name__}: {exc}"
-                    self._drop()
-                    continue
-                if response.isError():
-                    code = getattr(response, "exception_code", None)
-                    text = (f"{self.name}: {what}: error response {response}" if code is None else
-                            f"{self.name}: {what}: unit {self.unit} answered Modbus exception {code} "
-                            f"({_exc_name(code)})")
-                    self._failed(text)
-                    raise LinkError(text)
-                return response
-            attempts = 1 + self.retries
-            self._failed(last)
-            raise LinkError(f"{last} (gave up after {attempts} attempt{'s' if attempts > 1 else ''})")
+    async def _exchange(self, what: str, pdu: bytes) -> list[int]:
+        """One request with retries and reconnection: the values of its answer (none for a write), or LinkError."""
+        device = self._hold()
+        last = ""
+        for _ in range(1 + self.retries):
+            try:
+                if not device.connected:
+                    await device.connect(self.timeout)
+                self.requests += 1
+                return answer_values(pdu, await device.request(self.unit, pdu, self.timeout))
+            except (Unreachable, Unanswered) as exc:
+                last = f"{self.name}: {what}: {exc}"
+            except BadAnswer as exc:
+                last = f"{self.name}: {what}: a bad answer: {exc}"
+            except Refused as exc:
+                text = (f"{self.name}: {what}: unit {self.unit} answered Modbus exception {exc.code} "
+                        f"({_exc_name(exc.code)})")
+                self._failed(text)
+                raise LinkError(text) from None
+        attempts = 1 + self.retries
+        self._failed(last)
+        raise LinkError(f"{last} (gave up after {attempts} attempt{'s' if attempts > 1 else ''})")
 
     # -- generic reads and writes -------------------------------------------------
 
-    async def _read(self, signals: Iterable[str]) -> dict[str, float]:
+    def _read_plan(self, signals: tuple[str, ...]) -> tuple[_Request, ...]:
+        """The read requests of ``signals`` (those in the map), in as few requests as the map allows; made once
+        per link and tuple of signals (a sample's PV read is the same request every time)."""
+        plan = self._read_plans.get(signals)
+        if plan is None:
+            by_table: dict[str, list[tuple[str, Register]]] = {}
+            for s in signals:
+                reg = self.map.get(s)
+                if reg is not None:
+                    by_table.setdefault(reg.table, []).append((s, reg))
+            plan = self._read_plans[signals] = tuple(
+                _Request(_where("reading", table, start, count, members), read_pdu(table, start, count), start,
+                         tuple(members))
+                for table, items in by_table.items()
+                for start, count, members in _spans(items, [r for r in self.map.registers.values()
+                                                            if r.table == table], _MAX_READ[table]))
+        return plan
+
+    async def _read(self, signals: tuple[str, ...]) -> dict[str, float]:
         """Engineering values of ``signals`` (those in the map), in as few requests as the map allows."""
-        by_table: dict[str, list[tuple[str, Register]]] = {}
-        for s in signals:
-            reg = self.map.get(s)
-            if reg is not None:
-                by_table.setdefault(reg.table, []).append((s, reg))
         out: dict[str, float] = {}
-        for table, items in by_table.items():
-            table_regs = [r for r in self.map.registers.values() if r.table == table]
-            for start, count, members in _spans(items, table_regs, _MAX_READ[table]):
-                names = ", ".join(n for n, _ in members)
-                where = f"reading {names} ({members[0][1].describe() if len(members) == 1 else f'{table} {start}..{start + count - 1}'})"
-                fn = {
-                    HOLDING: "read_holding_registers",
-                    INPUT: "read_input_registers",
-                    COIL: "read_coils",
-                    DISCRETE: "read_discrete_inputs",
-                }[table]
-                response = await self._request(
-                    where, lambda c, fn=fn, start=start, count=count:
-                    getattr(c, fn)(start, count=count, device_id=self.unit))
-                data = list(response.bits if table in BIT_TABLES else response.registers)
-                if len(data) < count:
-                    raise LinkError(f"{self.name}: {where}: short answer ({len(data)} of {count})")
-                for name, reg in members:
-                    i = reg.address - start
-                    try:
-                        value = reg.decode(data[i:i + reg.size])
-                    except ValueError as exc:
-                        raise LinkError(f"{self.name}: {name}: cannot decode: {exc}") from None
-                    if not math.isfinite(value):
-                        raise BadValue(f"{self.name}: {name} is not a number ({value}) "
-                                        f"in {reg.describe()}")
-                    out[name] = value
+        for request in self._read_plan(signals):
+            data = await self._exchange(request.where, request.pdu)
+            for name, reg in request.members:
+                i = reg.address - request.start
+                try:
+                    value = reg.decode(data[i:i + reg.size])
+                except ValueError as exc:
+                    raise LinkError(f"{self.name}: {name}: cannot decode: {exc}") from None
+                if not math.isfinite(value):
+                    raise BadValue(f"{self.name}: {name} is not a number ({value}) in {reg.describe()}")
+                out[name] = value
         return out
+
+    def _write_plan(self, signals: tuple[str, ...]) -> tuple[_Write, ...]:
+        """The write requests of ``signals`` (all in the map): adjacent ones of a table share a request — only the
+        signals being written (no read-modify-write); made once per link and tuple of signals."""
+        plan = self._write_plans.get(signals)
+        if plan is None:
+            by_table: dict[str, list[tuple[str, Register]]] = {}
+            for s in signals:
+                by_table.setdefault(self.map[s].table, []).append((s, self.map[s]))
+            plan = self._write_plans[signals] = tuple(
+                _Write(_where("writing", table, start, count, members), table, start, tuple(n for n, _ in members))
+                for table, items in by_table.items()
+                for start, count, members in _spans(items, [r for _, r in items], _MAX_WRITE[table]))
+        return plan
 
     async def _write(self, values: dict[str, float]) -> None:
         """Write engineering values (signals in the map), adjacent ones of a table in one request."""
-        by_table: dict[str, list[tuple[str, Register]]] = {}
         raw: dict[str, list[int]] = {}
         for s, v in values.items():
             reg = self.map[s]
@@ -350,28 +384,9 @@ class ModbusLink:
                 raw[s] = reg.encode(v)
             except ValueError as exc:
                 raise LinkError(f"{self.name}: cannot write {s} to {reg.describe()}: {exc}") from None
-            by_table.setdefault(reg.table, []).append((s, reg))
-        for table, items in by_table.items():
-            # Only the signals being written may share a request (no read-modify-write).
-            regs_written = [r for _, r in items]
-            for start, count, members in _spans(items, regs_written, _MAX_WRITE[table]):
-                names = ", ".join(n for n, _ in members)
-                where = f"writing {names} ({members[0][1].describe() if len(members) == 1 else f'{table} {start}..{start + count - 1}'})"
-                if table == COIL:
-                    bits = [bool(raw[n][0]) for n, _ in members]
-                    if len(bits) == 1:
-                        call = lambda c, b=bits[0], a=start: c.write_coil(a, b, device_id=self.unit)  # noqa: E731
-                    else:
-                        call = lambda c, b=bits, a=start: c.write_coils(a, b, device_id=self.unit)  # noqa: E731
-                else:
-                    words: list[int] = []
-                    for n, _ in members:
-                        words.extend(raw[n])
-                    if len(words) == 1:
-                        call = lambda c, w=words[0], a=start: c.write_register(a, w, device_id=self.unit)  # noqa: E731
-                    else:
-                        call = lambda c, w=words, a=start: c.write_registers(a, w, device_id=self.unit)  # noqa: E731
-                await self._request(where, call)
+        for request in self._write_plan(tuple(values)):
+            words = [w for n in request.signals for w in raw[n]]
+            await self._exchange(request.where, write_pdu(request.table, request.start, words))
 
     # -- the Link protocol ------------------------------------------------------
 
@@ -393,6 +408,15 @@ class ModbusLink:
         except ValueError as exc:
             raise LinkError(f"{self.name}: the controller's gains are not usable: {exc}") from None
         return LoopState(mode=mode, mv=v["mv"], sp=v["sp"], gains=gains)
+
+    async def read_sample(self) -> Sample:
+        """PV, actual MV, SP and mode: one request with the default map (``pv``, ``mv``, ``sp_in``, ``mode_in`` in
+        input registers 0..6); a map without ``sp_in``/``mode_in`` reads ``sp`` and ``mode`` instead (with the
+        default map's layout otherwise: two requests)."""
+        sp = "sp_in" if "sp_in" in self.map else "sp"
+        mode = "mode_in" if "mode_in" in self.map else "mode"
+        v = await self._read(("pv", "mv", sp, mode))
+        return Sample(pv=v["pv"], mv=v["mv"], sp=v[sp], mode=self._mode(v[mode]))
 
     def _mode(self, raw: float) -> Mode:
         try:

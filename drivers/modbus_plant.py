@@ -54,10 +54,11 @@ class ModbusPlant:
         server, unit = divmod(k - 1, UNITS_PER_SERVER)
         return self.servers[server].port, unit + 1
 
-    def url(self, k: int) -> str:
-        """The link URL of loop ``k`` (1-based), e.g. ``modbus://127.0.0.1:5020/3``."""
+    def url(self, k: int, pipeline: int = 1) -> str:
+        """The link URL of loop ``k`` (1-based), e.g. ``modbus://127.0.0.1:5020/3``; with ``pipeline`` > 1,
+        ``…/3?pipeline=16`` (the plant's servers take pipelined requests: docs/modbus.md)."""
         port, unit = self.address(k)
-        return f"modbus://{self.host}:{port}/{unit}"
+        return f"modbus://{self.host}:{port}/{unit}" + (f"?pipeline={pipeline}" if pipeline > 1 else "")
 
     async def close(self) -> None:
         """Stop serving (clients are disconnected) and stop ticking; idempotent."""

@@ -6,8 +6,8 @@ every request before it is served, with the table's register list to modify
 in place. The action here
 
 * on every request rewrites from the PLC the registers of the signals it
-  touches (``plc.read_pv()``, ``plc.mv``, ``plc.sp``, ``plc.hv``, ``plc.mode``,
-  ``plc.gains``, ``plc.flags``), so a read returns the PLC's values at the
+  touches (``plc.read_pv()``, ``plc.mv``, ``plc.sp`` — also as ``sp_in`` —,
+  ``plc.hv``, ``plc.mode`` — also as ``mode_in`` —, ``plc.gains``, ``plc.flags``), so a read returns the PLC's values at the
   moment it is answered; the PLC ticks in the same event loop, so one
   request is a consistent snapshot (all its registers from the same sample);
 * on a write, decodes the written signals (any signal the written range
@@ -31,10 +31,23 @@ exception 4 and log a traceback: it looks the id up without a check.)
 There is no separate sync step after ``plc.tick()``: nothing is cached, so
 nothing can be stale.
 
+Pipelined requests (a client sending the next requests before the first
+answer, told apart by their MBAP transaction ids) are each answered, with
+their own transaction id, as soon as they are served — out of order when one
+waits (a hung unit). pymodbus 3.16.1's own request handler cannot: it keeps
+one request at a time (the last one decoded), handles only the first frame
+of what it received, clears what it received when it answers and discards
+more than 264 bytes received at once, so of three requests sent together it
+answered the first only (measured; tests/test_modbus_share.py). The server
+here hands each connection to :class:`_PipelinedHandler` instead.
+
 Fault hooks for tests: :meth:`ModbusPlcServer.fail_with_exception` (requests
-answer a Modbus exception), :meth:`ModbusPlcServer.hang` (requests get no
-answer) and :meth:`ModbusPlcServer.close` (the server stops; its clients are
-disconnected). NaN PV is the PLC's own fault (``plc.nan_pv = True``).
+answer a Modbus exception), :meth:`ModbusPlcServer.hang` (requests, or those
+to one unit, get no answer) and :meth:`ModbusPlcServer.close` (the server
+stops; its clients are disconnected). NaN PV is the PLC's own fault
+(``plc.nan_pv = True``). :attr:`ModbusPlcServer.connections` and
+:attr:`ModbusPlcServer.accepted` count the clients' TCP connections,
+:attr:`ModbusPlcServer.held` the requests a hang holds.
 """
 
 from __future__ import annotations
@@ -48,8 +61,11 @@ from contextlib import suppress
 
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import NoSuchIdException
+from pymodbus.exceptions import ModbusIOException, NoSuchIdException
+from pymodbus.logging import Log
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 
@@ -81,6 +97,67 @@ _WATCHDOG_FIELDS = {"wd_time": "timeout", "wd_mv": "mv", "wd_mode": "mode"}
 _FILLER_BIT = 65535
 # Unit ids a SimDevice may have (0: every id not served otherwise, pymodbus's convention).
 _UNIT_IDS = range(256)
+# Bytes a connection may have received and not yet decoded: requests pipelined by a client, a few hundred at
+# most (pymodbus's own limit, 264 bytes, is one frame: more is discarded).
+_RECEIVE_BUFFER = 65536
+
+
+class _PipelinedHandler(ServerRequestHandler):
+    """One client connection of the server: every request received is answered, with its own transaction id,
+    however many arrive before the first answer (see the module's docstring)."""
+
+    def __init__(self, owner: ModbusTcpServer) -> None:
+        super().__init__(owner, owner.trace_packet, owner.trace_pdu, owner.trace_connect)
+        self.max_buffer_size = _RECEIVE_BUFFER
+        self._serving: set[asyncio.Task[None]] = set()
+
+    def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
+        """Decode every complete frame of ``data`` and serve each in a task of its own; the bytes used."""
+        used = 0
+        while used < len(data):
+            try:
+                length, pdu = self.framer.handleFrame(data[used:], 0, 0)
+            except ModbusIOException as exc:  # undecodable: answered as pymodbus answers it
+                code = 0 if exc.fcode is None else exc.fcode
+                self.server_send(ExceptionResponse(code, exception_code=ExcCodes.ILLEGAL_FUNCTION,
+                                                   device_id=exc.dev_id, transaction=exc.transaction_id), addr)
+                return len(data)
+            used += length
+            if pdu is None:
+                break
+            task = self.loop.create_task(self._serve(pdu, addr))
+            self._serving.add(task)
+            task.add_done_callback(self._serving.discard)
+        return used
+
+    async def _serve(self, pdu: ModbusPDU, addr: tuple | None) -> None:
+        """Answer ``pdu`` from the datastore (pymodbus's ``handle_request`` for one request of its own)."""
+        try:
+            response = await pdu.datastore_update(self.server.context, pdu.dev_id)
+        except NoSuchIdException:
+            Log.error("requested device id does not exist: {}", pdu.dev_id)
+            response = ExceptionResponse(pdu.function_code, ExcCodes.GATEWAY_NO_RESPONSE)
+        except Exception as exc:  # noqa: BLE001 - the client gets exception 4, as from pymodbus's handler
+            Log.error("Datastore unable to fulfill request: {}", exc)
+            response = ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
+        response.transaction_id = pdu.transaction_id
+        response.dev_id = pdu.dev_id
+        self.server_send(response, addr)
+
+    def send(self, data: bytes, addr: tuple | None = None) -> None:
+        """Write an answer; unlike pymodbus's ``send``, what was received and not yet decoded is kept."""
+        if self.transport:
+            self.transport.write(data)  # type: ignore[attr-defined]
+
+
+class _PipelinedTcpServer(ModbusTcpServer):
+    """pymodbus's TCP server with a :class:`_PipelinedHandler` per connection; counts the connections accepted."""
+
+    accepted = 0
+
+    def callback_new_connection(self) -> ServerRequestHandler:
+        self.accepted += 1
+        return _PipelinedHandler(self)
 
 
 def _plc_value(plc: SimulatedPlc, signal: str) -> float:
@@ -89,7 +166,9 @@ def _plc_value(plc: SimulatedPlc, signal: str) -> float:
         return plc.read_pv()
     if signal in ("mv", "hv", "sp"):
         return float(getattr(plc, signal))
-    if signal == "mode":
+    if signal == "sp_in":
+        return float(plc.sp)
+    if signal in ("mode", "mode_in"):
         return float(int(plc.mode))
     if signal == "ti":
         return ti_to_wire(plc.gains.ti)
@@ -129,8 +208,10 @@ class ModbusPlcServer:
         self._fail: ExcCodes | None = None
         self._fail_writes = False
         self._hang = False
+        self._hang_unit: int | None = None
+        self.held = 0  # requests held unanswered by hang() now
         self._release = asyncio.Event()
-        self._server: ModbusTcpServer | None = None
+        self._server: _PipelinedTcpServer | None = None
         self._by_table: dict[str, list[tuple[str, Register]]] = {t: [] for t in _BLOCK_ORDER}
         for name, reg in map.registers.items():
             self._by_table[reg.table].append((name, reg))
@@ -152,12 +233,12 @@ class ModbusPlcServer:
                     data = [SimData(0, datatype=DataType.INVALID)]
             blocks.append(data)
         return SimDevice(unit, simdata=tuple(blocks),  # type: ignore[arg-type]
-                         action=functools.partial(self._action, plc))
+                         action=functools.partial(self._action, unit, plc))
 
     async def start(self) -> None:
         framer = FramerType.RTU if self.rtu_framing else FramerType.SOCKET
         devices = [self._device(unit, plc) for unit, plc in self.plcs.items()]
-        server = ModbusTcpServer(devices, framer=framer, address=(self.host, self._requested_port))
+        server = _PipelinedTcpServer(devices, framer=framer, address=(self.host, self._requested_port))
         self._guard_datastore(server)
         await server.serve_forever(background=True)
         self._server = server
@@ -177,6 +258,16 @@ class ModbusPlcServer:
     def serving(self) -> bool:
         return self._server is not None
 
+    @property
+    def connections(self) -> int:
+        """Client connections open now."""
+        return 0 if self._server is None else len(self._server.active_connections)
+
+    @property
+    def accepted(self) -> int:
+        """Client connections accepted since the server started."""
+        return 0 if self._server is None else self._server.accepted
+
     async def __aenter__(self) -> "ModbusPlcServer":
         return self
 
@@ -191,13 +282,23 @@ class ModbusPlcServer:
         self._fail = code if on else None
         self._fail_writes = writes
 
-    def hang(self, on: bool = True) -> None:
-        """While ``on``, requests get no answer (the client times out)."""
-        self._hang = on
+    def hang(self, on: bool = True, unit: int | None = None) -> None:
+        """While ``on``, requests — to ``unit`` only, if given — get no answer (the client times out); off answers
+        the requests held."""
+        self._hang, self._hang_unit = on, unit
         if on:
             self._release.clear()
         else:
             self._release.set()
+
+    async def _hold_if_hung(self, unit: int) -> None:
+        """While hung (for ``unit``), wait for the release, counted in :attr:`held`."""
+        if self._hang and self._hang_unit in (None, unit):
+            self.held += 1
+            try:
+                await self._release.wait()
+            finally:
+                self.held -= 1
 
     # -- the live datastore ------------------------------------------------------
 
@@ -226,8 +327,7 @@ class ModbusPlcServer:
                 raise NoSuchIdException(f"unit {device_id}")
             table = _FC_TABLE.get(func_code)
             if table in BIT_TABLES and not self._mapped_bits(table, address, count):
-                if self._hang:
-                    await self._release.wait()
+                await self._hold_if_hung(device_id)
                 return ExcCodes.ILLEGAL_ADDRESS
             return await served(device_id, func_code, address, count)
 
@@ -239,10 +339,9 @@ class ModbusPlcServer:
         core.async_getValues = get_values  # type: ignore[method-assign]
         core.async_setValues = set_values  # type: ignore[method-assign]
 
-    async def _action(self, plc: SimulatedPlc, func_code: int, start: int, address: int, count: int,
+    async def _action(self, unit: int, plc: SimulatedPlc, func_code: int, start: int, address: int, count: int,
                       registers: list[int], values: list[int] | list[bool] | None) -> ExcCodes | None:
-        if self._hang:
-            await self._release.wait()
+        await self._hold_if_hung(unit)
         table = _FC_TABLE.get(func_code)
         if table is None:
             return ExcCodes.ILLEGAL_FUNCTION

@@ -13,7 +13,7 @@ from typing import Any
 
 from autotuner.engine.control.gains import Gains
 
-from .link import LinkError, LoopState, Mode, TuneFlags, Watchdog, checked
+from .link import LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog, checked
 from .simplc import SimulatedPlc
 
 
@@ -54,6 +54,11 @@ class SimLink:
         self._call()
         plc = self.plc
         return LoopState(mode=plc.mode, mv=plc.mv, sp=plc.sp, gains=plc.gains)
+
+    async def read_sample(self) -> Sample:
+        self._call()
+        plc = self.plc
+        return Sample(pv=checked("pv", plc.read_pv()), mv=plc.mv, sp=plc.sp, mode=plc.mode)
 
     async def write_mode(self, mode: Mode) -> None:
         self._call()

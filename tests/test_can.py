@@ -226,6 +226,60 @@ def test_read_pv_is_the_plc_pv_after_a_tick():
     arun(main())
 
 
+def test_read_sample_is_pv_mv_sp_and_mode_from_the_cyclic_frames_and_stale_when_the_node_is_silent():
+    async def main():
+        async with rig(timeout=0.3) as (plc, node, link):
+            plc.mode = Mode.MAN
+            plc.hv = 80.0
+            plc.sp = 61.5
+            for _ in range(30):
+                plc.tick()
+            await new_frames(link, node)
+            sample = await link.read_sample()
+            assert (sample.pv, sample.mv, sample.sp, sample.mode) == (f32(plc.pv), f32(plc.mv), 61.5, Mode.MAN)
+            assert sample.pv != 50.0 and sample.mv == 80.0
+            node.silent = True
+            deadline = time.monotonic() + HANG
+            with pytest.raises(LinkError, match=r"stale sample: no fresh .*within 0.3 s"):
+                while time.monotonic() < deadline:  # reads succeed only while the last frames are fresh
+                    await link.read_sample()
+                    await asyncio.sleep(PERIOD)
+            node.silent = False
+            await new_frames(link, node)
+            assert (await link.read_sample()).sp == 61.5
+    arun(main())
+
+
+def test_links_on_one_channel_share_its_bus_until_the_last_closes():
+    # The watch's link and the session's of one loop, and a third asking another bit rate.
+    async def main():
+        async with rig() as (plc, node, link):
+            other = CanLink("virtual", link.channel, timeout=0.3)
+            faster = CanLink("virtual", link.channel, timeout=0.3, bitrate=1_000_000)
+            await other.open()
+            try:
+                assert other._bus is link._bus  # one python-can bus, one receive thread
+                await other.write_mv(21.0)
+                assert await until(lambda: plc.hv == 21.0)
+                await new_frames(link, node)
+                assert (await other.read_sample()).pv == (await link.read_sample()).pv == f32(plc.pv)
+                with pytest.raises(LinkError, match=r"open with defaults by other loops; this link asks for "
+                                                    r"\{'bitrate': 1000000\}"):
+                    await faster.open()
+                bus = link._bus
+                await other.close()
+                await new_frames(link, node)  # the first link still receives
+                assert link._bus is bus and not bus._is_shutdown and await link.read_pv() == f32(plc.pv)
+            finally:
+                await other.close()
+                await faster.close()
+            await link.close()
+            assert bus._is_shutdown  # the last link's close released the interface
+            await link.open()
+            assert link._bus is not bus
+    arun(main())
+
+
 def test_writes_reach_the_plc():
     async def main():
         async with rig() as (plc, node, link):

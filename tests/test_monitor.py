@@ -14,10 +14,14 @@ import time
 import pytest
 
 from autotuner.service.config import ConfigError, TuneRequest, parse_config
+from autotuner.service.daemon.watch import GAINS_EVERY, Watch
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import LinkError, Mode
+from drivers.modbus_link import ModbusLink
+from drivers.modbus_server import serve_modbus
 from drivers.simlink import SimLink
+from drivers.simplc import SimulatedPlc
 
 from test_daemon import manager
 from helpers import until
@@ -41,7 +45,7 @@ def drain(queue: asyncio.Queue) -> list[dict]:
 
 
 class Switchable(SimLink):
-    """A SimLink whose every call fails while ``down[0]`` is true; counts its reads of the loop's state."""
+    """A SimLink whose every call fails while ``down[0]`` is true; counts the monitor's readings (``read_sample``)."""
 
     def __init__(self, plc, down: list[bool], reads: list[float]) -> None:
         super().__init__(plc)
@@ -52,9 +56,9 @@ class Switchable(SimLink):
         if self.down[0]:
             raise LinkError("simulated device unreachable")
 
-    async def read_state(self):
+    async def read_sample(self):
         self.reads.append((self, time.monotonic()))
-        return await super().read_state()
+        return await super().read_sample()
 
 
 def test_idle_loops_are_monitored_with_samples_and_state_on_mode_change():
@@ -198,3 +202,59 @@ def test_monitor_period_config():
         with pytest.raises(ConfigError, match=r"d.yaml: loops\[0\].monitor_period: "):
             parse_config({"loops": [{"id": "A", "sim": {"plant": PLANT}, "ts": 0.1, "monitor_period": bad}]},
                          "d.yaml")
+
+
+class Readings:
+    """A watch's sink that keeps each reading with the requests its link had made by then."""
+
+    def __init__(self, links: list[ModbusLink]) -> None:
+        self.links, self.got = links, []
+
+    def reading(self, loop_id, reading) -> None:
+        self.got.append((reading, self.links[-1].requests))
+
+    def link_failed(self, loop_id, error) -> None:
+        raise AssertionError(f"the link failed: {error}")
+
+    def link_back(self, loop_id) -> None:
+        pass
+
+    async def edges(self, loop_id, last, flags):
+        return None
+
+
+def test_a_monitor_reading_is_one_request_with_the_default_map_and_the_gains_are_read_every_10th():
+    async def body():
+        plc = SimulatedPlc(parse_process(PLANT))
+        server = await serve_modbus(plc)
+        config = parse_config({"loops": [{"id": "A", "link": f"modbus://127.0.0.1:{server.port}/1", "ts": 0.1,
+                                          "monitor_period": PERIOD}]}, "d.yaml").loops[0]
+        links: list[ModbusLink] = []
+
+        def connect() -> ModbusLink:
+            links.append(ModbusLink.from_url(str(config.link)))
+            return links[-1]
+
+        sink, idle, halt = Readings(links), asyncio.Event(), asyncio.Event()
+        idle.set()
+        task = asyncio.create_task(Watch(config, connect, sink, idle, halt).run())
+        try:
+            await until(lambda: len(sink.got) >= 2 * GAINS_EVERY + 1, 30.0, "21 readings")
+        finally:
+            halt.set()
+            await task
+            await server.close()
+        return plc, links, sink.got[:2 * GAINS_EVERY + 1]
+
+    plc, links, got = asyncio.run(body())
+    assert len(links) == 1
+    requests = [n - before for (_, before), (_, n) in zip([(None, 0)] + got, got)]
+    # The first reading: PV, MV, SP and mode (one request) and the gains (read_state: two); then one request each.
+    assert requests == ([3] + [1] * (GAINS_EVERY - 1)) * 2 + [3]
+    assert [r.gains is not None for r, _ in got] == [i % GAINS_EVERY == 0 for i in range(len(got))]
+    for reading, _ in got:
+        assert reading.sample.sp == 50.0 and reading.sample.mode is Mode.AUTO
+        assert reading.sample.pv == pytest.approx(50.0, abs=0.5) and reading.sample.mv == pytest.approx(50.0, abs=0.5)
+        if reading.gains is not None:
+            assert reading.gains.k == pytest.approx(plc.gains.k, rel=1e-6)
+            assert reading.gains.ti == pytest.approx(plc.gains.ti, rel=1e-6)

@@ -663,11 +663,12 @@ class LoopManager:
         loop = self.loops[loop_id]
         if loop.busy:
             return  # a session started meanwhile: its samples are the live values
-        state = reading.state
-        changed = (loop.mode, loop.gains) != (state.mode, state.gains)
-        loop.mode, loop.gains = Mode(state.mode), state.gains
-        loop.pv, loop.sp, loop.mv = reading.pv, state.sp, state.mv
-        self._publish(loop, "sample", {"time": reading.time, "pv": reading.pv, "sp": state.sp, "mv": state.mv,
+        sample = reading.sample
+        gains = loop.gains if reading.gains is None else reading.gains  # None: not read this time, as before
+        changed = (loop.mode, loop.gains) != (sample.mode, gains)
+        loop.mode, loop.gains = Mode(sample.mode), gains
+        loop.pv, loop.sp, loop.mv = sample.pv, sample.sp, sample.mv
+        self._publish(loop, "sample", {"time": reading.time, "pv": sample.pv, "sp": sample.sp, "mv": sample.mv,
                                        "mode": loop.mode.name})
         if changed:
             self._publish(loop, "state", loop.as_json())

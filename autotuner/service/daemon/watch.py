@@ -2,9 +2,11 @@
 
 Each loop has one watch task (the session's sampling is not involved).
 While the loop is idle it monitors it: every ``monitor_period`` wall seconds
-it reads the mode, SP, MV and gains and the PV and reports the reading. It
-does not read the loop while the loop's session runs; the session's own
-samples are the live values then.
+it reads the PV, MV, SP and mode (``Link.read_sample``: one request with the
+default Modbus map) and reports the reading; the gains it reads on the first
+reading after (re)connecting or after a session, then every
+:data:`GAINS_EVERY`-th reading. It does not read the loop while the loop's
+session runs; the session's own samples are the live values then.
 
 A loop configured with ``handshake: true`` also obeys the device's own bits,
 like the function block wired to an HMI: its watch also reads the flags
@@ -29,21 +31,27 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from drivers.link import Link, LinkError, LoopState, TuneFlags
+from drivers.link import Link, LinkError, Sample, TuneFlags
 
+from autotuner.engine.control.gains import Gains
 from autotuner.service.config import LoopConfig
 
 # Longest pause between two tries of a watch whose link fails, wall seconds.
 LINK_RETRY_MAX = 5.0
+# The monitor reads the gains once in this many readings: they change only when written (an apply, an engineer at
+# the PLC), rarely, and cost more requests than the rest of the reading (two more with the default Modbus map, where
+# PV, MV, SP and mode are one); a gains change made at the device shows within 10 monitor periods (10 s by default).
+GAINS_EVERY = 10
 log = logging.getLogger("autotuner.service.daemon")
 
 
 @dataclass(frozen=True)
 class Reading:
-    """One monitor reading of an idle loop: its state, its PV (PV units) and when (unix seconds)."""
+    """One monitor reading of an idle loop: PV, MV, SP and mode, the gains (None: not read this time) and when
+    (unix seconds)."""
 
-    state: LoopState
-    pv: float
+    sample: Sample
+    gains: Gains | None
     time: float
 
 
@@ -85,6 +93,7 @@ class Watch:
         link: Link | None = None
         last: TuneFlags | None = None
         monitor_due = 0.0
+        readings = 0  # monitor readings since the link was opened or the loop became idle
         try:
             while not self.halt.is_set():
                 try:
@@ -93,7 +102,7 @@ class Watch:
                             await link.close()
                             link = None
                         await self.idle.wait()  # nothing to read while the session runs
-                        monitor_due = 0.0
+                        monitor_due, readings = 0.0, 0
                         continue
                     if link is None:
                         link = self.connect()
@@ -105,9 +114,12 @@ class Watch:
                             if answer is not None:
                                 await link.write_flags(answer)
                         last = flags
-                    if self.idle.is_set() and time.monotonic() >= monitor_due:
+                    if not self.idle.is_set():
+                        readings = 0  # a session may change the gains: read them first thing after it
+                    elif time.monotonic() >= monitor_due:
                         monitor_due = time.monotonic() + config.monitor_period
-                        await self._monitor(link)
+                        await self._monitor(link, gains=readings % GAINS_EVERY == 0)
+                        readings += 1
                 except (LinkError, OSError) as exc:
                     self._failed(str(exc) or type(exc).__name__)
                 except Exception as exc:  # a bug must not end the watch (nor reach the event loop)
@@ -120,7 +132,7 @@ class Watch:
                     pause = period
                     await asyncio.sleep(period)
                     continue
-                last, monitor_due = None, 0.0
+                last, monitor_due, readings = None, 0.0, 0
                 if link is not None:
                     await link.close()
                     link = None
@@ -130,13 +142,14 @@ class Watch:
             if link is not None:
                 await link.close()
 
-    async def _monitor(self, link: Link) -> None:
-        """Read the idle loop's state and PV and report them (not if a session started meanwhile)."""
-        state = await link.read_state()
-        pv = await link.read_pv()
+    async def _monitor(self, link: Link, gains: bool) -> None:
+        """Read the idle loop's PV, MV, SP and mode, and its ``gains`` if asked, and report them (not if a session
+        started meanwhile)."""
+        sample = await link.read_sample()
+        read = (await link.read_state()).gains if gains else None
         self.counted()
         if self.idle.is_set():
-            self.sink.reading(self.config.id, Reading(state, pv, time.time()))
+            self.sink.reading(self.config.id, Reading(sample, read, time.time()))
 
     def _failed(self, error: str) -> None:
         self.failing = True
