@@ -490,7 +490,7 @@ class CanLink:
             try:
                 await self._fresh(stale, now - limit)
             except LinkError as exc:
-                raise BadValue(f"stale sample: {exc}") from None
+                raise BadValue(f"stale {'PV' if PROCESS in stale else 'sample'}: {exc}") from None
         v = {**self._latest[PROCESS][0], **self._latest[STATUS][0], **self._latest[SETPOINT][0]}
         try:
             mode = Mode(int(v["Mode"]))

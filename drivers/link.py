@@ -43,12 +43,15 @@ class LoopState:
 
 @dataclass(frozen=True)
 class Sample:
-    """What the monitor of an idle loop shows, read together: PV, actual MV and SP (engineering units) and mode."""
+    """What the monitor of an idle loop shows, read together: PV, actual MV and SP (engineering units) and mode;
+    ``boot``: the device's boot token — it changes whenever the device starts again, its registers back at their
+    defaults (None: the device has none)."""
 
     pv: float
     mv: float
     sp: float
     mode: Mode
+    boot: int | None = None
 
 
 @dataclass(frozen=True)

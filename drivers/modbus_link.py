@@ -410,13 +410,16 @@ class ModbusLink:
         return LoopState(mode=mode, mv=v["mv"], sp=v["sp"], gains=gains)
 
     async def read_sample(self) -> Sample:
-        """PV, actual MV, SP and mode: one request with the default map (``pv``, ``mv``, ``sp_in``, ``mode_in`` in
-        input registers 0..6); a map without ``sp_in``/``mode_in`` reads ``sp`` and ``mode`` instead (with the
-        default map's layout otherwise: two requests)."""
+        """PV, actual MV, SP, mode and the device's boot token: one request with the default map (``pv``, ``mv``,
+        ``sp_in``, ``mode_in``, ``boot`` in input registers 0..7); a map without ``sp_in``/``mode_in`` reads ``sp``
+        and ``mode`` instead (with the default map's layout otherwise: two requests), one without ``boot`` no
+        token."""
         sp = "sp_in" if "sp_in" in self.map else "sp"
         mode = "mode_in" if "mode_in" in self.map else "mode"
-        v = await self._read(("pv", "mv", sp, mode))
-        return Sample(pv=v["pv"], mv=v["mv"], sp=v[sp], mode=self._mode(v[mode]))
+        v = await self._read(("pv", "mv", sp, mode, "boot"))
+        boot = v.get("boot")
+        return Sample(pv=v["pv"], mv=v["mv"], sp=v[sp], mode=self._mode(v[mode]),
+                      boot=None if boot is None else int(boot))
 
     def _mode(self, raw: float) -> Mode:
         try:

@@ -18,6 +18,7 @@ sp        set point                                             read
 mode      0 = MAN, 1 = AUTO (:class:`drivers.link.Mode`)        read/write
 sp_in     a read-only copy of sp, next to pv and mv (optional)  read
 mode_in   a read-only copy of mode, next to pv and mv (opt.)    read
+boot      a token the device draws anew at every start (opt.)   read
 k .. c    PID gains, standard form (:class:`autotuner.engine.control.gains`)   read/write
 tune      TUNE: the operator asks for a tuning                  read
 tbrk      TBRK: the operator breaks the tuning                  read
@@ -98,7 +99,9 @@ WATCHDOG_SIGNALS = ("heartbeat", "wd_time", "wd_mv", "wd_mode")
 # Read-only copies of sp and mode that a map may put next to pv and mv: the monitor's reading of PV, MV, SP and
 # mode (:meth:`drivers.modbus_link.ModbusLink.read_sample`) is then one request.
 COPY_SIGNALS = ("sp_in", "mode_in")
-SIGNALS = ("pv", "mv", "hv", "sp", "mode", *COPY_SIGNALS, *GAIN_SIGNALS, *FLAG_SIGNALS, *WATCHDOG_SIGNALS)
+# A token the device draws anew at every start (optional): a session that reads it change knows the device
+# restarted with its registers at their defaults, and writes nothing more to it.
+SIGNALS = ("pv", "mv", "hv", "sp", "mode", *COPY_SIGNALS, "boot", *GAIN_SIGNALS, *FLAG_SIGNALS, *WATCHDOG_SIGNALS)
 # What a map must have for the tuner to run an experiment and report on it.
 REQUIRED = frozenset({"pv", "mv", "hv", "sp", "mode", "k", "ti"})
 # What the tuner writes: these must be in a writable table.
@@ -376,6 +379,7 @@ def _default() -> ModbusMap:
             "mv": Register(INPUT, 2, f32),
             "sp_in": Register(INPUT, 4, f32),
             "mode_in": Register(INPUT, 6, "uint16"),
+            "boot": Register(INPUT, 7, "uint16"),
             # Holding registers: set point, manual MV, gains, ite, mode.
             "sp": Register(HOLDING, 0, f32),
             "hv": Register(HOLDING, 2, f32),

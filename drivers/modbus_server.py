@@ -176,6 +176,8 @@ def _plc_value(plc: SimulatedPlc, signal: str) -> float:
         return float(getattr(plc.gains, signal))
     if signal == "heartbeat":
         return float(plc.heartbeat)
+    if signal == "boot":
+        return float(plc.boot)
     if signal in _WATCHDOG_FIELDS:
         return float(getattr(plc.watchdog, _WATCHDOG_FIELDS[signal]))
     flag = getattr(plc.flags, signal)

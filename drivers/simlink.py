@@ -58,7 +58,7 @@ class SimLink:
     async def read_sample(self) -> Sample:
         self._call()
         plc = self.plc
-        return Sample(pv=checked("pv", plc.read_pv()), mv=plc.mv, sp=plc.sp, mode=plc.mode)
+        return Sample(pv=checked("pv", plc.read_pv()), mv=plc.mv, sp=plc.sp, mode=plc.mode, boot=plc.boot)
 
     async def write_mode(self, mode: Mode) -> None:
         self._call()

@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import math
+import secrets
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -95,6 +96,9 @@ class SimulatedPlc:
     fallbacks: int = 0
     loads: tuple[tuple[float, float], ...] = ()
     faults: Faults = Faults()
+    # A new token at every start of the PLC (1..65535), served as ``boot``: a tuner whose session sees it change
+    # knows the device restarted with its registers at their defaults (docs/modbus.md).
+    boot: int = field(default_factory=lambda: secrets.randbelow(65535) + 1)
 
     def __post_init__(self) -> None:
         if self.ts <= 0.0:

@@ -186,18 +186,18 @@ def first_auto(ticks: list[tuple[Mode, float]]) -> int:
 
 
 class TimedLink:
-    """A link whose ``read_pv`` calls are time-stamped at completion (``done``, monotonic); everything else
-    forwarded. ``session``: it has written an MV (the monitor's links only read)."""
+    """A link whose ``read_sample`` calls (a session's PV readings) are time-stamped at completion (``done``,
+    monotonic); everything else forwarded. ``session``: it has written an MV (the monitor's links only read)."""
 
     def __init__(self, link: Any) -> None:
         self._link = link
         self.done: list[float] = []
         self.session = False
 
-    async def read_pv(self) -> float:
-        pv = await self._link.read_pv()
+    async def read_sample(self) -> Any:
+        sample = await self._link.read_sample()
         self.done.append(time.monotonic())
-        return pv
+        return sample
 
     async def write_mv(self, mv: float) -> None:
         self.session = True

@@ -240,7 +240,7 @@ def test_read_sample_is_pv_mv_sp_and_mode_from_the_cyclic_frames_and_stale_when_
             assert sample.pv != 50.0 and sample.mv == 80.0
             node.silent = True
             deadline = time.monotonic() + HANG
-            with pytest.raises(LinkError, match=r"stale sample: no fresh .*within 0.3 s"):
+            with pytest.raises(LinkError, match=r"stale PV: no fresh .*within 0.3 s"):
                 while time.monotonic() < deadline:  # reads succeed only while the last frames are fresh
                     await link.read_sample()
                     await asyncio.sleep(PERIOD)

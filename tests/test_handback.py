@@ -66,19 +66,32 @@ class Plc:
         self.speed = speed
         self.log_path = tmp / f"plc-{self.port}.log"
         self.log = open(self.log_path, "w")  # noqa: SIM115 - closed in close(); a file, never a pipe left unread
-        self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "sim", "--modbus",
-                                      f"127.0.0.1:{self.port}", "--speed", str(speed), "--ts", str(PLC_TS), *options],
-                                     stdout=self.log, stderr=subprocess.STDOUT, text=True)
+        self.starts = 0
+        self.options = options
         self.stopped = False
         self.client = ModbusTcpClient("127.0.0.1", port=self.port, timeout=1.0, retries=0)
+        self._start()
+
+    def _start(self) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "sim", "--modbus",
+                                      f"127.0.0.1:{self.port}", "--speed", str(self.speed), "--ts", str(PLC_TS),
+                                      *self.options], stdout=self.log, stderr=subprocess.STDOUT, text=True)
         try:
-            wait_for(lambda: "serving" in self.log_path.read_text() or self.proc.poll() is not None, START,
-                     "the simulated PLC to serve")
+            wait_for(lambda: self.log_path.read_text().count("serving") > self.starts or self.proc.poll() is not None,
+                     START, "the simulated PLC to serve")
             assert self.proc.poll() is None, self.log_path.read_text()
             assert self.client.connect()
         except BaseException:  # no simulated PLC left running after a failed start
             self.close()
             raise
+        self.starts += 1
+
+    def restart(self) -> None:
+        """The PLC killed and started again on its port: its registers at their defaults, a new boot token."""
+        self.proc.kill()
+        self.proc.wait()
+        self.client.close()
+        self._start()
 
     @property
     def url(self) -> str:
@@ -97,12 +110,14 @@ class Plc:
         return DEFAULT_MAP.decode(signal_name, r.registers)
 
     def read(self) -> dict[str, Any]:
-        """Mode, actual MV, PV, manual MV, TBSY, TE, ite and the watchdog time, as the PLC serves them now."""
+        """Mode, actual MV, PV, manual MV, TBSY, TE, ite, the watchdog time, the heartbeat and the boot token, as the
+        PLC serves them now."""
         coils = self.client.read_coils(0, count=4, device_id=1)
         assert not coils.isError(), coils
         return {"mode": "AUTO" if self._holding("mode") == 1.0 else "MAN", "mv": self._input("mv"),
                 "pv": self._input("pv"), "hv": self._holding("hv"), "tbsy": coils.bits[2], "te": coils.bits[3],
-                "ite": self._holding("ite"), "wd_time": self._holding("wd_time")}
+                "ite": self._holding("ite"), "wd_time": self._holding("wd_time"),
+                "heartbeat": self._holding("heartbeat"), "boot": self._input("boot")}
 
     def write_hv(self, mv: float) -> None:
         """An operator's manual MV."""
@@ -524,3 +539,32 @@ def test_a_watchdog_hand_back_under_reply_delays_stays_code_22_and_no_message_ne
             assert message.count("LOOP NOT RESTORED") <= 1, message
     finally:
         slow.close()
+
+
+def test_a_plc_restarted_mid_session_ends_it_with_a_link_fault_and_no_write_follows(tmp_path, plc):
+    """Killed during the relay and started again on its port (its registers at their defaults, AUTO): the session
+    ends with a link fault naming the restart, and the daemon writes nothing more to it — no relay level, no
+    hand-back, no handshake, no heartbeat (read by a separate client until well after the session's end)."""
+    with daemon(tmp_path, plc, window=30.0) as d:
+        sid = d.tune()
+        before = at_relay_level(plc)
+        plc.restart()
+        readings: list[dict[str, Any]] = []
+
+        def ended() -> dict[str, Any] | None:
+            readings.append(plc.read())
+            status = d.status()
+            return status if status["session"] == sid and not status["tbsy"] else None
+
+        status = wait_for(ended, WAIT, "the session to end")
+        settled = time.monotonic() + 2.0  # the monitor's periods go on: still nothing written
+        wait_for(lambda: readings.append(plc.read()) or time.monotonic() > settled, WAIT, "two more seconds")
+        assert status["ite"] == float(Code.LINK_FAULT) and status["te"], status
+        assert "the device restarted during the session" in status["message"], status["message"]
+        assert status["restore"] is None  # nothing left to restore: the device's defaults hold the loop
+        defaults = {"mode": "AUTO", "tbsy": False, "te": False, "ite": 0.0, "wd_time": 0.0, "heartbeat": 0.0}
+        assert all({k: r[k] for k in defaults} == defaults for r in readings), readings
+        assert all(r["boot"] != before["boot"] for r in readings)
+        row = history_row(d.history, sid)
+        assert row["state"] == "finished" and row["result"]["ite"] == int(Code.LINK_FAULT), row
+        assert "the device restarted during the session" in row["result"]["message"]

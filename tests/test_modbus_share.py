@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import struct
+from dataclasses import replace
 
 import pytest
 
@@ -94,13 +95,14 @@ def test_the_server_answers_every_pipelined_request_with_its_own_transaction_id(
 
 def test_links_to_one_device_share_one_connection_until_the_last_closes():
     async def main():
-        server = await serve_units(plcs(3))
+        units = plcs(3)
+        server = await serve_units(units)
         a, b, c = links(server.port, (1, 2, 3), timeout=2.0)
         try:
             await a.open()
             await b.open()
-            assert [await a.read_sample(), await b.read_sample()] == [Sample(10.0, 10.0, 10.0, Mode.AUTO),
-                                                                      Sample(20.0, 20.0, 20.0, Mode.AUTO)]
+            assert [await a.read_sample(), await b.read_sample()] == [
+                Sample(10.0, 10.0, 10.0, Mode.AUTO, units[1].boot), Sample(20.0, 20.0, 20.0, Mode.AUTO, units[2].boot)]
             assert (server.accepted, server.connections) == (1, 1)
             assert a.health()["links"] == 2 and a.health()["connected"]
             await a.close()
@@ -338,8 +340,8 @@ def test_a_device_restart_is_picked_up_by_every_link_sharing_it():
                 with pytest.raises(LinkError):
                     await link.read_pv()
             server = await serve_units(units, port=port)
-            assert [await a.read_sample(), await b.read_sample()] == [Sample(10.0, 10.0, 10.0, Mode.AUTO),
-                                                                      Sample(20.0, 20.0, 20.0, Mode.AUTO)]
+            assert [await a.read_sample(), await b.read_sample()] == [
+                Sample(10.0, 10.0, 10.0, Mode.AUTO, units[1].boot), Sample(20.0, 20.0, 20.0, Mode.AUTO, units[2].boot)]
             assert server.accepted == 1
         finally:
             await close_all(a, b, server)
@@ -372,7 +374,8 @@ def test_rtu_links_to_units_of_one_line_share_its_client():
 # -- the monitor's reading -------------------------------------------------------------------------------------------
 
 def test_read_sample_is_one_request_with_the_default_map_and_two_without_the_copies():
-    without = ModbusMap({n: r for n, r in DEFAULT_MAP.registers.items() if n not in ("sp_in", "mode_in")})
+    # (a map without the copies, as a PLC's own map would be, without a boot token either)
+    without = ModbusMap({n: r for n, r in DEFAULT_MAP.registers.items() if n not in ("sp_in", "mode_in", "boot")})
 
     async def main():
         units = plcs(1)
@@ -382,9 +385,10 @@ def test_read_sample_is_one_request_with_the_default_map_and_two_without_the_cop
         server = await serve_units(units)
         plain, old = (ModbusLink.tcp("127.0.0.1", server.port, map=m, timeout=2.0) for m in (DEFAULT_MAP, without))
         try:
-            expected = Sample(pv=pytest.approx(units[1].pv, rel=1e-6), mv=12.5, sp=10.0, mode=Mode.MAN)
+            expected = Sample(pv=pytest.approx(units[1].pv, rel=1e-6), mv=12.5, sp=10.0, mode=Mode.MAN,
+                              boot=units[1].boot)
             assert await plain.read_sample() == expected and plain.requests == 1
-            assert await old.read_sample() == expected and old.requests == 2
+            assert await old.read_sample() == replace(expected, boot=None) and old.requests == 2
             units[1].nan_pv = True
             with pytest.raises(LinkError, match=r"\bpv is not a number"):
                 await plain.read_sample()
@@ -419,7 +423,7 @@ def test_the_plant_gives_pipelined_urls_its_links_share_one_connection_per_serve
             try:
                 samples = await asyncio.gather(*(link.read_sample() for link in group))
                 assert samples == [Sample(pytest.approx(plc.pv, rel=1e-6), pytest.approx(plc.mv, rel=1e-6), plc.sp,
-                                          plc.mode) for plc in plant.plcs]
+                                          plc.mode, plc.boot) for plc in plant.plcs]
                 assert group[0].health()["pipeline"] == 16 and plant.servers[0].accepted == 1
             finally:
                 await close_all(*group)

@@ -14,7 +14,7 @@ from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config
 from autotuner.service.link_session import HandBack, SessionHooks, SessionPlan, tune_link
 from autotuner.engine.simulated_tuning import default_sample_time
-from drivers.link import Mode
+from drivers.link import Mode, TuneFlags
 from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc, run
 from helpers import first_auto, record_ticks, until
@@ -287,3 +287,68 @@ def test_an_experiment_refused_before_it_starts_never_touches_the_loop():
     assert result.code is Code.MV_RANGE and "do not straddle" in result.message
     assert writes == [] and plc.mode is Mode.AUTO
     assert (plc.flags.tbsy, plc.flags.te, plc.flags.ite) == (False, True, float(Code.MV_RANGE))
+
+
+WRITES = ("write_mv", "write_mode", "write_gains", "write_flags", "write_watchdog", "write_heartbeat")
+
+
+def record_writes(link: SimLink, writes: list[str]) -> None:
+    """Every write ``link`` makes from now on, by name, in ``writes``."""
+    for name in WRITES:
+        def recorder(original, name=name):
+            async def write(*args):
+                writes.append(name)
+                await original(*args)
+            return write
+        setattr(link, name, recorder(getattr(link, name)))
+
+
+async def taken_mid_relay(change, watchdog: float = 0.0):
+    """A session whose loop ``change(plc)`` changes once the relay holds it at a level (by another hand than the
+    session's); the result, the PLC, the writes the session made after the change, the PLC's mode and flags then."""
+    process = parse_process(PLANT)
+    ts = default_sample_time(process) * 100 / SAMPLES_PER_PERIOD
+    plc = SimulatedPlc(process, ts=ts / 5)
+    saved_mv = plc.hv
+    halt = asyncio.Event()
+    plant = asyncio.create_task(run(plc, SPEED, halt))
+    link = SimLink(plc)
+    writes: list[str] = []
+    task = asyncio.create_task(tune_link(link, SessionPlan(field_config(RelayConfig(amp=5.0, time_limit=500.0)), ts,
+                                                           speed=SPEED, handback=HandBack(watchdog=watchdog))))
+    try:
+        await until(lambda: plc.mode is Mode.MAN and abs(plc.mv - saved_mv) > 2.0, 20.0, "the relay to run")
+        change(plc)
+        record_writes(link, writes)
+        after = (plc.mode, plc.flags, plc.hv)
+        result = await asyncio.wait_for(task, 30.0)
+    finally:
+        halt.set()
+        await plant
+    return result, plc, writes, after
+
+
+def restart(plc: SimulatedPlc) -> None:
+    """The PLC starts again: a new boot token, its registers at their defaults (AUTO, no handshake)."""
+    plc.boot = plc.boot % 65535 + 1
+    plc.mode = Mode.AUTO
+    plc.flags = TuneFlags()
+
+
+def test_a_device_that_restarted_mid_session_ends_it_with_a_link_fault_and_nothing_more_is_written():
+    result, plc, writes, after = asyncio.run(taken_mid_relay(restart))
+    assert result.code is Code.LINK_FAULT
+    assert "the device restarted during the session" in result.message
+    assert writes == []
+    assert (plc.mode, plc.flags, plc.hv) == after  # as it restarted
+
+
+def test_a_loop_taken_out_of_man_mid_session_is_left_as_found():
+    def operator(plc: SimulatedPlc) -> None:
+        plc.mode = Mode.AUTO
+
+    result, plc, writes, after = asyncio.run(taken_mid_relay(operator))
+    assert result.code is Code.OPERATOR_INTERVENTION
+    assert "left MAN during the session (AUTO read)" in result.message
+    assert writes == []
+    assert plc.mode is Mode.AUTO and plc.flags == after[1]

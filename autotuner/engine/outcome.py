@@ -82,7 +82,8 @@ MESSAGES: dict[Code, str] = {
     Code.DERIVATIVE_DROPPED: "warning: PID was asked for but the design has no derivative action",
     Code.ROBUSTNESS_MISSED: "warning: the design misses its Ms target on the model",
     Code.LOOP_NOT_RESTORED: "LOOP NOT RESTORED: the loop could not be handed back yet; the restore is retried",
-    Code.OPERATOR_INTERVENTION: "the loop was changed by hand after the daemon stopped: left as found, not restored",
+    Code.OPERATOR_INTERVENTION: "the loop was changed by someone else (by hand, another tuner): left as found, not "
+                                "restored",
     Code.WATCHDOG_FALLBACK: "the device's watchdog handed the loop back (the tuner's heartbeat stopped)",
 }
 

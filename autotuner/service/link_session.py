@@ -27,11 +27,11 @@ import contextlib
 import math
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags, Watchdog
+from drivers.link import Link, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog
 
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Status
@@ -190,19 +190,24 @@ async def fell_back(link: Link) -> bool:
         return False
 
 
-async def hand_back(link: Link, saved: LoopState, handback: HandBack) -> str:
+async def hand_back(link: Link, saved: LoopState, handback: HandBack,
+                    still_held: Callable[[], Awaitable[bool]] | None = None) -> str:
     """Hand the loop back to ``saved``'s MV and mode, bumplessly; '' on success, else why it is not restored (the
     last try's error: :func:`not_restored` makes the message).
 
     A loop left in MAN at a relay level is the worst outcome, so it keeps
     trying, with growing pauses, for ``handback.window`` seconds (and not
     past ``handback.cap``) — but not once the daemon is fenced off the loop
-    (:class:`Fenced`: its lease lost, the new owner restores it).
+    (:class:`Fenced`: its lease lost, the new owner restores it), nor once
+    ``still_held()``, awaited before each try, is False (the device restarted:
+    its own defaults hold the loop, nothing is written; '' is returned).
     """
     deadline = time.monotonic() + handback.window
     pause = 0.1
     while True:
         try:
+            if still_held is not None and not await still_held():
+                return ""
             await hand_back_once(link, saved, handback.track_timeout)
             return ""
         except Fenced as exc:  # not ours any more: the loop's new owner restores it, this daemon writes nothing
@@ -375,13 +380,20 @@ async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = 
         raise
     finally:
         # A loop the device's watchdog has handed back is not handed back again (it is in its saved mode, its
-        # MV the controller's: the hand-back's tracking could never succeed, and its writes would overwrite 22).
-        restore_error = "" if sampling.fell_back else await hand_back(link, saved, plan.handback)
+        # MV the controller's: the hand-back's tracking could never succeed, and its writes would overwrite 22);
+        # nor one that restarted or someone took (the session writes nothing more to it).
+        restore_error = "" if sampling.fell_back or sampling.hands_off else await hand_back(
+            link, saved, plan.handback, sampling.not_restarted)
         if hooks.on_handed_back is not None:
             hooks.on_handed_back(restore_error)
-        if failed:  # no result follows to end the handshake with
+        if failed and not sampling.hands_off:  # no result follows to end the handshake with
             await _end_handshake(link, restore_error, Code.ABORTED)
     result = _restored(await _result(hooks, sampling.design_job(), sampling.trace()), saved, restore_error)
+    if sampling.hands_off:
+        if hooks.on_status is not None:
+            hooks.on_status(experiment.status())
+        return result if sampling.restarted in result.message else replace(
+            result, message=f"{result.message}; then {sampling.restarted}")
     if result.ok and plan.apply:
         try:
             await link.write_gains(result.design.gains)
@@ -420,6 +432,10 @@ class _Sampling:
         self._beat_sent = 0.0  # when the last heartbeat write started, or the watchdog was armed (monotonic)
         self._suspect_until = -math.inf  # the device is read for its watchdog's hand-back until then
         self.fell_back = False  # the device's watchdog handed the loop back during the experiment
+        self.hands_off = False  # the device restarted, or someone took the loop: nothing more may be written
+        self.restarted = ""  # how the device was seen to restart
+        self._boot: int | None = None  # the device's boot token at the session's first sample
+        self._in_man = False  # a sample of this session has read the loop in MAN
 
     async def run(self) -> None:
         """Sample until the experiment ends (or ``hooks.stop`` aborts it); LinkError if the link fails."""
@@ -445,12 +461,15 @@ class _Sampling:
         before = time.monotonic()
         tolerance = experiment.stall_tolerance / speed
         own = self.overload.sample(due, before, tolerance)
-        pv = await link.read_pv()
+        sample = await link.read_sample()
+        pv = sample.pv
         after = time.monotonic()
         if hooks.on_timing is not None:
             hooks.on_timing(after - due, own, tolerance)
         if self.overload.exceeded:
             experiment.fail(Code.OVERLOADED, self.overload.message(speed))
+            return False
+        if not await self._still_held(sample):
             return False
         age = link.pv_age
         t = ((0.5 * (before + after) if age is None else after - age) - self._start) * speed
@@ -511,6 +530,49 @@ class _Sampling:
         if timeout > 0.0 and self.overload.io_end - self._beat_sent >= WATCHDOG_SUSPECT * timeout:
             self._suspect_until = self.overload.io_end + timeout
         self._beat_sent = sent
+
+    async def _still_held(self, sample: Sample) -> bool:
+        """Whether the loop is still as the session holds it (read with each sample, no request of its own); else
+        the experiment ends at once and the session writes nothing more: the device restarted (its boot token
+        changed: a link fault, its registers at their defaults), or the loop left MAN after a sample had read it
+        in MAN (the device's watchdog: 22, its own code kept; anyone else: an intervention, 21)."""
+        if self._restarted(sample):
+            self.experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {self.restarted}")
+            return False
+        if sample.mode is Mode.MAN:
+            self._in_man = True
+            return True
+        if not self._in_man:
+            return True  # (the session's MAN may not have reached the device's scan yet)
+        if self.plan.handback.watchdog > 0.0 and await fell_back(self.link):
+            self.fell_back = True
+            self.experiment.fail(Code.WATCHDOG_FALLBACK, f"{MESSAGES[Code.WATCHDOG_FALLBACK]}: the loop is as the "
+                                 "device handed it back")
+            return False
+        self.hands_off = True
+        self.experiment.fail(Code.OPERATOR_INTERVENTION, f"{MESSAGES[Code.OPERATOR_INTERVENTION]}: the loop left MAN "
+                             f"during the session ({Mode(sample.mode).name} read), taken by someone else: nothing "
+                             "more was written to it")
+        return False
+
+    def _restarted(self, sample: Sample) -> bool:
+        """Whether ``sample``'s boot token shows the device restarted since the session's first sample (then
+        ``hands_off`` and ``restarted`` say so)."""
+        if self._boot is None:
+            self._boot = sample.boot
+        elif sample.boot is not None and sample.boot != self._boot:
+            self.hands_off = True
+            self.restarted = (f"the device restarted during the session (its boot token went from {self._boot} to "
+                              f"{sample.boot}), its registers back at their defaults: nothing more was written to it")
+        return self.hands_off
+
+    async def not_restarted(self) -> bool:
+        """Whether the device has not restarted since the session's first sample (read now; True when it cannot be
+        read: the hand-back's own try reports that)."""
+        try:
+            return not self._restarted(await self.link.read_sample())
+        except LinkError:
+            return True
 
     async def _taken_back(self) -> bool:
         """Whether the armed watchdog has handed the loop back: the device shows it (TE, ite 22), or the loop is

@@ -19,7 +19,7 @@ import math
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from drivers.link import Link, LinkError, LoopState
+from drivers.link import Link, LinkError, LoopState, Sample
 
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.result import TuneResult
@@ -58,7 +58,7 @@ def mv_hull(*mvs: float) -> tuple[float, float]:
 
 
 class Tap:
-    """A link that remembers the last PV read and MV written (for the live samples) and forwards everything.
+    """A link that remembers the last PV read (``read_sample``: the session's) and MV written (for the live samples) and forwards everything.
 
     A gains write first awaits ``before_gains`` (the history's intent; a
     LinkError there means the gains are not written) and remembers the gains
@@ -82,9 +82,10 @@ class Tap:
     def pv_age(self) -> float | None:
         return self._link.pv_age
 
-    async def read_pv(self) -> float:
-        self.pv = await self._link.read_pv()
-        return self.pv
+    async def read_sample(self) -> Sample:
+        sample = await self._link.read_sample()
+        self.pv = sample.pv
+        return sample
 
     async def write_mv(self, mv: float) -> None:
         r = self.mv_range
