@@ -35,7 +35,8 @@ error of ``x`` comes from the curvature of the residual.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.optimize
@@ -58,6 +59,38 @@ _RESOLUTION = 0.01
 _SETTLE_ITERATIONS = 4
 # settled_ratio's lag is summed over chunks of at most this many time constants (e^300 stays finite).
 _CHUNK = 300.0
+# The full search scans x on this many points over its range, then narrows the best cell's
+# neighbourhood by this many golden-section steps (to about 2.4e-4 over x's range of 0.995).
+_X_GRID = 11
+_GOLDEN_STEPS = 14
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+# A refit near an earlier fit searches x to the same resolution...
+_X_TOL = 2.5e-4
+# ...within this many of the earlier fit's standard errors of its x (at least _NEAR_MIN); an earlier
+# fit whose x is less certain than _NEAR_MAX says too little to search near: the full search runs.
+_NEAR_STD = 4.0
+_NEAR_MIN = 0.02
+_NEAR_MAX = 0.2
+# A refit whose residual grew beyond this many times the earlier fit's (plus the model's own mismatch,
+# _RESOLUTION) meets something the earlier terms do not explain, such as a second load: the full search runs.
+_MISFIT = 2.0
+# Scaled regressors whose QR factor has a diagonal element below this share of the largest are nearly
+# dependent: the residual is then lstsq's, which leaves such directions out.
+_RANK = 1e-8
+
+
+def _golden_steps(width: float) -> int:
+    """The golden-section steps that narrow a bracket of ``width`` to ``_X_TOL``."""
+    return math.ceil(math.log(_X_TOL / width) / math.log(_GOLDEN)) if width > _X_TOL else 0
+
+
+# The most candidate models one fit runs (each filters the record once: the fit's work, whatever the
+# record's length). The full search: its grid of x, four golden-section searches (two points, the
+# steps, the result) and the curvature's two points. A refit near an earlier fit: one step-time scan
+# at the earlier x, two searches (the earlier ramp and the other) over at most ±_NEAR_MAX, the curvature's
+# two — and the full search after it when the record has moved away from the earlier fit.
+SEARCH_RUNS = _X_GRID + 4 * (2 + _GOLDEN_STEPS + 1) + 2
+NEAR_RUNS = 1 + 2 * (2 + _golden_steps(2.0 * _NEAR_MAX) + 1) + 2
 
 
 @dataclass(frozen=True)
@@ -70,8 +103,6 @@ class LoadFit:
     step_time, step: a load step at the process input (s, MV units), or None/0.
     ramp: load ramp from the start (MV units per second); free: PV units of
     the free response at the start.
-    disturbance: pv samples of the fitted disturbance (load and free response),
-    to be removed from the PV before the Fourier estimate.
     residual_std: standard deviation of the averaged residual (PV units).
     score: the information criterion of the chosen model (lower explains the
     same record better; comparable between fits of one record only).
@@ -87,7 +118,6 @@ class LoadFit:
     free: float
     residual_std: float
     score: float
-    disturbance: np.ndarray = field(repr=False)
 
     def load_at(self, t: float, t0: float) -> float:
         """The fitted load at the process input at time ``t`` (MV units; ``t0`` is the record start)."""
@@ -113,8 +143,8 @@ def _model(x: float, gain: float, omega: float, lag: float) -> tuple[float, floa
     return k0, t, max((lag - base - math.atan(omega * t)) / omega, 0.0)
 
 
-def _respond(u: np.ndarray, dt: float, x: float, gain: float, omega: float, lag: float) -> np.ndarray:
-    """Model response (PV units) to the input ``u`` held over samples ``dt`` apart, from rest.
+def _filter(dt: float, x: float, gain: float, omega: float, lag: float) -> tuple[list[float], list[float], int]:
+    """(b, a, m): the model's discrete filter under zero-order hold and its dead time's whole samples.
 
     Exact under zero-order hold with a dead time that need not be whole samples
     (as the simulated plant does it): with ``L = m·dt + θ`` the delayed input
@@ -125,12 +155,15 @@ def _respond(u: np.ndarray, dt: float, x: float, gain: float, omega: float, lag:
     theta = delay - m * dt
     if math.isinf(k0):
         kv = gain * omega
-        b, a = [kv * (dt - theta), kv * theta], [1.0, -1.0]
-    else:
-        pole = math.exp(-dt / t)
-        late = math.exp(-(dt - theta) / t)
-        b = [k0 * (1.0 - late), k0 * late * (1.0 - math.exp(-theta / t))]
-        a = [1.0, -pole]
+        return [kv * (dt - theta), kv * theta], [1.0, -1.0], m
+    pole = math.exp(-dt / t)
+    late = math.exp(-(dt - theta) / t)
+    return [k0 * (1.0 - late), k0 * late * (1.0 - math.exp(-theta / t))], [1.0, -pole], m
+
+
+def _respond(u: np.ndarray, dt: float, x: float, gain: float, omega: float, lag: float) -> np.ndarray:
+    """Model response (PV units) to the input ``u`` held over samples ``dt`` apart, from rest (see :func:`_filter`)."""
+    b, a, m = _filter(dt, x, gain, omega, lag)
     shifted = np.concatenate((np.zeros(m + 1), u))[: len(u)]
     # y[k] is the output at sample k, before u[k] acts: one sample of delay.
     return scipy.signal.lfilter(b, a, shifted)
@@ -241,12 +274,12 @@ class _Responses:
 
     A load step's response at any time is the step response from the start,
     shifted; its averages come from one running sum, so every step time
-    costs an index lookup instead of a model run.
+    costs an index lookup instead of a model run. (The free response of the
+    lag is computed when a fit asks for it: the search leaves it out.)
     """
 
     target: np.ndarray
     ramp: np.ndarray
-    free: np.ndarray
     step_sum: np.ndarray  # running sum of the step response from the start (length + 1)
 
     def step(self, ks: np.ndarray, n: int) -> np.ndarray:
@@ -271,11 +304,43 @@ def held_mean(s: np.ndarray, u: np.ndarray, u0: float, grid: np.ndarray, dt: flo
     return np.diff(np.interp(np.append(grid, end), knots, area)) / dt
 
 
+def _golden(f: Callable[[float], float], a: float, b: float, iterations: int) -> float:
+    """The middle of the bracket that a golden-section search of ``f`` on [a, b] leaves after ``iterations`` steps."""
+    c, d = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(iterations):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - _GOLDEN * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + _GOLDEN * (b - a)
+            fd = f(d)
+    return 0.5 * (a + b)
+
+
+@dataclass(frozen=True)
+class _Model:
+    """One candidate explanation of the record: x, the load steps (grid samples), a ramp, the free
+    response, and its information criterion."""
+
+    score: float
+    x: float
+    steps: tuple[int, ...]
+    ramp: bool
+    free: bool = False
+
+
 class LoadFitter:
     """Fits :class:`LoadFit` to a record: times (s, increasing), PV and the MV held from each sample.
 
     ``held_from``: when each MV reached the process, if later than its sample
-    (s; default the sample times).
+    (s; default the sample times). ``runs`` counts the candidate models run so
+    far (each filters the record once): the work of the fits. A full search
+    (:meth:`fit`) runs at most :data:`SEARCH_RUNS` of them, a refit near an
+    earlier fit at most :data:`NEAR_RUNS` (and the full search when it falls
+    back to it) — whatever the record's length.
     """
 
     def __init__(self, t: np.ndarray, y: np.ndarray, u: np.ndarray, u0: float, start: int,
@@ -287,18 +352,21 @@ class LoadFitter:
         grid = t[0] + self.dt * np.arange(int((t[-1] - t[0]) / self.dt + 1e-9) + 1)
         self.t, self.y = grid, np.interp(grid, t, y)
         self.u = held_mean(t if held_from is None else held_from, u, u0, grid, self.dt)
-        self.source_t = t
         self.u0, self.start = u0, int(np.searchsorted(grid, t[min(start, len(t) - 1)]))
         self.omega, self.gain, self.lag = omega, gain, lag
         self.n = max(int(round(2.0 * math.pi / omega / self.dt)), 1)
         self.max_steps = max_steps
         self.scale = scale
+        self.runs = 0
         self._cache: dict[float, _Responses] = {}
+        # The model's inputs (the MV, a ramp, a unit step) behind zeros as long as the longest dead time
+        # of any candidate (lag/ω, see _model) and the hold's sample: each candidate's delayed inputs
+        # are a view, and one filter call runs all three.
+        self._pad = int(max(lag, 0.0) / omega / self.dt) + 2
+        self._inputs = np.zeros((3, self._pad + len(grid)))
+        self._inputs[:, self._pad:] = (self.u - u0, grid - grid[0], np.ones(len(grid)))
 
     # -- one candidate model ----------------------------------------------
-
-    def _respond(self, x: float, v: np.ndarray) -> np.ndarray:
-        return _respond(v, self.dt, x, self.gain, self.omega, self.lag)
 
     def _free(self, x: float) -> np.ndarray:
         tc = _model(x, self.gain, self.omega, self.lag)[1]
@@ -312,12 +380,16 @@ class LoadFitter:
     def _responses(self, x: float) -> _Responses:
         cached = self._cache.get(x)
         if cached is None:
-            unit = np.ones(len(self.t))
-            columns = np.stack((self.y - self._respond(x, self.u - self.u0), self._respond(x, self.t - self.t[0]),
-                                self._free(x)), axis=1)
-            target, ramp, free = _average(columns, self.n).T
-            step_sum = _running_sum(self._respond(x, unit)[:, None])[:, 0]
-            cached = self._cache[x] = _Responses(target, ramp, free, step_sum)
+            self.runs += 1
+            b, a, m = _filter(self.dt, x, self.gain, self.omega, self.lag)
+            # y[k] is the output at sample k, before u[k] acts: one sample of delay (as _respond).
+            start = self._pad - m - 1
+            mv, ramp, unit = scipy.signal.lfilter(b, a, self._inputs[:, start:start + len(self.t)], axis=1)
+            total = np.zeros((3, len(self.t) + 1))
+            np.cumsum(np.stack((self.y - mv, ramp, unit)), axis=1, out=total[:, 1:])
+            ends = _ends(self.n, len(self.t))
+            target, ramp_mean = (total[:2, ends] - total[:2, ends - self.n]) / self.n
+            cached = self._cache[x] = _Responses(target, ramp_mean, total[2])
         return cached
 
     def _base(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -327,12 +399,19 @@ class LoadFitter:
         if ramp:
             cols.append(r.ramp[:, None])
         if free:
-            cols.append(r.free[:, None])
+            cols.append(_average(self._free(x)[:, None], self.n))
         return r.target, np.hstack(cols)
 
     def _fitted(self, b: np.ndarray, a: np.ndarray, extra: int = 0) -> bool:
         """True when the record is long enough for these terms and their averages are finite."""
         return len(self.t) > self.n + a.shape[1] + extra and bool(np.all(np.isfinite(a)) and np.all(np.isfinite(b)))
+
+    @staticmethod
+    def _scaled(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(columns scaled to a largest value of 1, the scales): unstable models grow without bound, and
+        scaled columns keep the least-squares problem well conditioned."""
+        scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
+        return a / scale, scale
 
     @np.errstate(over="ignore", invalid="ignore")
     def _solve(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[float, np.ndarray]:
@@ -340,13 +419,32 @@ class LoadFitter:
         b, a = self._base(x, steps, ramp, free)
         if not self._fitted(b, a):
             return math.inf, np.zeros(a.shape[1])
-        # Unstable models grow without bound; scale the columns so the
-        # least-squares problem stays well conditioned.
-        scale = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
-        coef, *_ = np.linalg.lstsq(a / scale, b, rcond=None)
+        scaled, scale = self._scaled(a)
+        coef, *_ = np.linalg.lstsq(scaled, b, rcond=None)
         coef = coef / scale
         r = b - a @ coef
         return float(r @ r), coef
+
+    @np.errstate(over="ignore", invalid="ignore")
+    def _rss(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool = False) -> float:
+        """The residual sum of squares of :meth:`_solve`, without the coefficients: what the search compares.
+
+        The last diagonal element of the QR factor of the scaled regressors with
+        the target beside them is the residual's norm (a third of lstsq's cost,
+        which the search spent most of its time in).
+        """
+        b, a = self._base(x, steps, ramp, free)
+        if not self._fitted(b, a):
+            return math.inf
+        if len(b) <= a.shape[1]:
+            return 0.0  # as many averages as terms: fitted exactly
+        r = np.linalg.qr(np.column_stack((self._scaled(a)[0], b)), mode="r")
+        diagonal = np.abs(np.diag(r)[:-1])
+        if np.min(diagonal) <= _RANK * np.max(diagonal):
+            # Nearly dependent columns (an unstable candidate's responses all grow as one exponential): QR
+            # would fit the target along their rounding noise, lstsq leaves that direction out.
+            return self._solve(x, steps, ramp, free)[0]
+        return float(r[-1, -1] ** 2)
 
     @np.errstate(over="ignore", invalid="ignore", divide="ignore")
     def _scan_step(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool, ks: np.ndarray) -> np.ndarray:
@@ -362,10 +460,14 @@ class LoadFitter:
             return np.full(len(ks), math.inf)
         finite = np.all(np.isfinite(s), axis=0)
         s = np.nan_to_num(s)
-        a = a / np.maximum(np.max(np.abs(a), axis=0), 1e-300)
+        a = self._scaled(a)[0]
         rhs = np.column_stack((b, s / np.maximum(np.max(np.abs(s), axis=0), 1e-300)))
-        proj, *_ = np.linalg.lstsq(a, rhs, rcond=None)
-        rest = rhs - a @ proj
+        q, r = np.linalg.qr(a)
+        diagonal = np.abs(np.diag(r))
+        if np.min(diagonal) > _RANK * np.max(diagonal):
+            rest = rhs - q @ (q.T @ rhs)
+        else:  # nearly dependent columns: lstsq leaves their rounding noise out (see _rss)
+            rest = rhs - a @ np.linalg.lstsq(a, rhs, rcond=None)[0]
         rb, rs = rest[:, 0], rest[:, 1:]
         norm = np.einsum("ij,ij->j", rs, rs)
         coef = np.where(norm > 0.0, (rs.T @ rb) / np.where(norm > 0.0, norm, 1.0), 0.0)
@@ -376,45 +478,33 @@ class LoadFitter:
 
     def _best_x(self, steps: tuple[int, ...], ramp: bool, free: bool, lo: float, hi: float) -> tuple[float, float]:
         """Golden-section search of the residual over x in [lo, hi] (after a coarse scan)."""
-        grid = np.linspace(lo, hi, 11)
-        values = [self._solve(float(x), steps, ramp, free)[0] for x in grid]
+        grid = np.linspace(lo, hi, _X_GRID)
+        values = [self._rss(float(x), steps, ramp, free) for x in grid]
         i = int(np.argmin(values))
-        a, b = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
-        g = (math.sqrt(5.0) - 1.0) / 2.0
-        c, d = b - g * (b - a), a + g * (b - a)
-        fc, fd = self._solve(c, steps, ramp, free)[0], self._solve(d, steps, ramp, free)[0]
-        for _ in range(14):
-            if fc < fd:
-                b, d, fd = d, c, fc
-                c = b - g * (b - a)
-                fc = self._solve(c, steps, ramp, free)[0]
-            else:
-                a, c, fc = c, d, fd
-                d = a + g * (b - a)
-                fd = self._solve(d, steps, ramp, free)[0]
-        x = 0.5 * (a + b)
-        return x, self._solve(x, steps, ramp, free)[0]
+        x = _golden(lambda v: self._rss(v, steps, ramp, free), float(grid[max(i - 1, 0)]),
+                    float(grid[min(i + 1, len(grid) - 1)]), _GOLDEN_STEPS)
+        return x, self._rss(x, steps, ramp, free)
 
-    def _disturbance(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool, coef: np.ndarray) -> np.ndarray:
-        """The fitted disturbance sample by sample (PV units): loads and free response, not the offset."""
-        unit = self._respond(x, np.ones(len(self.t)))
-        total = np.zeros(len(self.t))
-        for k, size in zip(steps, coef[1:]):
-            total[k:] += size * unit[: len(self.t) - k]
-        j = 1 + len(steps)
-        if ramp:
-            total += coef[j] * self._respond(x, self.t - self.t[0])
-            j += 1
-        if free:
-            total += coef[j] * self._free(x)
-        return np.interp(self.source_t, self.t, total)
+    def _near_x(self, steps: tuple[int, ...], ramp: bool, x0: float, delta: float, lo: float,
+                hi: float) -> float | None:
+        """Golden-section search of the residual over x within ``delta`` of ``x0`` (and [lo, hi]), to the
+        full search's resolution; None when the best x is at an edge that is not [lo, hi]'s (it lies beyond)."""
+        a, b = max(x0 - delta, lo), min(x0 + delta, hi)
+        x = _golden(lambda v: self._rss(v, steps, ramp), a, b, _golden_steps(b - a))
+        if (a > lo and x - a < _X_TOL) or (b < hi and b - x < _X_TOL):
+            return None
+        return x
 
     # -- model selection ----------------------------------------------------
 
-    def fit(self, unstable: bool = False) -> LoadFit:
+    def fit(self, unstable: bool = False, near: LoadFit | None = None) -> LoadFit:
         """The best-explaining model: its x, the disturbance terms it needs, and their sizes.
 
         ``unstable`` searches x in (−1, 0] (an open-loop unstable process), otherwise in [0, 1).
+        ``near``: an earlier fit of this record's start (a refit as the record grows). Its terms are
+        kept and x and the step time are searched near its own (:meth:`_refit_near`), unless the
+        record has moved away from it — x beyond the search, or a residual grown beyond ``_MISFIT``
+        times its own (a second load): then the full search runs, as without ``near``.
         """
         lo, hi = (-_X_MAX, 0.0) if unstable else (0.0, _X_MAX)
         points = max((len(self.t) - self.n) / self.n * _POINTS_PER_PERIOD, 1.0)
@@ -425,40 +515,90 @@ class LoadFitter:
         def criterion(s: float, p: int) -> float:
             return points * math.log((s + floor) / points) + p * math.log(points) * 2.0
 
+        if near is not None:
+            model = self._refit_near(near, lo, hi, criterion)
+            if model is not None:
+                fit = self._result(model, points)
+                mismatch = _RESOLUTION * self.scale * math.sqrt(len(_ends(self.n, len(self.t))) /
+                                                                 max(len(self.t) - self.n, 1))
+                if fit.residual_std <= _MISFIT * near.residual_std + mismatch:
+                    return fit
+        return self._result(self._search(lo, hi, criterion), points)
+
+    def _search(self, lo: float, hi: float, criterion: Callable[[float, int], float]) -> _Model:
+        """The full search: x over [lo, hi] without and with a ramp, then load steps at any time."""
         best = None
         # The free response of the lag (a PV still settling at the start) is
         # left out of the search: over a few periods it is nearly a ramp or an
         # offset, and with a long lag it is ill-conditioned against both.
-        for ramp, free in ((False, False), (True, False)):
-            x, s = self._best_x((), ramp, free, lo, hi)
-            score = criterion(s, 1 + ramp + free)
-            if best is None or score < best[0]:
-                best = (score, x, (), ramp, free)
-        score, x, steps, ramp, free = best
+        for ramp in (False, True):
+            x, s = self._best_x((), ramp, False, lo, hi)
+            model = _Model(criterion(s, 1 + ramp), x, (), ramp)
+            if best is None or model.score < best.score:
+                best = model
         # Load steps: scan their time with the current x, then refine x.
         for _ in range(self.max_steps):
             first = self.start + self.n // 4
             last = len(self.t) - self.n // 2
             if last <= first:
                 break
+            steps, ramp = best.steps, best.ramp
             # Index 0: a load acting from the start (the PV was not at rest).
-            grid = [0, *range(first, last, max(self.n // _STEP_GRID, 1))]
+            spacing = max(self.n // _STEP_GRID, 1)
+            ks = np.array([0, *range(first, last, spacing)])
             # Step time and x together on a coarse grid: the best step time
             # for a wrong x can be far from the right one.
-            ks = np.array(grid)
-            scans = [(self._scan_step(float(xg), steps, ramp, free, ks), float(xg)) for xg in np.linspace(lo, hi, 11)]
+            scans = [(self._scan_step(float(xg), steps, ramp, False, ks), float(xg))
+                     for xg in np.linspace(lo, hi, _X_GRID)]
             sums, xg = min(scans, key=lambda scan: float(np.min(scan[0])))
             trial = int(ks[int(np.argmin(sums))])
             # Then to the sample, so the step time does not hop between grid points from fit to fit.
-            spacing = max(self.n // _STEP_GRID, 1)
-            near = np.arange(max(trial - spacing, 0), min(trial + spacing + 1, last))
-            xg = self._best_x(steps + (trial,), ramp, free, lo, hi)[0]
-            trial = int(near[int(np.argmin(self._scan_step(xg, steps, ramp, free, near)))])
-            xs, s = self._best_x(steps + (trial,), ramp, free, lo, hi)
-            new = criterion(s, 1 + len(steps) + 1 + ramp + free)
-            if new >= score:
+            xg = self._best_x(steps + (trial,), ramp, False, lo, hi)[0]
+            trial = self._step_near(xg, steps, ramp, trial, last)
+            xs, s = self._best_x(steps + (trial,), ramp, False, lo, hi)
+            model = _Model(criterion(s, 1 + len(steps) + 1 + ramp), xs, steps + (trial,), ramp)
+            if model.score >= best.score:
                 break
-            score, x, steps = new, xs, steps + (trial,)
+            best = model
+        return best
+
+    def _step_near(self, x: float, steps: tuple[int, ...], ramp: bool, k: int, last: int) -> int:
+        """The sample within a step grid's spacing of ``k`` (and before ``last``) where a load step fits best."""
+        spacing = max(self.n // _STEP_GRID, 1)
+        near = np.arange(max(k - spacing, 0), min(k + spacing + 1, last))
+        if not len(near):
+            return k
+        return int(near[int(np.argmin(self._scan_step(x, steps, ramp, False, near)))])
+
+    def _refit_near(self, near: LoadFit, lo: float, hi: float,
+                    criterion: Callable[[float, int], float]) -> _Model | None:
+        """The model with ``near``'s terms, x within a few of its standard errors, the step time within a
+        step grid's spacing of its own; the other choice of the ramp where the criterion now prefers it
+        (a drift). None when ``near`` says too little about x, or the best x lies beyond the search."""
+        delta = max(_NEAR_STD * near.x_std, _NEAR_MIN)
+        if not (delta <= _NEAR_MAX and lo <= near.x <= hi):
+            return None
+        ramp = near.ramp != 0.0
+        steps: tuple[int, ...] = ()
+        if near.step_time is not None:
+            k = int(round((near.step_time - self.t[0]) / self.dt))
+            # (A load from the start stays there: the full search puts no step between it and the relay's start.)
+            steps = (k if k == 0 else self._step_near(near.x, (), ramp, k, len(self.t) - self.n // 2),)
+        best = None
+        for terms in (ramp, not ramp):
+            if best is not None and criterion(self._rss(best.x, steps, terms), 1 + len(steps) + terms) >= best.score:
+                break  # (the other ramp at the same x: no better, so not searched)
+            x = self._near_x(steps, terms, near.x, delta, lo, hi)
+            if x is None:
+                return None
+            model = _Model(criterion(self._rss(x, steps, terms), 1 + len(steps) + terms), x, steps, terms)
+            if best is None or model.score < best.score:
+                best = model
+        return best
+
+    def _result(self, model: _Model, points: float) -> LoadFit:
+        """The fit of ``model``: its coefficients, the standard error of x from the residual's curvature."""
+        x, steps, ramp, free = model.x, model.steps, model.ramp, model.free
         s, coef = self._solve(x, steps, ramp, free)
         # Curvature of the residual at the optimum: σ² of x ≈ 2·σ̂²/S''.
         h = 0.01 * max(abs(x), 0.02)
@@ -472,8 +612,7 @@ class LoadFitter:
         j = 1 + len(steps)
         ramp_rate = float(coef[j]) if ramp else 0.0
         free_size = float(coef[j + ramp]) if free else 0.0
-        disturbance = self._disturbance(x, steps, ramp, free, coef)
         x_used = 0.0 if abs(x) < 1e-4 else x
         static = math.inf if x_used == 0.0 else self.gain / x_used
         return LoadFit(x_used, x_std, static, float(coef[0]), step_time, step, ramp_rate, free_size, residual_std,
-                       score, disturbance)
+                       model.score)
