@@ -47,8 +47,16 @@ from autotuner.engine.experiment.fourier import held_coefficient
 # |x| above this is a process with no lag to speak of (dead time only): the
 # model is then taken with x just below it (T small), which changes little.
 _X_MAX = 0.995
-# Step times are searched on this many points per oscillation period.
+# Step times are searched on this many points per oscillation period (at most _STEPS_MAX of them).
 _STEP_GRID = 12
+_STEPS_MAX = 384
+# A fit runs its model on at most this many points of an even grid (a longer record on a coarser one)
+# and compares at most this many one-period averages: a fit's work is bounded, whatever the record's
+# length (a record of 40 periods of 100 samples is within both).
+_GRID_MAX = 4096
+_ROWS_MAX = 256
+# The grid's step is the median of at most this many of the latest sample intervals.
+_INTERVALS = 1024
 # Effective number of independent averages per period after the one-period
 # moving average (the information criterion counts these, not the samples).
 _POINTS_PER_PERIOD = 2.0
@@ -59,13 +67,13 @@ _RESOLUTION = 0.01
 _SETTLE_ITERATIONS = 4
 # settled_ratio's lag is summed over chunks of at most this many time constants (e^300 stays finite).
 _CHUNK = 300.0
-# The full search scans x on this many points over its range, then narrows the best cell's
-# neighbourhood by this many golden-section steps (to about 2.4e-4 over x's range of 0.995).
+# The full search scans x on this many points over its range, then searches the best point's
+# neighbourhood to _X_TOL (Brent's method: about 7 evaluations where the residual is smooth, at most
+# _X_STEPS — the golden-section steps that narrow a cell of the scan's grid to _X_TOL); a refit near an
+# earlier fit searches x to the same resolution...
 _X_GRID = 11
-_GOLDEN_STEPS = 14
-_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
-# A refit near an earlier fit searches x to the same resolution...
 _X_TOL = 2.5e-4
+_X_STEPS = 16
 # ...within this many of the earlier fit's standard errors of its x (at least _NEAR_MIN); an earlier
 # fit whose x is less certain than _NEAR_MAX says too little to search near: the full search runs.
 _NEAR_STD = 4.0
@@ -79,18 +87,13 @@ _MISFIT = 2.0
 _RANK = 1e-8
 
 
-def _golden_steps(width: float) -> int:
-    """The golden-section steps that narrow a bracket of ``width`` to ``_X_TOL``."""
-    return math.ceil(math.log(_X_TOL / width) / math.log(_GOLDEN)) if width > _X_TOL else 0
-
-
 # The most candidate models one fit runs (each filters the record once: the fit's work, whatever the
-# record's length). The full search: its grid of x, four golden-section searches (two points, the
-# steps, the result) and the curvature's two points. A refit near an earlier fit: one step-time scan
-# at the earlier x, two searches (the earlier ramp and the other) over at most ±_NEAR_MAX, the curvature's
-# two — and the full search after it when the record has moved away from the earlier fit.
-SEARCH_RUNS = _X_GRID + 4 * (2 + _GOLDEN_STEPS + 1) + 2
-NEAR_RUNS = 1 + 2 * (2 + _golden_steps(2.0 * _NEAR_MAX) + 1) + 2
+# record's length). The full search: its grid of x, four searches of x and the curvature's two points.
+# A refit near an earlier fit: one step-time scan at the earlier x, two searches (the earlier ramp and the
+# other), the curvature's two — and the full search after it when the record has moved away from the
+# earlier fit.
+SEARCH_RUNS = _X_GRID + 4 * _X_STEPS + 2
+NEAR_RUNS = 1 + 2 * _X_STEPS + 2
 
 
 @dataclass(frozen=True)
@@ -265,7 +268,9 @@ def _running_sum(columns: np.ndarray) -> np.ndarray:
 
 
 def _ends(n: int, length: int) -> np.ndarray:
-    return np.arange(n, length + 1, max(n // 8, 1))
+    """Where the one-period averages of a record of ``length`` samples end: every ``n/8`` samples, or
+    farther apart on a record so long that there would be more than ``_ROWS_MAX`` of them."""
+    return np.arange(n, length + 1, max(n // 8, 1, -(-(length - n) // (_ROWS_MAX - 1))))
 
 
 @dataclass(frozen=True)
@@ -304,27 +309,38 @@ def held_mean(s: np.ndarray, u: np.ndarray, u0: float, grid: np.ndarray, dt: flo
     return np.diff(np.interp(np.append(grid, end), knots, area)) / dt
 
 
-def _golden(f: Callable[[float], float], a: float, b: float, iterations: int) -> float:
-    """The middle of the bracket that a golden-section search of ``f`` on [a, b] leaves after ``iterations`` steps."""
-    c, d = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
-    fc, fd = f(c), f(d)
-    for _ in range(iterations):
-        if fc < fd:
-            b, d, fd = d, c, fc
-            c = b - _GOLDEN * (b - a)
-            fc = f(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + _GOLDEN * (b - a)
-            fd = f(d)
-    return 0.5 * (a + b)
+def _minimize(f: Callable[[float], float], a: float, b: float) -> float:
+    """The x in [a, b] where ``f`` is least, to within ``_X_TOL``/2: Brent's method (parabolic steps where ``f`` is
+    smooth, golden-section ones where not), at most ``_X_STEPS`` evaluations of ``f``."""
+    found = scipy.optimize.minimize_scalar(f, bounds=(a, b), method="bounded",
+                                           options={"xatol": 0.5 * _X_TOL, "maxiter": _X_STEPS})
+    return float(found.x)
+
+
+@dataclass(frozen=True)
+class _Criterion:
+    """The Bayesian information criterion of a fit of ``points`` effective averages, with residuals below
+    ``floor`` (the sum of squares of the model's own mismatch) counting as none."""
+
+    points: float
+    floor: float
+
+    def score(self, rss: float, terms: int) -> float:
+        """The criterion of a model with ``terms`` coefficients and residual sum of squares ``rss``."""
+        return self.points * math.log((rss + self.floor) / self.points) + terms * math.log(self.points) * 2.0
+
+    def worth_a_term(self, rss: float) -> bool:
+        """False when no model with one more term can score better than a residual ``rss`` does: even a
+        residual of nothing would gain less than the term costs."""
+        return rss + self.floor > self.floor * self.points ** (2.0 / self.points)
 
 
 @dataclass(frozen=True)
 class _Model:
     """One candidate explanation of the record: x, the load steps (grid samples), a ramp, the free
-    response, and its information criterion."""
+    response, its residual sum of squares and its information criterion."""
 
+    rss: float
     score: float
     x: float
     steps: tuple[int, ...]
@@ -348,7 +364,7 @@ class LoadFitter:
                  held_from: np.ndarray | None = None) -> None:
         # Field samples come unevenly (a PLC's clock, a busy link): the model is
         # run on an even grid, the PV interpolated and the MV averaged onto it.
-        self.dt = float(np.median(np.diff(t)))
+        self.dt = max(float(np.median(np.diff(t[-_INTERVALS - 1:]))), (t[-1] - t[0]) / (_GRID_MAX - 1))
         grid = t[0] + self.dt * np.arange(int((t[-1] - t[0]) / self.dt + 1e-9) + 1)
         self.t, self.y = grid, np.interp(grid, t, y)
         self.u = held_mean(t if held_from is None else held_from, u, u0, grid, self.dt)
@@ -477,20 +493,20 @@ class LoadFitter:
         return np.where(finite & np.isfinite(sums), sums, math.inf)
 
     def _best_x(self, steps: tuple[int, ...], ramp: bool, free: bool, lo: float, hi: float) -> tuple[float, float]:
-        """Golden-section search of the residual over x in [lo, hi] (after a coarse scan)."""
+        """The x in [lo, hi] of the least residual (a coarse scan, then a search near its best point)."""
         grid = np.linspace(lo, hi, _X_GRID)
         values = [self._rss(float(x), steps, ramp, free) for x in grid]
         i = int(np.argmin(values))
-        x = _golden(lambda v: self._rss(v, steps, ramp, free), float(grid[max(i - 1, 0)]),
-                    float(grid[min(i + 1, len(grid) - 1)]), _GOLDEN_STEPS)
+        x = _minimize(lambda v: self._rss(v, steps, ramp, free), float(grid[max(i - 1, 0)]),
+                      float(grid[min(i + 1, len(grid) - 1)]))
         return x, self._rss(x, steps, ramp, free)
 
     def _near_x(self, steps: tuple[int, ...], ramp: bool, x0: float, delta: float, lo: float,
                 hi: float) -> float | None:
-        """Golden-section search of the residual over x within ``delta`` of ``x0`` (and [lo, hi]), to the
-        full search's resolution; None when the best x is at an edge that is not [lo, hi]'s (it lies beyond)."""
+        """The x of the least residual within ``delta`` of ``x0`` (and [lo, hi]), to the full search's
+        resolution; None when it is at an edge that is not [lo, hi]'s (the least lies beyond)."""
         a, b = max(x0 - delta, lo), min(x0 + delta, hi)
-        x = _golden(lambda v: self._rss(v, steps, ramp), a, b, _golden_steps(b - a))
+        x = _minimize(lambda v: self._rss(v, steps, ramp), a, b)
         if (a > lo and x - a < _X_TOL) or (b < hi and b - x < _X_TOL):
             return None
         return x
@@ -508,13 +524,8 @@ class LoadFitter:
         """
         lo, hi = (-_X_MAX, 0.0) if unstable else (0.0, _X_MAX)
         points = max((len(self.t) - self.n) / self.n * _POINTS_PER_PERIOD, 1.0)
-
         # Residuals below this are the model's own imperfection, not a disturbance to explain.
-        floor = points * (_RESOLUTION * self.scale) ** 2
-
-        def criterion(s: float, p: int) -> float:
-            return points * math.log((s + floor) / points) + p * math.log(points) * 2.0
-
+        criterion = _Criterion(points, points * (_RESOLUTION * self.scale) ** 2)
         if near is not None:
             model = self._refit_near(near, lo, hi, criterion)
             if model is not None:
@@ -525,26 +536,35 @@ class LoadFitter:
                     return fit
         return self._result(self._search(lo, hi, criterion), points)
 
-    def _search(self, lo: float, hi: float, criterion: Callable[[float, int], float]) -> _Model:
-        """The full search: x over [lo, hi] without and with a ramp, then load steps at any time."""
-        best = None
+    def _scored(self, x: float, steps: tuple[int, ...], ramp: bool, criterion: _Criterion) -> _Model:
+        """The model ``x`` with these terms, its residual and criterion."""
+        rss = self._rss(x, steps, ramp)
+        return _Model(rss, criterion.score(rss, 1 + len(steps) + ramp), x, steps, ramp)
+
+    def _search(self, lo: float, hi: float, criterion: _Criterion) -> _Model:
+        """The full search: x over [lo, hi] without and with a ramp, then load steps at any time.
+
+        A term is searched only where it could pay for itself (:meth:`_Criterion.worth_a_term`): a
+        quiet record's search ends after the first scan of x, with the answer the whole search gives.
+        """
         # The free response of the lag (a PV still settling at the start) is
         # left out of the search: over a few periods it is nearly a ramp or an
         # offset, and with a long lag it is ill-conditioned against both.
-        for ramp in (False, True):
-            x, s = self._best_x((), ramp, False, lo, hi)
-            model = _Model(criterion(s, 1 + ramp), x, (), ramp)
-            if best is None or model.score < best.score:
-                best = model
+        best = self._scored(self._best_x((), False, False, lo, hi)[0], (), False, criterion)
+        if not criterion.worth_a_term(best.rss):
+            return best
+        ramp = self._scored(self._best_x((), True, False, lo, hi)[0], (), True, criterion)
+        if ramp.score < best.score:
+            best = ramp
         # Load steps: scan their time with the current x, then refine x.
         for _ in range(self.max_steps):
             first = self.start + self.n // 4
             last = len(self.t) - self.n // 2
-            if last <= first:
+            if last <= first or not criterion.worth_a_term(best.rss):
                 break
             steps, ramp = best.steps, best.ramp
             # Index 0: a load acting from the start (the PV was not at rest).
-            spacing = max(self.n // _STEP_GRID, 1)
+            spacing = max(self.n // _STEP_GRID, 1, -(-(last - first) // _STEPS_MAX))
             ks = np.array([0, *range(first, last, spacing)])
             # Step time and x together on a coarse grid: the best step time
             # for a wrong x can be far from the right one.
@@ -554,24 +574,22 @@ class LoadFitter:
             trial = int(ks[int(np.argmin(sums))])
             # Then to the sample, so the step time does not hop between grid points from fit to fit.
             xg = self._best_x(steps + (trial,), ramp, False, lo, hi)[0]
-            trial = self._step_near(xg, steps, ramp, trial, last)
-            xs, s = self._best_x(steps + (trial,), ramp, False, lo, hi)
-            model = _Model(criterion(s, 1 + len(steps) + 1 + ramp), xs, steps + (trial,), ramp)
+            trial = self._step_near(xg, steps, ramp, trial, last, spacing)
+            model = self._scored(self._best_x(steps + (trial,), ramp, False, lo, hi)[0], steps + (trial,), ramp,
+                                criterion)
             if model.score >= best.score:
                 break
             best = model
         return best
 
-    def _step_near(self, x: float, steps: tuple[int, ...], ramp: bool, k: int, last: int) -> int:
-        """The sample within a step grid's spacing of ``k`` (and before ``last``) where a load step fits best."""
-        spacing = max(self.n // _STEP_GRID, 1)
+    def _step_near(self, x: float, steps: tuple[int, ...], ramp: bool, k: int, last: int, spacing: int) -> int:
+        """The sample within ``spacing`` of ``k`` (and before ``last``) where a load step fits best."""
         near = np.arange(max(k - spacing, 0), min(k + spacing + 1, last))
         if not len(near):
             return k
         return int(near[int(np.argmin(self._scan_step(x, steps, ramp, False, near)))])
 
-    def _refit_near(self, near: LoadFit, lo: float, hi: float,
-                    criterion: Callable[[float, int], float]) -> _Model | None:
+    def _refit_near(self, near: LoadFit, lo: float, hi: float, criterion: _Criterion) -> _Model | None:
         """The model with ``near``'s terms, x within a few of its standard errors, the step time within a
         step grid's spacing of its own; the other choice of the ramp where the criterion now prefers it
         (a drift). None when ``near`` says too little about x, or the best x lies beyond the search."""
@@ -583,15 +601,16 @@ class LoadFitter:
         if near.step_time is not None:
             k = int(round((near.step_time - self.t[0]) / self.dt))
             # (A load from the start stays there: the full search puts no step between it and the relay's start.)
-            steps = (k if k == 0 else self._step_near(near.x, (), ramp, k, len(self.t) - self.n // 2),)
+            last = len(self.t) - self.n // 2
+            steps = (k if k == 0 else self._step_near(near.x, (), ramp, k, last, max(self.n // _STEP_GRID, 1)),)
         best = None
         for terms in (ramp, not ramp):
-            if best is not None and criterion(self._rss(best.x, steps, terms), 1 + len(steps) + terms) >= best.score:
+            if best is not None and self._scored(best.x, steps, terms, criterion).score >= best.score:
                 break  # (the other ramp at the same x: no better, so not searched)
             x = self._near_x(steps, terms, near.x, delta, lo, hi)
             if x is None:
                 return None
-            model = _Model(criterion(self._rss(x, steps, terms), 1 + len(steps) + terms), x, steps, terms)
+            model = self._scored(x, steps, terms, criterion)
             if best is None or model.score < best.score:
                 best = model
         return best

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from enum import Enum
 
 import numpy as np
@@ -256,6 +256,16 @@ _RUNAWAY_WINDOW = 0.15
 _GEOMETRIC = 0.97
 
 
+@dataclass
+class _Fits:
+    """The load fits of one record (its length) and estimate (their count): the fitter, the answers by
+    question (unstable, near)."""
+
+    record: tuple[int, int]
+    fitter: LoadFitter | None
+    answers: dict[tuple[bool, LoadFit | None], LoadFit | None] = field(default_factory=dict)
+
+
 class RelayExperiment:
     """Relay + adaptive phase filter identification of one frequency-response point."""
 
@@ -285,6 +295,7 @@ class RelayExperiment:
         self._stalled_until = -math.inf  # the end of the latest window that held a stall (_STALL)
         self._stalls: list[float] = []  # the longest gap of each such window, s
         self._candidate: LoadFit | None = None
+        self._fits = _Fits((0, 0), None)
         # The analysis of the period that ended at a switch, run after the switch is out (see analyse).
         self._analyse: Callable[[], None] | None = None
         self._progress = 0.0
@@ -879,14 +890,28 @@ class RelayExperiment:
         return not any((i < 1.0 or abs(i - x) > x / 3.0) and abs(p.gain - latest.gain) <= 0.1 * latest.gain
                        for p, i in self._estimates[1:-1])
 
+    def _load_fit(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray, unstable: bool,
+                  near: LoadFit | None = None) -> LoadFit | None:
+        """The load fit of the record (``near``: see LoadFitter.fit), or None when there is none to make.
+
+        Made once per record, estimate and question: a quiet period's analysis may ask twice (before it
+        accepts a result and when it looks for a disturbance), with the same answer.
+        """
+        record = (len(uu), len(self._estimates))
+        if self._fits.record != record:
+            self._fits = _Fits(record, self._fitter(tt, uu, yy))
+        fits, question = self._fits, (unstable, near)
+        if question not in fits.answers:
+            fits.answers[question] = None if fits.fitter is None else fits.fitter.fit(unstable, near)
+        return fits.answers[question]
+
     def _look_for_disturbance(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
         """Fit the slow part of the record; True (and the disturbed mode on) if it needed a disturbance."""
         if not self.config.follow_loads:
             return False
-        fitter = self._fitter(tt, uu, yy)
-        if fitter is None:
+        fit = self._load_fit(tt, uu, yy, self._unstable)
+        if fit is None:
             return False
-        fit = fitter.fit(unstable=self._unstable)
         if not self._significant(fit):
             self._candidate = None
             return False
@@ -939,10 +964,10 @@ class RelayExperiment:
         self._follow_load()
 
     def _refit(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> None:
-        fitter = self._fitter(tt, uu, yy)
-        if fitter is None:
+        """Refit the record with this period, near the accepted fit (LoadFitter.fit's ``near``)."""
+        fit = self._load_fit(tt, uu, yy, self._unstable, near=self._fit)
+        if fit is None:
             return
-        fit = fitter.fit(unstable=self._unstable)
         if not self._agree(self._fit, fit):
             # Keep following what was accepted until two new fits agree on something else.
             previous, self._candidate = self._candidate, fit
@@ -1011,10 +1036,10 @@ class RelayExperiment:
         """
         if not self.config.follow_loads:
             return False
-        fitter = self._fitter(tt, uu, yy)
-        if fitter is None:
+        unstable, stable = (self._load_fit(tt, uu, yy, mode) for mode in (True, False))
+        if unstable is None or stable is None:
             return False
-        return fitter.fit(unstable=True).score > fitter.fit(unstable=False).score - _UNSTABLE_EVIDENCE
+        return unstable.score > stable.score - _UNSTABLE_EVIDENCE
 
     def _negative_ratio(self) -> bool | None:
         """True when the mean two-period ratio |F|/K0 of the latest two estimates is below −static_tol.
