@@ -65,8 +65,10 @@ _POINTS_PER_PERIOD = 2.0
 _RESOLUTION = 0.01
 # Refinements of x in settled_ratio from the plain ratio of the means (3–4 settle it to 1e-3).
 _SETTLE_ITERATIONS = 4
-# settled_ratio's lag is summed over chunks of at most this many time constants (e^300 stays finite).
+# settled_ratio's lag is summed over chunks of at most this many time constants (e^300 stays finite)...
 _CHUNK = 300.0
+# ...over the MV of this many time constants before its window (e^-36 is below a double's rounding).
+_MEMORY = 36.0
 # The full search scans x on this many points over its range, then searches the best point's
 # neighbourhood to _X_TOL (Brent's method: about 7 evaluations where the residual is smooth, at most
 # _X_STEPS — the golden-section steps that narrow a cell of the scan's grid to _X_TOL); a refit near an
@@ -173,15 +175,15 @@ def _respond(u: np.ndarray, dt: float, x: float, gain: float, omega: float, lag:
 
 
 def settled_ratio(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, omega: float, lag: float,
-                  ta: float, tb: float, slope: float = 0.0, t0: float = 0.0) -> float:
+                  ta: float, tb: float, slope: float = 0.0, t0: float = 0.0, u0: float = 0.0) -> float:
     """``|F|/K0`` from the means over ``[ta, tb]`` (s): the PV's ``dy`` and the MV's as the slow part has seen it.
 
     The PV's mean over a period answers the MV's means of the periods before
     it through the process's slow lag: while the relay's mean is new (the
     start, a filter correction) the plain ratio of the two means is off by
     what the lag has not passed on yet (0.56 instead of 0.77 at the first
-    estimate of ``exp(-s)/(0.5*s+1)``). Here the MV (``u``, deviations held
-    from the sample times ``t``, zero before them) goes through the lag and
+    estimate of ``exp(-s)/(0.5*s+1)``). Here the MV (``u``, held from the
+    sample times ``t``, as deviations from ``u0`` and zero before them) goes through the lag and
     dead time of the model that ``x`` fixes with the point (``gain``,
     ``omega`` in rad/s, ``lag`` in rad), and ``x`` is refined from its own
     result a few times (the fixed point is where the model and the means
@@ -195,6 +197,10 @@ def settled_ratio(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float
     free response ``−slope·T·e^{−(t − t0)/T}`` towards a level ``slope·T``
     away: both are taken out of ``dy`` (a load step half a period before TUNE
     made ``exp(-s)/(2*s+1)`` read ``|F|/K0`` 0.10 instead of 0.39).
+
+    Only the MV of the last ``_MEMORY`` time constants of the lag before the
+    window is read: an older input reaches the window's mean by less than
+    e^−36 of itself, below a double's rounding.
     """
     # The dead time of the model is at most lag/ω (x → 1): the window must start after the delayed MV does.
     if not 0.0 < x < _X_MAX or dy == 0.0 or t[0] + lag / omega > ta:
@@ -203,7 +209,9 @@ def settled_ratio(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float
     def mismatch(v: float) -> float:
         """``v`` × the PV's mean response less ``|F|`` × the MV's mean as model ``v`` has passed it on."""
         _, tc, delay = _model(v, gain, omega, lag)
-        seen = _lagged_mean(t + delay, u, tc, ta, tb)
+        first = max(int(np.searchsorted(t, ta - delay - _MEMORY * tc, side="right")) - 1, 0)
+        end = int(np.searchsorted(t, tb - delay, side="right")) + 1
+        seen = _lagged_mean(t[first:end] + delay, u[first:end] - u0, tc, ta, tb)
         left = tc / (tb - ta) * (math.exp(-(ta - t0) / tc) - math.exp(-(tb - t0) / tc))
         return v * (dy - slope * tc * (1.0 - left)) - gain * seen
 
