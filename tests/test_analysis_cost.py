@@ -227,3 +227,20 @@ def test_the_runaway_test_reads_a_few_samples_per_step_however_long_the_half_per
         assert experiment.result is not None and len(experiment._record) > 3 * per_period
     assert means[0] > 1000
     assert most[2000] == most[100] <= 8
+
+
+def test_timing_the_calls_changes_nothing() -> None:
+    # The bench times each step and each period's analysis where step() runs it: same samples, same result.
+    from autotuner.engine.simulated_tuning import CallTimes, run_experiment
+
+    process = parse_process(PLANT)
+    period = 2.0 * math.pi / exact_point(process, 135.0).omega
+    ticks = iter(range(10**7))
+    times = CallTimes(lambda: float(next(ticks)))
+    runs = [run_experiment(PlantSim(process, period / 100, noise_std=0.003, seed=2, loads=[(3.5 * period, 0.2)]),
+                           RelayConfig(amp=1.0), times=timed) for timed in (None, times)]
+    (plain, plain_trace), (timed, timed_trace) = runs
+    assert np.array_equal(plain_trace.t, timed_trace.t) and np.array_equal(plain_trace.mv, timed_trace.mv)
+    assert plain.result == timed.result and plain.result is not None and plain.result.disturbance
+    assert len(times.step) == len(timed_trace.t) and 2 * plain.status().periods <= len(times.analyse)
+    assert min(times.step) >= 1.0 and min(times.analyse) >= 1.0  # each call read the clock around itself

@@ -78,8 +78,8 @@ class CallTimes:
     """The time each call into the experiment took, read from the caller's clock (the engine reads none).
 
     clock: returns seconds (the benchmarks pass ``time.process_time``: CPU time).
-    step: seconds of each :meth:`RelayExperiment.step` call; analyse: seconds of each
-    :meth:`RelayExperiment.analyse` call (one per switch of the relay: a period's analysis).
+    step: seconds of each :meth:`RelayExperiment.step` call without the analysis it ran first;
+    analyse: seconds of each period's analysis (one per switch of the relay).
     """
 
     clock: Callable[[], float]
@@ -87,19 +87,29 @@ class CallTimes:
     analyse: list[float] = field(default_factory=list)
 
 
-def _timed_step(experiment: RelayExperiment, t: float, pv: float, times: CallTimes) -> float:
-    """``experiment.step(t, pv)`` and the analysis of a period that ended at it, each timed.
+class _TimedExperiment(RelayExperiment):
+    """The experiment with each period's analysis timed where :meth:`RelayExperiment.step` runs it (at the
+    next sample, first): the same calls in the same order as untimed, so the same results."""
 
-    The analysis runs right after the step, as a field session runs it after its write; untimed, the
-    next step runs it first: the same state either way (nothing reaches the experiment in between).
-    """
+    def __init__(self, config: RelayConfig, mv0: float, times: CallTimes) -> None:
+        super().__init__(config, mv0)
+        self._times = times
+
+    def analyse(self) -> None:
+        """:meth:`RelayExperiment.analyse`, its time recorded when there was a period to analyse."""
+        if not self.analysis_pending:
+            return
+        start = self._times.clock()
+        super().analyse()
+        self._times.analyse.append(self._times.clock() - start)
+
+
+def _timed_step(experiment: RelayExperiment, t: float, pv: float, times: CallTimes) -> float:
+    """``experiment.step(t, pv)``, timed without the analysis it runs first (timed on its own)."""
+    analyses = len(times.analyse)
     start = times.clock()
     mv = experiment.step(t, pv)
-    stop = times.clock()
-    times.step.append(stop - start)
-    if experiment.analysis_pending:
-        experiment.analyse()
-        times.analyse.append(times.clock() - stop)
+    times.step.append(times.clock() - start - sum(times.analyse[analyses:]))
     return mv
 
 
@@ -115,7 +125,7 @@ def run_experiment(
     ``on_status`` gets the status every ``status_every`` samples (and at the end); ``times``, when
     given, records how long each step and each period's analysis took.
     """
-    experiment = RelayExperiment(config, mv0=sim.mv0)
+    experiment = RelayExperiment(config, mv0=sim.mv0) if times is None else _TimedExperiment(config, sim.mv0, times)
     ts, pvs, mvs = [], [], []
     n = 0
     while not experiment.done:
