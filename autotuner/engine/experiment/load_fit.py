@@ -26,10 +26,18 @@ Loads enter where the plant's do, at the process input, so the fitted
 coefficients are the loads themselves in MV units: the relay can shift its
 centre by them. Both sides are averaged over one oscillation period before
 the fit, so the harmonics the model does not reproduce do not enter it.
-``x`` is found by a golden-section search on the residual; terms are kept
-only when the Bayesian information criterion says they explain more than
-they cost (a quiet plant is fitted with the offset alone). The standard
+``x`` is found by a coarse scan and Brent's method on the residual; terms
+are kept only when the Bayesian information criterion says they explain more
+than they cost (a quiet plant is fitted with the offset alone). The standard
 error of ``x`` comes from the curvature of the residual.
+
+The work of a fit is bounded whatever the record's length: at most
+``SEARCH_RUNS`` candidate models (each one filter run over the record), run
+on at most ``_GRID_MAX`` grid points (a longer record on a coarser grid), with
+at most ``_ROWS_MAX`` averages and ``_STEPS_MAX`` step times. A refit as the
+record grows searches near the fit accepted before (its terms, its x, its
+step time: at most ``NEAR_RUNS`` models) and falls back to the full search
+only when the record has moved away from it.
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.optimize
 import scipy.signal
+from scipy.linalg import lapack
 
 from autotuner.engine.experiment.fourier import held_coefficient
 
@@ -294,10 +303,12 @@ class _Responses:
     target: np.ndarray
     ramp: np.ndarray
     step_sum: np.ndarray  # running sum of the step response from the start (length + 1)
+    ends: np.ndarray  # where the averages end (samples: _ends)
+    finite: bool  # all of the above finite (an unstable candidate's responses can overflow)
 
     def step(self, ks: np.ndarray, n: int) -> np.ndarray:
         """Averaged responses to unit load steps at samples ``ks`` (one column each)."""
-        ends = _ends(n, len(self.step_sum) - 1)[:, None]
+        ends = self.ends[:, None]
         return (self.step_sum[np.maximum(ends - ks, 0)] - self.step_sum[np.maximum(ends - n - ks, 0)]) / n
 
 
@@ -383,6 +394,8 @@ class LoadFitter:
         self.scale = scale
         self.runs = 0
         self._cache: dict[float, _Responses] = {}
+        self._ends = _ends(self.n, len(grid))
+        self._ones = np.ones(len(self._ends))
         # The model's inputs (the MV, a ramp, a unit step) behind zeros as long as the longest dead time
         # of any candidate (lag/ω, see _model) and the hold's sample: each candidate's delayed inputs
         # are a view, and one filter call runs all three.
@@ -408,27 +421,35 @@ class LoadFitter:
             b, a, m = _filter(self.dt, x, self.gain, self.omega, self.lag)
             # y[k] is the output at sample k, before u[k] acts: one sample of delay (as _respond).
             start = self._pad - m - 1
-            mv, ramp, unit = scipy.signal.lfilter(b, a, self._inputs[:, start:start + len(self.t)], axis=1)
+            runs = scipy.signal.lfilter(b, a, self._inputs[:, start:start + len(self.t)], axis=1)
+            np.subtract(self.y, runs[0], out=runs[0])  # the target: the PV less the model's answer to the MV
             total = np.zeros((3, len(self.t) + 1))
-            np.cumsum(np.stack((self.y - mv, ramp, unit)), axis=1, out=total[:, 1:])
-            ends = _ends(self.n, len(self.t))
+            np.cumsum(runs, axis=1, out=total[:, 1:])
+            ends = self._ends
             target, ramp_mean = (total[:2, ends] - total[:2, ends - self.n]) / self.n
-            cached = self._cache[x] = _Responses(target, ramp_mean, total[2])
+            # (A running sum's last value is finite only if every term was.)
+            finite = bool(np.isfinite(total[:, -1]).all() and np.isfinite(target).all() and np.isfinite(ramp_mean).all())
+            cached = self._cache[x] = _Responses(target, ramp_mean, total[2], ends, finite)
         return cached
 
     def _base(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[np.ndarray, np.ndarray]:
         """(averaged target, averaged regressors) for model ``x`` with the chosen terms."""
         r = self._responses(x)
-        cols = [np.ones((len(r.target), 1)), r.step(np.array(steps, dtype=int), self.n)]
+        cols = [self._ones[:, None]]
+        if steps:
+            cols.append(r.step(np.array(steps, dtype=int), self.n))
         if ramp:
             cols.append(r.ramp[:, None])
         if free:
             cols.append(_average(self._free(x)[:, None], self.n))
         return r.target, np.hstack(cols)
 
-    def _fitted(self, b: np.ndarray, a: np.ndarray, extra: int = 0) -> bool:
+    def _fitted(self, x: float, b: np.ndarray, a: np.ndarray, extra: int = 0) -> bool:
         """True when the record is long enough for these terms and their averages are finite."""
-        return len(self.t) > self.n + a.shape[1] + extra and bool(np.all(np.isfinite(a)) and np.all(np.isfinite(b)))
+        if len(self.t) <= self.n + a.shape[1] + extra:
+            return False
+        # (Averages of finite running sums can still overflow: checked where the sums were not all finite.)
+        return self._responses(x).finite or bool(np.all(np.isfinite(a)) and np.all(np.isfinite(b)))
 
     @staticmethod
     def _scaled(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -441,7 +462,7 @@ class LoadFitter:
     def _solve(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool) -> tuple[float, np.ndarray]:
         """(residual sum of squares, coefficients) of the fit with model ``x`` and the chosen terms."""
         b, a = self._base(x, steps, ramp, free)
-        if not self._fitted(b, a):
+        if not self._fitted(x, b, a):
             return math.inf, np.zeros(a.shape[1])
         scaled, scale = self._scaled(a)
         coef, *_ = np.linalg.lstsq(scaled, b, rcond=None)
@@ -449,26 +470,31 @@ class LoadFitter:
         r = b - a @ coef
         return float(r @ r), coef
 
-    @np.errstate(over="ignore", invalid="ignore")
     def _rss(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool = False) -> float:
         """The residual sum of squares of :meth:`_solve`, without the coefficients: what the search compares.
 
         The last diagonal element of the QR factor of the scaled regressors with
-        the target beside them is the residual's norm (a third of lstsq's cost,
-        which the search spent most of its time in).
+        the target beside them is the residual's norm (LAPACK's factorisation
+        called directly: a tenth of lstsq's cost, which the search spent most of
+        its time in).
         """
         b, a = self._base(x, steps, ramp, free)
-        if not self._fitted(b, a):
+        if not self._fitted(x, b, a):
             return math.inf
-        if len(b) <= a.shape[1]:
+        terms = a.shape[1]
+        if len(b) <= terms:
             return 0.0  # as many averages as terms: fitted exactly
-        r = np.linalg.qr(np.column_stack((self._scaled(a)[0], b)), mode="r")
-        diagonal = np.abs(np.diag(r)[:-1])
+        matrix = np.empty((len(b), terms + 1), order="F")  # LAPACK's own order: factored in place
+        matrix[:, :terms] = self._scaled(a)[0]
+        matrix[:, terms] = b
+        r = lapack.dgeqrf(matrix, overwrite_a=1)[0]
+        diagonal = np.abs(np.diag(r)[:terms])
         if np.min(diagonal) <= _RANK * np.max(diagonal):
             # Nearly dependent columns (an unstable candidate's responses all grow as one exponential): QR
             # would fit the target along their rounding noise, lstsq leaves that direction out.
             return self._solve(x, steps, ramp, free)[0]
-        return float(r[-1, -1] ** 2)
+        rss = float(r[terms, terms] ** 2)
+        return rss if math.isfinite(rss) else math.inf
 
     @np.errstate(over="ignore", invalid="ignore", divide="ignore")
     def _scan_step(self, x: float, steps: tuple[int, ...], ramp: bool, free: bool, ks: np.ndarray) -> np.ndarray:
@@ -480,15 +506,16 @@ class LoadFitter:
         """
         b, a = self._base(x, steps, ramp, free)
         s = self._responses(x).step(ks, self.n)
-        if not self._fitted(b, a, extra=1):
+        if not self._fitted(x, b, a, extra=1):
             return np.full(len(ks), math.inf)
         finite = np.all(np.isfinite(s), axis=0)
         s = np.nan_to_num(s)
         a = self._scaled(a)[0]
         rhs = np.column_stack((b, s / np.maximum(np.max(np.abs(s), axis=0), 1e-300)))
-        q, r = np.linalg.qr(a)
+        r, tau = lapack.dgeqrf(a)[:2]
         diagonal = np.abs(np.diag(r))
         if np.min(diagonal) > _RANK * np.max(diagonal):
+            q = lapack.dorgqr(r, tau)[0]
             rest = rhs - q @ (q.T @ rhs)
         else:  # nearly dependent columns: lstsq leaves their rounding noise out (see _rss)
             rest = rhs - a @ np.linalg.lstsq(a, rhs, rcond=None)[0]
@@ -521,6 +548,8 @@ class LoadFitter:
 
     # -- model selection ----------------------------------------------------
 
+    # (An unstable candidate's residual can overflow: see _responses. Set once here for the search's many calls.)
+    @np.errstate(over="ignore", invalid="ignore", divide="ignore")
     def fit(self, unstable: bool = False, near: LoadFit | None = None) -> LoadFit:
         """The best-explaining model: its x, the disturbance terms it needs, and their sizes.
 

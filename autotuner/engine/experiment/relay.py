@@ -442,9 +442,10 @@ class RelayExperiment:
     def analyse(self) -> None:
         """Analyse the period that ended at the last sample's switch: its estimates, the stopping rule, the load fit.
 
-        The switch itself is in the MV the last :meth:`step` returned: a load
-        fit takes tens of milliseconds of CPU, and a switch waiting for it
-        would reach the process that much late. :meth:`step` runs it at the
+        The switch itself is in the MV the last :meth:`step` returned: a full
+        load fit takes milliseconds of CPU, and a switch waiting for it would
+        reach the process that much late. Its work is bounded, whatever the
+        record's length (docs/experiment.md, "The analysis's cost"). :meth:`step` runs it at the
         next sample if the caller has not; a field session runs it after its
         write, in a worker thread, so that its event loop (other loops, the
         handshake) keeps time meanwhile. Nothing to do otherwise.
