@@ -103,7 +103,7 @@ _RANK = 1e-8
 # A refit near an earlier fit: one step-time scan at the earlier x, two searches (the earlier ramp and the
 # other), the curvature's two — and the full search after it when the record has moved away from the
 # earlier fit.
-SEARCH_RUNS = _X_GRID + 4 * _X_STEPS + 2
+SEARCH_RUNS = _X_GRID + 4 * _X_STEPS + 2  # (the step's two searches start from the scan's best grid point)
 NEAR_RUNS = 1 + 2 * _X_STEPS + 2
 
 
@@ -527,11 +527,12 @@ class LoadFitter:
         sums = np.einsum("ij,ij->j", rb[:, None] - rs * coef, rb[:, None] - rs * coef)
         return np.where(finite & np.isfinite(sums), sums, math.inf)
 
-    def _best_x(self, steps: tuple[int, ...], ramp: bool, free: bool, lo: float, hi: float) -> tuple[float, float]:
-        """The x in [lo, hi] of the least residual (a coarse scan, then a search near its best point)."""
+    def _best_x(self, steps: tuple[int, ...], ramp: bool, free: bool, lo: float, hi: float,
+                best: int | None = None) -> tuple[float, float]:
+        """The x in [lo, hi] of the least residual (a coarse scan, then a search near its best point;
+        ``best``: the scan's best point when known already)."""
         grid = np.linspace(lo, hi, _X_GRID)
-        values = [self._rss(float(x), steps, ramp, free) for x in grid]
-        i = int(np.argmin(values))
+        i = int(np.argmin([self._rss(float(x), steps, ramp, free) for x in grid])) if best is None else best
         x = _minimize(lambda v: self._rss(v, steps, ramp, free), float(grid[max(i - 1, 0)]),
                       float(grid[min(i + 1, len(grid) - 1)]))
         return x, self._rss(x, steps, ramp, free)
@@ -605,15 +606,15 @@ class LoadFitter:
             ks = np.array([0, *range(first, last, spacing)])
             # Step time and x together on a coarse grid: the best step time
             # for a wrong x can be far from the right one.
-            scans = [(self._scan_step(float(xg), steps, ramp, False, ks), float(xg))
-                     for xg in np.linspace(lo, hi, _X_GRID)]
-            sums, xg = min(scans, key=lambda scan: float(np.min(scan[0])))
-            trial = int(ks[int(np.argmin(sums))])
-            # Then to the sample, so the step time does not hop between grid points from fit to fit.
-            xg = self._best_x(steps + (trial,), ramp, False, lo, hi)[0]
+            scans = [self._scan_step(float(xg), steps, ramp, False, ks) for xg in np.linspace(lo, hi, _X_GRID)]
+            cell = int(np.argmin([float(np.min(sums)) for sums in scans]))
+            trial = int(ks[int(np.argmin(scans[cell]))])
+            # Then x near the scan's best (its grid point is the best with this step already), and the step
+            # to the sample, so that its time does not hop between grid points from fit to fit.
+            xg = self._best_x(steps + (trial,), ramp, False, lo, hi, best=cell)[0]
             trial = self._step_near(xg, steps, ramp, trial, last, spacing)
-            model = self._scored(self._best_x(steps + (trial,), ramp, False, lo, hi)[0], steps + (trial,), ramp,
-                                criterion)
+            model = self._scored(self._best_x(steps + (trial,), ramp, False, lo, hi, best=cell)[0], steps + (trial,),
+                                 ramp, criterion)
             if model.score >= best.score:
                 break
             best = model
