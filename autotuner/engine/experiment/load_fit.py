@@ -81,15 +81,10 @@ _MEMORY = 36.0
 # The full search scans x on this many points over its range, then searches the best point's
 # neighbourhood to _X_TOL (Brent's method: about 7 evaluations where the residual is smooth, at most
 # _X_STEPS — the golden-section steps that narrow a cell of the scan's grid to _X_TOL); a refit near an
-# earlier fit searches x to the same resolution...
+# earlier fit searches x the same way, from the scan's points next to the earlier x.
 _X_GRID = 11
 _X_TOL = 2.5e-4
 _X_STEPS = 16
-# ...within this many of the earlier fit's standard errors of its x (at least _NEAR_MIN); an earlier
-# fit whose x is less certain than _NEAR_MAX says too little to search near: the full search runs.
-_NEAR_STD = 4.0
-_NEAR_MIN = 0.02
-_NEAR_MAX = 0.2
 # A refit whose residual grew beyond this many times the earlier fit's (plus the model's own mismatch,
 # _RESOLUTION) meets something the earlier terms do not explain, such as a second load: the full search runs.
 _MISFIT = 2.0
@@ -101,10 +96,10 @@ _RANK = 1e-8
 # The most candidate models one fit runs (each filters the record once: the fit's work, whatever the
 # record's length). The full search: its grid of x, four searches of x and the curvature's two points.
 # A refit near an earlier fit: one step-time scan at the earlier x, two searches (the earlier ramp and the
-# other), the curvature's two — and the full search after it when the record has moved away from the
+# other: the scan's three points next to the earlier x, then Brent's method), the curvature's two — and the full search after it when the record has moved away from the
 # earlier fit.
 SEARCH_RUNS = _X_GRID + 4 * _X_STEPS + 2  # (the step's two searches start from the scan's best grid point)
-NEAR_RUNS = 1 + 2 * _X_STEPS + 2
+NEAR_RUNS = 1 + 2 * (3 + _X_STEPS) + 2
 
 
 @dataclass(frozen=True)
@@ -537,11 +532,19 @@ class LoadFitter:
                       float(grid[min(i + 1, len(grid) - 1)]))
         return x, self._rss(x, steps, ramp, free)
 
-    def _near_x(self, steps: tuple[int, ...], ramp: bool, x0: float, delta: float, lo: float,
-                hi: float) -> float | None:
-        """The x of the least residual within ``delta`` of ``x0`` (and [lo, hi]), to the full search's
-        resolution; None when it is at an edge that is not [lo, hi]'s (the least lies beyond)."""
-        a, b = max(x0 - delta, lo), min(x0 + delta, hi)
+    def _near_x(self, steps: tuple[int, ...], ramp: bool, x0: float, lo: float, hi: float) -> float | None:
+        """The x of the least residual near ``x0``, found as the full search finds it but from the scan's
+        points next to ``x0`` only; None when it lies at the edge of their cells (the least is beyond).
+
+        The residual can have shallow minima a few thousandths apart (where the dead time crosses a
+        sample); searched from the full search's cells, a refit settles in the minimum the full search
+        would, instead of one near wherever the earlier fit had stopped.
+        """
+        grid = np.linspace(lo, hi, _X_GRID)
+        nearest = int(np.argmin(np.abs(grid - x0)))
+        i = min(range(max(nearest - 1, 0), min(nearest + 2, len(grid))),
+                key=lambda j: self._rss(float(grid[j]), steps, ramp))
+        a, b = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
         x = _minimize(lambda v: self._rss(v, steps, ramp), a, b)
         if (a > lo and x - a < _X_TOL) or (b < hi and b - x < _X_TOL):
             return None
@@ -628,11 +631,10 @@ class LoadFitter:
         return int(near[int(np.argmin(self._scan_step(x, steps, ramp, False, near)))])
 
     def _refit_near(self, near: LoadFit, lo: float, hi: float, criterion: _Criterion) -> _Model | None:
-        """The model with ``near``'s terms, x within a few of its standard errors, the step time within a
-        step grid's spacing of its own; the other choice of the ramp where the criterion now prefers it
-        (a drift). None when ``near`` says too little about x, or the best x lies beyond the search."""
-        delta = max(_NEAR_STD * near.x_std, _NEAR_MIN)
-        if not (delta <= _NEAR_MAX and lo <= near.x <= hi):
+        """The model with ``near``'s terms, x near its own (:meth:`_near_x`), the step time within a step
+        grid's spacing of its own; the other choice of the ramp where the criterion now prefers it (a
+        drift). None when ``near``'s x is outside [lo, hi], or the best x lies beyond the search."""
+        if not lo <= near.x <= hi:
             return None
         ramp = near.ramp != 0.0
         steps: tuple[int, ...] = ()
@@ -645,7 +647,7 @@ class LoadFitter:
         for terms in (ramp, not ramp):
             if best is not None and self._scored(best.x, steps, terms, criterion).score >= best.score:
                 break  # (the other ramp at the same x: no better, so not searched)
-            x = self._near_x(steps, terms, near.x, delta, lo, hi)
+            x = self._near_x(steps, terms, near.x, lo, hi)
             if x is None:
                 return None
             model = self._scored(x, steps, terms, criterion)

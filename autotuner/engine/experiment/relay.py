@@ -255,6 +255,9 @@ _REACT_SAMPLES = 3
 _RUNAWAY_WINDOW = 0.15
 # The runaway test's steps must grow this close to geometrically (s0·s2 ≥ _GEOMETRIC·s1², less the noise).
 _GEOMETRIC = 0.97
+# ... and by more than this share of the distance from the set point: the rounding of the windows' means
+# (running sums since the switch: about 1e-13 of it) is no growth.
+_ROUNDING = 1e-9
 
 
 @dataclass
@@ -676,7 +679,9 @@ class RelayExperiment:
                      else [self._mean_distance(i, m) for i in marks])
         away = [-self._relay * self._sign * d for d in distances]
         steps = np.diff(away)
-        floor = 3.0 * self._noise / (1.0 if samples else math.sqrt(m))
+        # (And by more than the means' rounding: a followed drift's PV is a ramp, whose equal steps come out of
+        # running sums a rounding apart, and a noise-free record's floor is nothing else.)
+        floor = 3.0 * self._noise / (1.0 if samples else math.sqrt(m)) + _ROUNDING * max(abs(a) for a in away)
         if not (steps[0] > floor and steps[1] > steps[0] + floor and steps[2] > steps[1] + floor):
             return None
         if steps[0] * steps[2] < _GEOMETRIC * steps[1] ** 2 - floor * (steps[0] + steps[2]):
