@@ -19,7 +19,7 @@ from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, FastAPI, Path, Query, Request
-from fastapi.responses import StreamingResponse
+from fastapi.responses import Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.datastructures import MutableHeaders
 from starlette.routing import Match, Mount
@@ -30,11 +30,13 @@ from autotuner.engine.design.analysis import analyse
 from autotuner.engine.outcome import MESSAGES, WARNINGS, Code
 from autotuner.service.config import DaemonConfig, Tuning, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
+from autotuner.service.daemon.sampler import SamplerField
 from autotuner.service.history import History
 
 from . import docs, errors
 from .auth import Principal, Tokens, require
-from .events import LIVE_PERIOD, overview, stream
+from .events import LIVE_PERIOD, OpenStreams, Overview, overview, stream
+from .metrics import CONTENT_TYPE, exposition, registry_of
 from .gate import RequestGate
 from .models import (Accepted, Analysis, Applied, ApplyRequest, CodeOut, Health, LoopStatus, Session,
                      SessionSummary, Whoami)
@@ -193,10 +195,10 @@ _EVENT_SCHEMA = {"type": "object", "required": ["event", "data"], "properties": 
                        # JSON errors: declared by content type (a model here would take the route's event-stream type)
                        **{status: {"description": _ERROR_TEXT[status], "content": {"application/json": {
                            "schema": {"$ref": "#/components/schemas/ErrorBody"}}}} for status in (401, 404)}})
-async def events(loop_id: LoopId, manager: Manager, _: Viewer) -> StreamingResponse:
+async def events(loop_id: LoopId, request: Request, manager: Manager, _: Viewer) -> StreamingResponse:
     """Server-Sent Events: ``state``, ``replay``, ``sample`` (the description lists their fields)."""
     manager.get(loop_id)  # 404 before the stream starts
-    return EventStream(stream(manager, loop_id), media_type="text/event-stream",
+    return EventStream(stream(manager, loop_id, request.app.state.streams), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
@@ -228,9 +230,10 @@ _OVERVIEW_SCHEMA = {**_EVENT_SCHEMA, "properties": {
                              "description": "state and live events of every loop"},
                        401: {"description": _ERROR_TEXT[401], "content": {"application/json": {
                            "schema": {"$ref": "#/components/schemas/ErrorBody"}}}}})
-async def all_events(manager: Manager, _: Viewer) -> StreamingResponse:
+async def all_events(request: Request, manager: Manager, _: Viewer) -> StreamingResponse:
     """Server-Sent Events of every loop: ``state`` and ``live`` (the description lists their fields)."""
-    return EventStream(overview(manager), media_type="text/event-stream",
+    return EventStream(overview(manager, request.app.state.overview, request.app.state.streams),
+                       media_type="text/event-stream",
                        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
@@ -277,6 +280,19 @@ async def analysis(sid: str, request: Request, manager: Manager, _: Viewer) -> d
         cache.pop(next(iter(cache)))
     cache[sid] = body = {"session": sid, "loop": record["loop"], **body}
     return body
+
+
+metrics_router = APIRouter()
+
+
+@metrics_router.get("/metrics", tags=["health"], response_class=Response, responses={
+    200: {"content": {CONTENT_TYPE: {"example": "autotuner_loops_tuning 3.0\n"}},
+          "description": "the daemon's metrics in the Prometheus text format (docs/daemon.md, \"Metrics\")"},
+    **_errors(401)})
+async def metrics(request: Request, _: Viewer) -> Response:
+    """The daemon's own health in numbers (Prometheus text format): sampling lateness, analysis CPU, sessions by
+    code, link errors, event streams, OPC UA sessions, the history's queue (viewer token)."""
+    return Response(exposition(request.app.state.metrics), media_type=CONTENT_TYPE)
 
 
 class _Page(Mount):
@@ -358,9 +374,11 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         store = History(config.history)
-        manager = LoopManager(config, store)
+        manager = LoopManager(config, store, None if config.samplers == 0 else SamplerField(config.loops,
+                                                                                              config.samplers))
         await manager.start()
         app.state.manager = manager
+        app.state.metrics = registry_of(manager, app.state)
         opcua = None
         try:
             if config.opcua is not None:
@@ -369,7 +387,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
                 except StartError as exc:
                     app.state.startup_error = str(exc)
                     raise
-                app.state.opcua_url = opcua.url
+                app.state.opcua, app.state.opcua_url = opcua, opcua.url
             yield
         finally:
             if opcua is not None:  # first: no TUNE from OPC UA while the sessions are being aborted
@@ -382,6 +400,8 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
                   description="Relay-feedback PID autotuner daemon: TUNE / TBRK / TBSY / TE over HTTP (docs/daemon.md).",
                   openapi_url=f"{PREFIX}/openapi.json", docs_url=None, redoc_url=None)
     app.state.analyses = {}
+    app.state.streams = OpenStreams()
+    app.state.overview = Overview()
     app.state.tokens = Tokens(config.tokens, env)
     errors.install(app)
 
@@ -390,6 +410,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
     app.add_middleware(SecurityHeaders)
     app.add_middleware(StartupErrors)
     app.include_router(router)
+    app.include_router(metrics_router)
     docs.install(app, PREFIX)  # Swagger UI and ReDoc from the daemon itself (no CDN)
     app.router.routes.append(_Page("/", StaticFiles(directory=STATIC, html=True), name="page"))
     return app

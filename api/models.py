@@ -16,6 +16,9 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from autotuner.engine.result import GainsRecord, PointRecord, ResultRecord
+from autotuner.service.daemon.status import LoopStatus, RestoreStatus, UnitsRecord
+
+__all__ = ["LoopStatus", "RestoreStatus", "UnitsRecord"]  # the loop's status: the daemon's own record
 
 SID = "3f2c9a7e5b1d4c6a8e0f2b4d6a8c0e1f"
 WHEN = "2026-12-01T20:57:36.412Z"
@@ -29,30 +32,6 @@ def _f(description: str, example: Any) -> Any:
 def _d(description: str) -> Any:
     """A required field holding a model (or null): its description; the example comes from the model's fields."""
     return Field(description=description)
-
-
-class TuneDefaults(BaseModel):
-    """What a TUNE without a body runs with: the loop's configured defaults."""
-
-    controller: Literal["PI", "PID"] = _f("controller type designed", "PI")
-    amp: float = _f("relay amplitude, MV units", 5.0)
-    hysteresis: float | None = _f("relay hysteresis, PV units (null: 3σ of the noise measured first)", None)
-    phase: float = _f("phase lag of the point to identify, degrees (90–170)", 135.0)
-    ms: float = _f("maximum sensitivity Ms the design aims at (1.05–4)", 1.4)
-    apply: bool = _f("whether the gains are written to the controller on success", False)
-
-
-class UnitsOut(BaseModel):
-    """The loop's engineering units and display, from its config's ``units`` (docs/daemon.md, "Units")."""
-
-    pv: str = _f("unit of the PV and SP (and of the hysteresis); \"\": none configured", "°C")
-    mv: str = _f("unit of the MV (and of the relay amplitude); \"\": none configured", "%")
-    decimals: int | None = _f("digits after the decimal point of PV, SP and MV values (null: 4 significant digits)",
-                              1)
-    pv_range: list[float] | None = _f("display range [low, high] of the PV axis, PV units (null: fit the data)",
-                                      [20.0, 120.0])
-    mv_range: list[float] | None = _f("display range [low, high] of the MV axis, MV units (null: fit the data)",
-                                      [0.0, 100.0])
 
 
 class CodeOut(BaseModel):
@@ -71,57 +50,6 @@ class Whoami(BaseModel):
     name: str = _f("the token's name (recorded in the history as the user)", "hmi")
     role: Literal["viewer", "operator", "admin"] = _f("what it may do: viewer reads, operator also TUNE/TBRK/apply",
                                                       "operator")
-
-
-class RestoreStatus(BaseModel):
-    """A loop the daemon could not hand back yet (``ite`` 20), retried with back-off (docs/handback.md)."""
-
-    session: str = _f("the session whose hand-back is pending", SID)
-    mode: Literal["MAN", "AUTO"] = _f("the mode it restores", "AUTO")
-    mv: float = _f("the MV it restores, MV units", 50.0)
-    since: str = _f("since when, UTC ISO 8601", WHEN)
-    attempts: int = _f("how many tries so far", 3)
-    last_error: str = _f("why the last try failed", "timeout: no answer from 192.0.2.10:502")
-
-
-class LoopStatus(BaseModel):
-    """A loop: the PIDAT outputs (tbsy, te, ite), the stage and progress, the last session's point and gains, and
-    the live values."""
-
-    id: str = _f("loop id from the config", "TIC-101")
-    description: str = _f("free text from the config", "temperature: two lags with dead time")
-    group: str | None = _f("exclusion group (loops of one group never tune at the same time); null: none", "reactor")
-    link: str = _f("how the daemon reaches the loop (URL; sim:PROCESS for a simulated plant)",
-                   "modbus://192.0.2.10:502/1")
-    speed: float = _f("plant seconds per wall second: 1 for a real plant, more for a simulated one", 1.0)
-    tbsy: bool = _f("TBSY: a session is running", False)
-    te: bool = _f("TE: the last session failed (no gains)", False)
-    ite: float = _f("while tbsy: estimated plant seconds left; afterwards the outcome code (GET /codes)", 0)
-    stage: Literal["noise", "relay", "done"] | None = _f("stage of the running or last session (null: none yet)",
-                                                           "done")
-    progress: float = _f("progress of the running session, 0–1", 0.0)
-    message: str = _f("the last session's message (tuning while one runs, idle before any)", "ok")
-    session: str | None = _f("id of the running or last session (null: none since the daemon started)", SID)
-    controller: str | None = _f("controller type of the last session", "PI")
-    point: PointRecord | None = _d("point identified by the last session (null: none)")
-    static_gain: float | None = _f("static gain of the process identified by the last session, PV units per MV "
-                                   "unit (null: integrating or not identified)", 1.478)
-    gains: GainsRecord | None = _d("gains designed by the last session (null: none)")
-    mode: Literal["MAN", "AUTO"] | None = _f("the loop's mode now (MAN while a session holds it; null: not read yet "
-                                             "or the link is down)", "AUTO")
-    pv: float | None = _f("process value now, PV units (null: not read yet or the link is down)", 50.0)
-    sp: float | None = _f("set point now, PV units (while tuning: the SP saved before the experiment)", 50.0)
-    mv: float | None = _f("manipulated value now, MV units", 50.0)
-    current_gains: GainsRecord | None = _d("the gains in the controller as last read from it (monitor, end of a "
-                                        "session, apply); null until read")
-    last_tuned_at: str | None = _f("finish time of the newest finished session, UTC ISO 8601 (null: none)", WHEN)
-    last_outcome: Literal["success", "failure"] | None = _f("outcome of that session (null: none)", "success")
-    pending_gains: bool = _f("idle, and the newest session succeeded with gains not applied yet", True)
-    monitor_error: str | None = _f("why the monitor cannot read the loop (null: fine)", None)
-    defaults: TuneDefaults = _d("the settings a TUNE without a body runs with")
-    units: UnitsOut = _d("engineering units and display of the loop's values (the config's units)")
-    restore: RestoreStatus | None = Field(None, description="the loop is not handed back yet (te true, ite 20, TUNE "
-                                          "refused); null when it is")
 
 
 class Accepted(BaseModel):

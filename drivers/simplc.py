@@ -7,7 +7,11 @@ so returning to AUTO is bumpless, as on the real block: the tuner writes
 the saved MV, waits until the actual MV reads it back (the unit has ticked
 in MAN with it and its state tracks it), and only then writes AUTO; the
 first AUTO output is then the saved MV (docs/handback.md). Faults can be
-injected for tests: a PV that reads NaN.
+injected for tests: a PV that reads NaN; and for the loop-health monitor
+(``faults``, :class:`autotuner.engine.plant.faults.Faults`): a sticky valve
+or a valve deadband between the PID unit and the process (the PLC shows the
+PID unit's output, not the valve's position), a stochastic load and a
+sinusoidal disturbance at the process input, a frozen PV sensor.
 
 The hand-back watchdog (:class:`drivers.link.Watchdog`): while ``watchdog``
 is armed and ``heartbeat`` has not changed for its timeout (plant seconds),
@@ -16,19 +20,23 @@ the fallback MV, then the fallback mode, TBSY cleared, TE set and ite
 :attr:`Code.WATCHDOG_FALLBACK`, the watchdog disarmed.
 
 Time is the plant's: :meth:`tick` advances one sample; :func:`run` ticks in
-real time (or ``speed`` times faster), deadline-scheduled so it does not drift.
+real time (or ``speed`` times faster), deadline-scheduled so it does not drift;
+:func:`run_many` ticks many PLCs of one sample time from one task (a plant).
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from autotuner.engine.design.point_design import design
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.control.pid import PidUnit
+from autotuner.engine.plant.faults import Faults, FaultyLoop
 from autotuner.engine.plant.process import Process
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.design.process_data import exact_point, least_lag_point
@@ -39,8 +47,12 @@ from autotuner.engine.outcome import Code
 from .link import Mode, TuneFlags, Watchdog
 
 
+@functools.lru_cache(maxsize=64)
 def safe_gains(process: Process) -> Gains:
     """A cautious PI for the simulated plant's starting state (designed from the exact 135° point at Ms 1.2).
+
+    Remembered per process (a Process and Gains are frozen): the design takes ~0.1 s, and a plant of many
+    loops of one process (:mod:`drivers.modbus_plant`) would make it once per loop.
 
     An open-loop unstable process never lags as little as 135°: its PI is designed from the point of least
     lag (a real loop's controller holds it; k = 0.1 would hold it only while it sits exactly at rest, and it
@@ -64,7 +76,9 @@ class SimulatedPlc:
 
     ``loads``: (T, SIZE) load steps at the process input, SIZE MV units, T
     plant seconds after the PLC first ticks in MAN (a tuner taking the loop
-    over): a disturbance during an experiment over the link.
+    over): a disturbance during an experiment over the link. ``faults``: what
+    is wrong with the loop (none by default); the stochastic load's noise is
+    seeded from ``seed`` apart from the PV noise's.
     """
 
     process: Process
@@ -80,6 +94,7 @@ class SimulatedPlc:
     heartbeat: int = 0
     fallbacks: int = 0
     loads: tuple[tuple[float, float], ...] = ()
+    faults: Faults = Faults()
 
     def __post_init__(self) -> None:
         if self.ts <= 0.0:
@@ -87,6 +102,9 @@ class SimulatedPlc:
         self.sim = PlantSim(self.process, self.ts, pv0=self.pv0, mv0=self.mv0, noise_std=self.noise_std,
                             seed=self.seed, mv_limits=self.mv_limits)
         lo, hi = self.mv_limits
+        # None without faults: the plant is then driven exactly as before faults existed
+        self._faulty = (FaultyLoop(self.faults, self.sim, hi - lo, None if self.seed is None else [self.seed, 1])
+                        if self.faults.any else None)
         self.pid = PidUnit(safe_gains(self.process), kind="PI", lolim=lo, hilim=hi)
         self.sp = self.pv0
         self.hv = self.mv0
@@ -162,23 +180,41 @@ class SimulatedPlc:
         self.mv = self.pid.step(self.sim.t, self.sp, self.pv, man=man, hv=self.hv if man else None)
         if not man:
             self.hv = self.mv  # the manual value follows, so a switch to MAN is bumpless too
-        self.mv = self.sim.advance(self.mv)
-        self.pv = self.sim.measure()
+        if self._faulty is None:
+            self.mv = self.sim.advance(self.mv)
+            self.pv = self.sim.measure()
+        else:
+            self.mv = self._faulty.advance(self.mv)
+            self.pv = self._faulty.measure()
 
 
 async def run(plc: SimulatedPlc, speed: float = 1.0, stop: asyncio.Event | None = None) -> None:
-    """Tick ``plc`` so its clock follows the wall clock ``speed`` times faster, until ``stop`` is set.
+    """Tick ``plc`` so its clock follows the wall clock ``speed`` times faster, until ``stop`` is set
+    (:func:`run_many` of one PLC)."""
+    await run_many([plc], speed, stop)
+
+
+async def run_many(plcs: Sequence[SimulatedPlc], speed: float = 1.0, stop: asyncio.Event | None = None) -> None:
+    """Tick every PLC of ``plcs`` (one sample time, seconds) so their clocks follow the wall clock ``speed`` times
+    faster, until ``stop`` is set, from this one task: one timer for the lot, however many there are.
 
     After a stall (a busy machine) the due ticks are made at once, before any
-    other task runs: whoever reads the PLC then sees the state of the present
-    moment, never a plant lagging behind the wall clock.
+    other task runs: whoever reads a PLC then sees the state of the present
+    moment, never a plant lagging behind the wall clock. The PLCs are
+    independent, so ticking them one after the other changes none of them.
+    ValueError if there are none or their sample times differ.
     """
-    period = plc.ts / speed
+    times = sorted({plc.ts for plc in plcs})
+    if len(times) != 1:
+        raise ValueError(f"run_many needs PLCs of one sample time, got sample times {times}")
+    period = plcs[0].ts / speed
     start = time.monotonic()
     done = 0
     while stop is None or not stop.is_set():
         due = int((time.monotonic() - start) / period)
-        while done < due:
-            plc.tick()
-            done += 1
+        if due > done:
+            for plc in plcs:
+                for _ in range(due - done):
+                    plc.tick()
+            done = due
         await asyncio.sleep(max(start + (done + 1) * period - time.monotonic(), 0.0))

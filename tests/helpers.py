@@ -76,7 +76,8 @@ class Daemon:
 
     Its stdout and stderr go to files (a full pipe must never stall the daemon); :meth:`log` reads them.
     Use as a context manager: it waits until ``/health`` answers (``timeout`` s) and, on exit, stops the
-    daemon with SIGTERM (SIGKILL if it does not exit within 60 s).
+    daemon with SIGTERM (SIGKILL if it does not exit within 60 s). It runs in a session of its own, so that
+    :meth:`kill` ends the whole tuner — the daemon and its sampler processes — as a lost machine would.
     """
 
     def __init__(self, config: Path, token: str = "test-operator-token", args: tuple[str, ...] = (),
@@ -91,7 +92,8 @@ class Daemon:
         env = {**os.environ, "AUTOTUNER_TOKEN": token}
         with open(self._out, "w") as out:
             self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(config),
-                                          "--port", str(self.port), *args], env=env, stdout=out, stderr=out)
+                                          "--port", str(self.port), *args], env=env, stdout=out, stderr=out,
+                                         start_new_session=True)
         self._timeout = timeout
 
     def log(self) -> str:
@@ -135,12 +137,23 @@ class Daemon:
             try:
                 self.proc.wait(60)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+                self.kill()
         return self.proc.returncode
+
+    def kill(self) -> None:
+        """SIGKILL to the whole tuner (the daemon and its samplers), and wait for the daemon's end."""
+        import signal
+
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait()
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+        import signal
+
+        with contextlib.suppress(ProcessLookupError):  # nothing of the tuner left behind
+            os.killpg(self.proc.pid, signal.SIGKILL)
 
 
 def record_ticks(plc: SimulatedPlc, ticks: list[tuple[Mode, float]]) -> None:
@@ -157,3 +170,40 @@ def record_ticks(plc: SimulatedPlc, ticks: list[tuple[Mode, float]]) -> None:
 def first_auto(ticks: list[tuple[Mode, float]]) -> int:
     """Index of the first AUTO tick after a MAN one (the hand-back's first sample)."""
     return next(i for i in range(1, len(ticks)) if ticks[i][0] is Mode.AUTO and ticks[i - 1][0] is Mode.MAN)
+
+
+class TimedLink:
+    """A link whose ``read_pv`` calls are time-stamped at completion (``done``, monotonic); everything else
+    forwarded. ``session``: it has written an MV (the monitor's links only read)."""
+
+    def __init__(self, link: Any) -> None:
+        self._link = link
+        self.done: list[float] = []
+        self.session = False
+
+    async def read_pv(self) -> float:
+        pv = await self._link.read_pv()
+        self.done.append(time.monotonic())
+        return pv
+
+    async def write_mv(self, mv: float) -> None:
+        self.session = True
+        await self._link.write_mv(mv)
+
+    @property
+    def pv_age(self) -> float | None:
+        return self._link.pv_age
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._link, name)
+
+
+def stamp_reads(loop: Any, links: list[TimedLink]) -> None:
+    """Make every link ``loop`` (a loop of a local field) opens from now on a :class:`TimedLink` in ``links``."""
+    connect = loop.connect
+
+    def timed() -> TimedLink:
+        links.append(TimedLink(connect()))
+        return links[-1]
+
+    loop.connect = timed

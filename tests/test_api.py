@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import asyncio
 import contextlib
 import json
@@ -17,7 +19,7 @@ import uvicorn
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from api.models import LoopStatus
+from api.models import LoopStatus, UnitsRecord
 from api.auth import token_hash
 from autotuner.service.config import DaemonConfig, Token
 from autotuner.service.demo import demo_config
@@ -35,7 +37,9 @@ SPEED = 12.0
 API = "/api/v1"
 
 
-CONFIG = demo_config(SPEED).model_copy(update={"tokens": [
+# samplers 0: the simulated plants in this process, where the tests read them (tests/test_sampler.py runs the
+# daemon with its sampler processes).
+CONFIG = demo_config(SPEED).model_copy(update={"samplers": 0, "tokens": [
     Token(name="hmi", role="viewer", sha256=token_hash(VIEWER)),
     Token(name="root", role="admin", sha256=token_hash(ADMIN)),
 ]})
@@ -236,7 +240,7 @@ def test_the_overview_stream_carries_every_loops_state_and_throttled_live_values
     # Opens with every loop's state in the config's order (the status of GET /loops/{id}); then state and live only.
     assert [k for k, _ in events[:3]] == ["state"] * 3
     assert [d["id"] for _, d in events[:3]] == ["TIC-101", "LIC-201", "FIC-301"]
-    assert set(events[0][1]) == set(LoopStatus.model_fields)
+    assert set(events[0][1]) == {f.name for f in dataclasses.fields(LoopStatus)}
     assert {k for k, _ in events[3:]} == {"state", "live"}
     live = [d for k, d in events if k == "live"]
     assert {d["loop"] for d in live} == {"TIC-101", "LIC-201", "FIC-301"}  # the idle loops' monitor readings too
@@ -327,14 +331,12 @@ def test_codes_lists_every_outcome_code_for_the_page(client):
 
 
 def test_status_has_exactly_the_documented_keys_and_the_loops_units(client):
-    from api.models import UnitsOut
-
     statuses = client.get(f"{API}/loops", headers=auth(VIEWER)).json()
     for status in statuses:
         # The REST contract (docs/daemon.md): these keys and no others; units from the config.
-        assert set(status) == set(LoopStatus.model_fields)
-        assert set(status["units"]) == set(UnitsOut.model_fields) == {"pv", "mv", "decimals", "pv_range",
-                                                                      "mv_range"}
+        assert set(status) == {f.name for f in dataclasses.fields(LoopStatus)}
+        assert set(status["units"]) == {f.name for f in dataclasses.fields(UnitsRecord)} == {
+            "pv", "mv", "decimals", "pv_range", "mv_range"}
         assert status["units"] == CONFIG.loop(status["id"]).units.as_json()
     assert next(s for s in statuses if s["id"] == "TIC-101")["units"] == {
         "pv": "°C", "mv": "%", "decimals": 2, "pv_range": None, "mv_range": None}

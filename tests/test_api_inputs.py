@@ -33,7 +33,7 @@ def auth(token: str) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def client():
-    config = DaemonConfig.model_validate({"history": ":memory:", "loops": LOOPS, "tokens": [
+    config = DaemonConfig.model_validate({"history": ":memory:", "loops": LOOPS, "samplers": 0, "tokens": [
         {"name": "hmi", "role": "viewer", "sha256": token_hash(VIEWER)}]})
     with TestClient(create_app(config, env_token=OPERATOR), raise_server_exceptions=False) as c:
         yield c

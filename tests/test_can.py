@@ -18,7 +18,7 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.outcome import Code
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config
-from autotuner.service.link_session import HandBack, tune_link
+from autotuner.service.link_session import HandBack, SessionPlan, tune_link
 from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.can_link import (CMD_SP, REQUIRED, WATCHDOG_SIGNALS, CanLink, default_dbc, gains_from_wire,
                               gains_to_wire, load_dbc, ti_from_wire, ti_to_wire)
@@ -477,7 +477,7 @@ async def tune_over_can(fault=None, fault_after: float = 0.3, handback=None):
     try:
         # tolerances for a shared CI machine: timing jitter at 10x real time scatters the estimates
         cfg = field_config(RelayConfig(amp=5.0, time_limit=500.0, phase_tol_deg=2.0, gain_tol=0.02))
-        result = await tune_link(link, cfg, ts, speed=HIL_SPEED, handback=handback)
+        result = await tune_link(link, SessionPlan(cfg, ts, speed=HIL_SPEED, handback=handback or HandBack()))
         # the node has taken every command the session sent (a silent node's MV cannot be read back)
         assert await until(lambda: sum(node.stats[k] for k in ("applied", "rejected", "ignored")) >= link.stats["sent"])
     finally:

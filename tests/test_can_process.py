@@ -6,6 +6,7 @@ this fault: SIGKILL of the daemon with the relay at a level, and the node's watc
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import random
@@ -98,9 +99,10 @@ def test_sigkill_of_the_daemon_over_can_between_processes_and_the_node_watchdog_
         base = f"http://127.0.0.1:{port}/api/v1"
         headers = {"Authorization": f"Bearer {TOKEN}"}
         with open(tmp_path / "daemon.log", "w") as out:
+            # A session of its own: the whole tuner (the daemon and its sampler) is killed, as a lost machine.
             daemon = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(config),
                                        "--port", str(port)], env={**os.environ, "AUTOTUNER_TOKEN": TOKEN},
-                                      stdout=out, stderr=subprocess.STDOUT)
+                                      stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
         try:
             def up() -> bool:
                 assert daemon.poll() is None, (tmp_path / "daemon.log").read_text()
@@ -115,12 +117,12 @@ def test_sigkill_of_the_daemon_over_can_between_processes_and_the_node_watchdog_
             at_level = wait_for(lambda: (now := reader.read())["mode"] is Mode.MAN
                                 and abs(now["mv"] - SAVED_MV) > 0.5 * AMP and now["tbsy"] and now, WAIT,
                                 "the relay to hold the MV at a level, read over CAN")
-            daemon.send_signal(signal.SIGKILL)
+            os.killpg(daemon.pid, signal.SIGKILL)
             daemon.wait(30)
         finally:
-            if daemon.poll() is None:
-                daemon.kill()
-                daemon.wait()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(daemon.pid, signal.SIGKILL)
+            daemon.wait()
         back = wait_for(lambda: (now := reader.read())["mode"] is Mode.AUTO and now, WAIT,
                         "the node's watchdog to hand the loop back")
         now = reader.read()  # the fallback sets mode and flags in one tick; nothing writes them after

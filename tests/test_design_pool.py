@@ -12,11 +12,13 @@ import time
 
 import pytest
 
-from autotuner.service import link_session as session
+import pickle
+
+from autotuner.service import design_pool as session
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.engine.plant.simulation import PlantSim
-from autotuner.engine.simulated_tuning import result_of, run_experiment
+from autotuner.engine.simulated_tuning import DesignJob, result_of, run_experiment
 
 PLANT = "exp(-s)/(s+1)"
 
@@ -24,11 +26,19 @@ PLANT = "exp(-s)/(s+1)"
 def test_the_worker_designs_what_the_process_itself_would():
     experiment, trace = run_experiment(PlantSim(parse_process(PLANT), 0.05), RelayConfig(amp=1.0))
     cpu = session.design_cpu()
-    pooled = asyncio.run(session._designed(experiment, "PID", 1.4, trace, ""))
+    job = DesignJob.of(experiment, "PID", 1.4)
+    code, _, pooled = asyncio.run(session.designed(job))
     direct = result_of(experiment, trace, "PID", 1.4)
-    assert pooled.ok and pooled.design.gains == direct.design.gains
+    assert code == direct.code and pooled.gains == direct.design.gains
     assert session.design_cpu() > cpu  # the worker's CPU is counted
     session.close_design_pool()
+
+
+def test_a_design_job_carries_the_identification_not_the_experiment():
+    # What a worker is sent: the identification and the settings (under 1 KB), not the record of every sample.
+    experiment, trace = run_experiment(PlantSim(parse_process(PLANT), 0.05), RelayConfig(amp=1.0))
+    sent = len(pickle.dumps(DesignJob.of(experiment, "PID", 1.4)))
+    assert sent < 1024 < len(pickle.dumps(trace)), sent
 
 
 @pytest.mark.parametrize("ending", ["SIGKILL", "SIGTERM"])
@@ -36,15 +46,15 @@ def test_workers_exit_when_the_daemon_is_killed(ending, tmp_path):
     # A daemon that designs once, reports its workers and dies by a signal (no atexit, no pool shutdown).
     script = textwrap.dedent(f"""
         import asyncio, os, signal
-        from autotuner.service import link_session as session
+        from autotuner.service import design_pool as session
         from autotuner.engine.plant.expression import parse_process
         from autotuner.engine.experiment.relay import RelayConfig
         from autotuner.engine.plant.simulation import PlantSim
-        from autotuner.engine.simulated_tuning import run_experiment
+        from autotuner.engine.simulated_tuning import DesignJob, run_experiment
 
         experiment, trace = run_experiment(PlantSim(parse_process({PLANT!r}), 0.05), RelayConfig(amp=1.0))
-        assert asyncio.run(session._designed(experiment, "PI", 1.4, trace, "")).ok
-        print(" ".join(str(pid) for pid in session._pool._processes), flush=True)
+        assert asyncio.run(session.designed(DesignJob.of(experiment, "PI", 1.4)))[2] is not None
+        print(" ".join(str(pid) for pid in session.worker_pids()), flush=True)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
         os.kill(os.getpid(), signal.{ending})
     """)

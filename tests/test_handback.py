@@ -7,6 +7,7 @@ Every wait is a condition with a generous deadline; the plant runs 20× real tim
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -143,9 +144,10 @@ class Daemon:
         self.base = f"http://127.0.0.1:{self.port}/api/v1"
         self.headers = {"Authorization": f"Bearer {TOKEN}"}
         self.log = open(tmp / f"daemon-{self.port}.log", "w")  # noqa: SIM115 - closed in close()
+        # A session of its own: the tuner is the daemon and its sampler process, killed together (kill, signal).
         self.proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(self.config),
                                       "--port", str(self.port)], env={**os.environ, "AUTOTUNER_TOKEN": TOKEN},
-                                     stdout=self.log, stderr=subprocess.STDOUT, text=True)
+                                     stdout=self.log, stderr=subprocess.STDOUT, text=True, start_new_session=True)
         try:
             wait_for(self._up, START, "the daemon to answer")
         except AssertionError as exc:
@@ -174,10 +176,20 @@ class Daemon:
         r = httpx.post(f"{self.base}/loops/L1/break", headers=self.headers, timeout=5.0)
         assert r.status_code == 202, r.text
 
+    def signal(self, sig: int) -> None:
+        """``sig`` to the whole tuner: the daemon and its sampler process (SIGSTOP freezes both)."""
+        os.killpg(self.proc.pid, sig)
+
+    def kill(self) -> None:
+        """SIGKILL to the whole tuner (its machine lost), and wait for the daemon's end."""
+        self.signal(signal.SIGKILL)
+        self.proc.wait()
+
     def close(self) -> None:
         if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
+            self.kill()
+        with contextlib.suppress(ProcessLookupError):  # a sampler whose daemon is gone hands back, then ends
+            os.killpg(self.proc.pid, signal.SIGKILL)
         self.log.close()
 
 
@@ -306,8 +318,7 @@ def test_sigkill_then_the_device_watchdog_hands_the_loop_back(tmp_path, plc):
         sid = d.tune()
         armed = at_relay_level(plc)
         assert armed["wd_time"] == 1.5 * plc.speed  # wall seconds × speed = the PLC's seconds
-        d.proc.kill()
-        d.proc.wait()
+        d.kill()
         auto, before = first_auto(plc, timeout=WAIT)
     assert before[0]["mode"] == "MAN" and abs(before[0]["mv"] - SAVED_MV) > 0.5 * AMP  # left at a relay level
     # The PV has drifted for the watchdog's time at a relay level, so the PI moves faster after the switch: twice the
@@ -369,8 +380,7 @@ def test_an_operators_intervention_between_a_sigkill_and_the_restart_is_kept_and
     with daemon(tmp_path, plc) as d:
         sid = d.tune()
         at_relay_level(plc)
-        d.proc.kill()
-        d.proc.wait()
+        d.kill()
     plc.write_hv(20.0)  # the operator takes the loop by hand: MAN at 20
     wait_for(lambda: plc.read()["mv"] == 20.0, WAIT, "the PLC to apply the operator's MV")
     with daemon(tmp_path, plc) as d:
@@ -418,17 +428,16 @@ def test_a_sigkill_at_a_switch_sample_between_the_levels_is_the_daemons_own_mv_a
         def caught() -> dict[str, Any] | None:  # freeze the daemon on a switch sample (its next one would overwrite it)
             if not between(plc.read()):
                 return None
-            d.proc.send_signal(signal.SIGSTOP)
+            d.signal(signal.SIGSTOP)
             # the PLC's actual MV takes the manual one at its next tick; the frozen daemon writes nothing meanwhile
             now = wait_for(lambda: (r := plc.read())["mv"] == r["hv"] and r, WAIT, "the PLC to take the MV")
             if between(now):
                 return now
-            d.proc.send_signal(signal.SIGCONT)
+            d.signal(signal.SIGCONT)
             return None
 
         left = wait_for(caught, WAIT, "a switch sample between the relay's levels")
-        d.proc.kill()  # SIGKILL while stopped
-        d.proc.wait()
+        d.kill()  # SIGKILL while stopped
         assert json.loads(history_row(d.history, sid)["saved"])["mv_range"] == [levels[0], levels[-1]]
     assert plc.read()["hv"] == left["hv"]
     with daemon(tmp_path, plc) as d:

@@ -16,7 +16,7 @@ from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.outcome import Code
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config, open_link, served, tune_via
-from autotuner.service.link_session import tune_link
+from autotuner.service.link_session import SessionPlan, tune_link
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.simulated_tuning import default_sample_time, tune
 from drivers.link import Mode
@@ -78,7 +78,7 @@ async def _faulted(transport: str, inject, heal=None, after: float = 1.0, outage
 
         injector = asyncio.create_task(faults())
         try:
-            result = await tune_link(link, field_config(CONFIG), TS, speed=SPEED)
+            result = await tune_link(link, SessionPlan(field_config(CONFIG), TS, speed=SPEED))
         finally:
             await injector
             await link.close()

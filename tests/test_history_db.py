@@ -1,7 +1,7 @@
 """The history on its two kinds of database: an SQLite file and a real PostgreSQL server (SQLAlchemy URL).
 
 The PostgreSQL server is the distribution's (Debian: ``apt-get install
-postgresql``; ``.ci/run`` installs it), started for this module in a
+postgresql``; ``tests/setup-and-run.sh`` installs it), started for this module in a
 temporary directory on a free localhost port, as user ``postgres`` when the
 tests run as root; each test gets a database of its own.
 """

@@ -168,8 +168,8 @@ class ThreadedPlc:
         self.server = server = await serve_modbus(self.plc, "127.0.0.1", 0, unit=1)
         set_plc = server._set_plc
 
-        def watched(written: dict[str, float]):
-            answer = set_plc(written)
+        def watched(plc: SimulatedPlc, written: dict[str, float]):
+            answer = set_plc(plc, written)
             if "k" in written and answer is None:
                 self.gains_written.set()
                 if self.freeze_after_gains:
@@ -223,8 +223,7 @@ def test_gains_written_then_sigkill_are_reconciled_with_the_device_at_the_next_s
             daemon.wait_until(lambda: plant.gains_written.is_set() or not status(daemon, "TIC")["tbsy"], 240,
                               "the gains written to the PLC")
             assert plant.gains_written.is_set(), status(daemon, "TIC")["message"]
-            daemon.proc.send_signal(signal.SIGKILL)
-            daemon.proc.wait(30)
+            daemon.kill()  # the whole tuner, as a lost machine
         written = plant.plc.gains
         assert written != before
         row = sqlite3.connect(db).execute("SELECT state, gains_intent, applied_by FROM sessions WHERE id = ?",

@@ -18,7 +18,7 @@ from autotuner.service.config import DaemonConfig, TuneRequest
 from autotuner.service.daemon import LoopManager
 from autotuner.engine.plant.expression import parse_process
 from autotuner.service.history import History
-from autotuner.benchmarks.load import TimedLink, stamp_reads
+from helpers import TimedLink, stamp_reads
 from autotuner.engine.outcome import Code
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, served
 from drivers.link import Mode

@@ -560,7 +560,7 @@ def test_unit_id_is_used():
         bad = ModbusLink.tcp("127.0.0.1", server.port, unit=4, timeout=0.3, retries=0)
         try:
             assert await good.read_pv() == pytest.approx(plc.pv, rel=1e-6)
-            with pytest.raises(LinkError):
+            with pytest.raises(LinkError, match=r"unit 4 answered Modbus exception 11 \(gateway no response\)"):
                 await bad.read_pv()
         finally:
             await good.close()

@@ -5,7 +5,7 @@ browses, reads, and is refused Tune and writes; an operator over
 Basic256Sha256 SignAndEncrypt gets REST's validation message, starts a
 tuning with AutoTuningOn, watches AutoTuningActive, and stops it with
 AutoTuningOff (TE, ite 1). Needs Node.js and ``npm install`` in
-tests/opcua_node (``.ci/run`` does both); without them the test fails saying so.
+tests/opcua_node (``tests/setup-and-run.sh`` does both); without them the test fails saying so.
 """
 
 from __future__ import annotations
@@ -31,10 +31,11 @@ def node() -> str:
     """The node executable, with node-opcua-client installed beside the script; a clear failure otherwise."""
     path = shutil.which("node")
     if path is None:
-        pytest.fail("the node-opcua test needs Node.js: apt-get install nodejs npm (.ci/run does it)", pytrace=False)
+        pytest.fail("the node-opcua test needs Node.js: tests/setup-and-run.sh installs it (apt-get install "
+                    "nodejs, and npm if nodejs came without it)", pytrace=False)
     if not (HERE / "node_modules" / "node-opcua-client").is_dir():
-        pytest.fail(f"the node-opcua test needs its package: npm install --prefix {HERE} (.ci/run does it)",
-                    pytrace=False)
+        pytest.fail(f"the node-opcua test needs its package: npm ci --prefix {HERE} (tests/setup-and-run.sh "
+                    "does it)", pytrace=False)
     return path
 
 

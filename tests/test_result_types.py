@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import typing
 
 import numpy as np
 
@@ -63,8 +64,8 @@ def test_the_api_models_are_the_engine_records() -> None:
     doc = json.loads(json.dumps(_result().as_json(), allow_nan=False))
     # The loop status and the session carry the result's point and gains as the engine's records, and pydantic
     # reads their descriptions into the OpenAPI document.
-    status = LoopStatus.model_fields
-    assert status["point"].annotation == PointRecord | None and status["gains"].annotation == GainsRecord | None
+    status = typing.get_type_hints(LoopStatus)
+    assert status["point"] == PointRecord | None and status["gains"] == GainsRecord | None
     assert SessionSummary.model_fields["result"].annotation == ResultRecord | None
     schema = TypeAdapter(ResultRecord).json_schema()
     point = schema["$defs"]["PointRecord"]["properties"]["omega"]

@@ -12,7 +12,7 @@ from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.outcome import Code
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config
-from autotuner.service.link_session import HandBack, tune_link
+from autotuner.service.link_session import HandBack, SessionHooks, SessionPlan, tune_link
 from autotuner.engine.simulated_tuning import default_sample_time
 from drivers.link import Mode
 from drivers.simlink import SimLink
@@ -55,7 +55,8 @@ async def session(link_kwargs=None, *, apply=False, stop_after=None, mode=Mode.A
         watcher = asyncio.create_task(at_relay())
     try:
         cfg = field_config(RelayConfig(amp=5.0, time_limit=500.0, **config))
-        result = await tune_link(link, cfg, ts, apply=apply, speed=SPEED, stop=stop, handback=handback)
+        plan = SessionPlan(cfg, ts, apply=apply, speed=SPEED, handback=handback or HandBack())
+        result = await tune_link(link, plan, SessionHooks(stop=stop))
         for _ in range(3):  # let the plant take the restored MV
             plc.tick()
     finally:
@@ -138,8 +139,8 @@ def test_the_watchdog_hands_the_loop_back_when_the_heartbeat_stops():
         link = SimLink(plc)
         # An outage from the 60th call on: the session goes silent with the loop at a relay level.
         link.outage = (60, 10**9)
-        task = asyncio.create_task(tune_link(link, RelayConfig(amp=5.0), ts, speed=SPEED,
-                                             handback=HandBack(window=30.0, watchdog=2.0)))
+        task = asyncio.create_task(tune_link(link, SessionPlan(RelayConfig(amp=5.0), ts, speed=SPEED,
+                                                                   handback=HandBack(window=30.0, watchdog=2.0))))
         await until(lambda: plc.fallbacks == 1, 20.0, "the watchdog to fall back")
         mode, flags = plc.mode, plc.flags
         task.cancel()
@@ -164,7 +165,7 @@ def test_nan_pv_is_never_used_as_data():
         process = parse_process(PLANT)
         plc = SimulatedPlc(process)
         plc.nan_pv = True
-        return await tune_link(SimLink(plc), RelayConfig(amp=1.0), plc.ts, speed=SPEED), plc
+        return await tune_link(SimLink(plc), SessionPlan(RelayConfig(amp=1.0), plc.ts, speed=SPEED)), plc
 
     result, plc = asyncio.run(scenario())
     assert result.code is Code.LINK_FAULT and "pv is not a number" in result.message
@@ -184,7 +185,7 @@ def test_cancellation_restores_before_propagating():
         plc = SimulatedPlc(process, ts=ts / 5)
         halt = asyncio.Event()
         plant = asyncio.create_task(run(plc, SPEED, halt))
-        task = asyncio.create_task(tune_link(SimLink(plc), RelayConfig(amp=5.0), ts, speed=SPEED))
+        task = asyncio.create_task(tune_link(SimLink(plc), SessionPlan(RelayConfig(amp=5.0), ts, speed=SPEED)))
         await until(lambda: plc.mode is Mode.MAN, 5.0, "the experiment to take the loop over")
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
@@ -212,8 +213,8 @@ def test_cancellation_and_a_bug_leave_the_device_not_busy():
         plc = SimulatedPlc(process, ts=ts / 5)
         halt = asyncio.Event()
         plant = asyncio.create_task(run(plc, SPEED, halt))
-        task = asyncio.create_task(tune_link(SimLink(plc), RelayConfig(amp=5.0), ts, speed=SPEED,
-                                             on_status=None if cancel else broken))
+        task = asyncio.create_task(tune_link(SimLink(plc), SessionPlan(RelayConfig(amp=5.0), ts, speed=SPEED),
+                                             SessionHooks(on_status=None if cancel else broken)))
         await until(lambda: plc.mode is Mode.MAN or task.done(), 20.0, "the experiment to take the loop over")
         if cancel:
             task.cancel()
@@ -240,8 +241,9 @@ def test_a_slow_loop_keeps_the_heartbeat_and_a_tbrk_acts_at_once():
         plant = asyncio.create_task(run(plc, 1.0, halt))
         stop = asyncio.Event()
         # 20 wall seconds per sample, watchdog 5 s: without heartbeats between samples it would fall back.
-        task = asyncio.create_task(tune_link(SimLink(plc), RelayConfig(amp=5.0), 20.0, speed=1.0, stop=stop,
-                                             handback=HandBack(window=30.0, watchdog=5.0)))
+        task = asyncio.create_task(tune_link(SimLink(plc), SessionPlan(RelayConfig(amp=5.0), 20.0, speed=1.0,
+                                                                            handback=HandBack(window=30.0, watchdog=5.0)),
+                                             SessionHooks(stop=stop)))
         await until(lambda: plc.mode is Mode.MAN, 20.0, "the experiment to take the loop over")
         beats = plc.heartbeat
         await until(lambda: plc.heartbeat >= beats + 12, 60.0, "heartbeats between samples, for over 5 s")
@@ -277,8 +279,8 @@ def test_an_experiment_refused_before_it_starts_never_touches_the_loop():
                     await original(*args)
                 return write
             setattr(link, name, recorder(getattr(link, name)))
-        result = await tune_link(link, RelayConfig(amp=5.0, mv_limits=(60.0, 100.0)), plc.ts * 5, speed=SPEED,
-                                 handback=HandBack(watchdog=2.0))
+        result = await tune_link(link, SessionPlan(RelayConfig(amp=5.0, mv_limits=(60.0, 100.0)), plc.ts * 5, speed=SPEED,
+                                                   handback=HandBack(watchdog=2.0)))
         return result, plc, writes
 
     result, plc, writes = asyncio.run(scenario())

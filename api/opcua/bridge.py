@@ -25,17 +25,14 @@ releasing its port.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import logging
-import os
-import socket
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
+from autotuner.service.channel import cpu_seconds, log_levels, log_record, start_child
 from autotuner.service.config import OpcUaConfig, OpcUaUser, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
 
@@ -49,8 +46,6 @@ log = logging.getLogger("autotuner.api.opcua")
 START_WAIT, STOP_WAIT = 60.0, 20.0
 # The loggers whose levels the server process takes from the daemon's (its records come back to the daemon's log).
 LEVELS = ("", "asyncua", "autotuner")
-# The folder holding the ``api`` package (the server process imports it from there, as the daemon did).
-_SOURCE = Path(__file__).resolve().parents[2]
 
 
 class OpcUaProcess:
@@ -73,22 +68,14 @@ class OpcUaProcess:
         self._tasks: set[asyncio.Task[Any]] = set()  # the listener and the publishers
         self._calls: set[asyncio.Task[Any]] = set()  # the method calls under way
         self._sent: dict[str, dict[str, Any]] = {}
+        self.sessions = 0  # client sessions open (the server says when it changes)
 
     # -- life cycle ---------------------------------------------------------------------------------------------
 
     async def start(self) -> str:
         """Start the server process and wait until it listens; its endpoint URL. :class:`StartError` with the
         server's error (a port in use, an unreadable certificate) if it cannot start."""
-        ours, theirs = socket.socketpair()
-        try:
-            env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(_SOURCE),
-                                                                          os.environ.get("PYTHONPATH"))))}
-            # Popen, not an asyncio subprocess: it works from any thread's event loop (tests run the app in one).
-            self.process = subprocess.Popen([sys.executable, "-m", "api.opcua.server", str(theirs.fileno())],
-                                            pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL,
-                                            stdout=subprocess.DEVNULL, env=env)
-        finally:
-            theirs.close()
+        self.process, ours = start_child("api.opcua.server")
         self._channel = await Channel.open(ours)
         try:
             await asyncio.wait_for(self._handshake(), START_WAIT)
@@ -108,7 +95,7 @@ class OpcUaProcess:
         assert self._channel is not None
         statuses = [loop.as_json() for loop in self.manager.loops.values()]
         self._sent = {s["id"]: snapshot(s) for s in statuses}
-        levels = {name: logging.getLogger(name).getEffectiveLevel() for name in LEVELS}
+        levels = log_levels(LEVELS)
         self._channel.send("init", Init(self.config, self.users, self.url, self.cert_dir, levels, [
             (s, self.manager.loops[s["id"]].config.monitor_period) for s in statuses]))
         while True:
@@ -117,7 +104,7 @@ class OpcUaProcess:
                 raise StartError(f"the OPC UA server process ended (exit code {self._exit_code()}) before it "
                                  "listened")
             if message[0] == "log":
-                _log(*message[1:])
+                log_record(*message[1:])
             elif message[0] == "failed":
                 raise StartError(f"the OPC UA server could not start: {message[1]}")
             elif message[0] == "ready":
@@ -150,12 +137,7 @@ class OpcUaProcess:
 
     def cpu_time(self) -> float | None:
         """CPU seconds (user + system) the server's process has used so far; None where /proc is missing."""
-        try:
-            stat = Path(f"/proc/{self.process.pid}/stat").read_text()  # type: ignore[union-attr]
-        except (AttributeError, OSError):
-            return None
-        utime, stime = stat.rpartition(")")[2].split()[11:13]  # fields 14 and 15 of proc(5)
-        return (int(utime) + int(stime)) / os.sysconf("SC_CLK_TCK")
+        return None if self.process is None else cpu_seconds(self.process.pid)
 
     def _exit_code(self) -> int | None:
         return None if self.process is None else self.process.poll()
@@ -201,7 +183,9 @@ class OpcUaProcess:
             if message[0] == "call":
                 self._spawn(self._call(*message[1:]), self._calls)
             elif message[0] == "log":
-                _log(*message[1:])
+                log_record(*message[1:])
+            elif message[0] == "sessions":
+                self.sessions = message[1]
         if self._channel is not None:  # not stopping: it died
             log.error("the OPC UA server process ended (exit code %s); the REST API goes on without it",
                       await asyncio.to_thread(self.process.wait))  # type: ignore[union-attr]
@@ -231,11 +215,3 @@ class OpcUaProcess:
             reply = ("error", f"{type(exc).__name__}: {exc}")
         if self._channel is not None:
             self._channel.send("reply", call_id, reply)
-
-
-def _log(name: str, level: int, message: str) -> None:
-    """A record of the server process into the daemon's log, as if logged here."""
-    logger = logging.getLogger(name)
-    if logger.isEnabledFor(level):
-        with contextlib.suppress(Exception):  # a broken handler must not end the bridge
-            logger.log(level, "%s", message)

@@ -45,8 +45,6 @@ import os
 import signal
 import socket
 import sys
-import threading
-import traceback
 from collections.abc import Awaitable, Callable
 from typing import Any
 from urllib.parse import urlsplit
@@ -55,6 +53,7 @@ from asyncua import Node, Server, ua
 from pydantic import ValidationError
 
 from api.errors import validation_message
+from autotuner.service.channel import forward_logs
 from autotuner.service.config import TuneRequest
 
 from .address_space import FOLDER, NAMESPACE, LoopNodes, event_type, node_id
@@ -161,6 +160,24 @@ class OpcUaServer:
         finally:
             await server.stop()
 
+    def _count_sessions(self, server: Server) -> None:
+        """Tell the daemon how many client sessions are open whenever one opens or closes (its metrics)."""
+        iserver = server.iserver
+        sessions: set[Any] = set()
+        register, unregister = iserver.register_external_session, iserver.unregister_external_session
+
+        def registered(session: Any) -> None:
+            register(session)
+            sessions.add(session.auth_token)
+            self.channel.send("sessions", len(sessions))
+
+        def unregistered(session: Any) -> None:
+            unregister(session)
+            sessions.discard(session.auth_token)
+            self.channel.send("sessions", len(sessions))
+
+        iserver.register_external_session, iserver.unregister_external_session = registered, unregistered
+
     async def _build(self) -> Server:
         trusted = None
         if self.config.trusted_clients is not None:
@@ -168,6 +185,7 @@ class OpcUaServer:
             await trusted.load()
         server = Server(user_manager=Users(self.init.users, trusted))
         await server.init()
+        self._count_sessions(server)
         if trusted is not None:
             server.set_certificate_validator(trusted)
         server.set_endpoint(self.init.url)
@@ -338,28 +356,6 @@ async def _orphaned(parent: int) -> None:
         await asyncio.sleep(ORPHAN_CHECK)
 
 
-class Forward(logging.Handler):
-    """Sends every record to the daemon's log over ``channel`` (the traceback, if any, in the message)."""
-
-    def __init__(self, channel: Channel) -> None:
-        super().__init__()
-        self.channel = channel
-        self._loop = asyncio.get_running_loop()
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            message = record.getMessage()
-            if record.exc_info:
-                message += "\n" + "".join(traceback.format_exception(*record.exc_info)).rstrip()
-            item = ("log", record.name, record.levelno, message)
-            if threading.get_ident() == self._loop._thread_id:  # type: ignore[attr-defined]
-                self.channel.send(*item)
-            else:  # asyncua logs from its executor's threads too; the transport is the event loop's only
-                self._loop.call_soon_threadsafe(self.channel.send, *item)
-        except Exception:  # the channel is gone: nobody to tell
-            self.handleError(record)
-
-
 async def serve(fd: int) -> None:
     """The process' work: the daemon's init over the socket ``fd``, then the server until told to stop."""
     channel = await Channel.open(socket.socket(fileno=fd))
@@ -367,10 +363,7 @@ async def serve(fd: int) -> None:
     if message is None or message[0] != "init":
         return
     init: Init = message[1]
-    root = logging.getLogger()
-    root.handlers[:] = [Forward(channel)]
-    for name, level in init.levels.items():
-        logging.getLogger(name or None).setLevel(level)
+    forward_logs(channel, init.levels)
     try:
         await OpcUaServer(init, channel).run()
     finally:

@@ -1,128 +1,102 @@
-"""Load benchmark of the daemon: N simulated loops tuned at once over Modbus TCP on localhost.
+"""Load benchmark of the daemon: N loops tuned at once and M monitored, over Modbus TCP, with C clients watching.
 
-The plants are N :class:`~drivers.simplc.SimulatedPlc`, each behind its own
-Modbus TCP server (:func:`drivers.modbus_server.serve_modbus`, an ephemeral
-port), all in a child process — the field devices, kept off the daemon's
-event loop and its CPU account. The daemon side is a
-:class:`~autotuner.service.daemon.LoopManager` with N loops whose links are
-``modbus://127.0.0.1:PORT/1``; the benchmark starts all N tunings at once and
-waits for them to end.
+The plant is a child process (:func:`drivers.modbus_plant.serve_plant`: one
+task ticks every loop, 247 loops per Modbus server, loop k on unit id k) —
+the field devices, kept off the daemon's CPU account. The daemon is the real
+one: the app of ``autotuner serve`` (its loop manager, its sampler
+process(es), its design workers) served by uvicorn in this process, with N +
+M loops (``modbus://127.0.0.1:PORT/UNIT``, ``apply: true``). With
+``clients`` C, a second child opens C viewer event streams over the tuned
+loops (``GET /loops/{id}/events``) for the whole run, half of them read and
+half never read (a dashboard left open on many screens, some of them
+asleep); with ``opcua`` a third subscribes to every variable of every loop
+over OPC UA. All N TUNEs are asked at once, through the same call as REST's
+(the fresh read of the loop first; a refusal is counted by its code).
 
-Measured from outside the session: each loop's link is wrapped so every
-``read_pv`` is time-stamped (``time.monotonic()``). A session samples on a
-deadline schedule (:func:`autotuner.service.link_session.deadlines`: sample k is due at
-``start + k·ts/speed``, one PV read per sample, the first one due at once), so
-the k-th read of a session is due at its first read + k·ts/speed. Lateness is
-when the read *completed* behind that due time (the Modbus round trip
-included) — what the experiment sees as jitter. CPU is the daemon's CPU
-time (user + system: its process and the worker processes of the design) over
-the wall time, in percent of one core; the plant process's is reported beside it.
-
-With ``opcua`` the daemon also runs its OPC UA server (:mod:`api.opcua`, a
-process of its own fed by the daemon) and a client in another child process
-— a SCADA — subscribes to every variable of every loop at the monitor's rate
-for the whole run; the number of data changes it received is reported
-(``opcua_changes``), and the CPU of the server's process (``cpu_opcua``, % of
-a core), which the daemon's CPU does not include.
+Figures: how many tunings succeeded and the codes of the rest; the sessions'
+sampling lateness — when each PV read completed behind its due time, as the
+sessions themselves measure it (``SessionHooks.on_timing``; the link's round
+trip included: what the experiment sees as jitter), p50/p99/max; the analysis
+CPU per period (p50/p99/max); the daemon's CPU (its process, its samplers and
+design workers; % of one core) and peak RSS (its process and samplers), the
+plant's CPU and the clients'.
 """
 
 from __future__ import annotations
 
 import asyncio
 import multiprocessing
+import resource
 import secrets
 import socket
 import time
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from drivers.simplc import SimulatedPlc, run
-
-from autotuner.service.config import DaemonConfig, TuneRequest
-from autotuner.service.daemon import Loop, LoopManager
 from autotuner.engine.plant.expression import parse_process
-from autotuner.service.history import History
-from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE
-from autotuner.service.link_session import design_cpu
+from autotuner.service.channel import cpu_seconds
+from autotuner.service.config import DaemonConfig, TuneRequest
+from autotuner.service.design_pool import design_cpu
 
-# A fast plant: one tuning is about a minute of plant time (ts 0.1 s: about 60 samples per period).
+# A fast plant: one tuning is about a minute of plant time (ts 0.1 s: about 27 samples per period).
 DEFAULT_PLANT = "exp(-0.5*s)/(s+1)"
 DEFAULT_TS = 0.1
 DEFAULT_SPEED = 1.0
+VIEWER_NAME = "dashboard"
+
+
+@dataclass(frozen=True)
+class LoadSpec:
+    """One run: ``loops`` tuned at once, ``idle`` monitored only, ``clients`` viewer event streams (half never
+    read), ``opcua`` a subscribed OPC UA client; the plant (``plant``, sample time ``ts`` plant seconds,
+    ``speed`` plant seconds per wall second, measurement ``noise`` σ in PV units, ``loads`` (T, SIZE) steps at
+    the process input T plant seconds after a tuner takes the loop, MV units); the relay ``amp`` (MV units),
+    the experiments' ``time_limit`` (plant seconds), the loops' ``monitor_period`` (wall seconds) and the
+    daemon's ``samplers`` (0: in its own process)."""
+
+    loops: int
+    idle: int = 0
+    clients: int = 0
+    opcua: bool = False
+    noise: float = 0.0
+    loads: tuple[tuple[float, float], ...] = ()
+    plant: str = DEFAULT_PLANT
+    ts: float = DEFAULT_TS
+    speed: float = DEFAULT_SPEED
+    amp: float = 5.0
+    time_limit: float = 600.0
+    monitor_period: float = 1.0
+    samplers: int = 1
 
 
 @dataclass(frozen=True)
 class LoadResult:
-    """One run: N loops, how many tunings succeeded, wall time, sampling lateness (ms) and CPU (% of a core)."""
+    """What one run measured (module docstring): times in ms, CPU in % of one core, RSS in MB."""
 
-    loops: int
-    succeeded: int
+    spec: LoadSpec
+    tuned: int
+    codes: dict[str, int]
+    failures: dict[str, str]
     wall: float
     samples: int
     late_p50: float
     late_p99: float
     late_max: float
+    analysis_p50: float
+    analysis_p99: float
+    analysis_max: float
     cpu_daemon: float
-    cpu_plants: float
-    failures: dict[str, str]
+    rss_daemon: float
+    cpu_plant: float
+    cpu_clients: float | None = None
+    events: int | None = None
     opcua_changes: int | None = None
     cpu_opcua: float | None = None
 
 
-class TimedLink:
-    """A link whose ``read_pv`` calls are time-stamped (start and completion); everything else forwarded.
-
-    The daemon also monitors idle loops through links of its own (reads, no
-    MV): only a link that writes an MV is a session's.
-    """
-
-    def __init__(self, link: Any) -> None:
-        self._link = link
-        self.starts: list[float] = []
-        self.done: list[float] = []
-        self.session = False
-
-    async def read_pv(self) -> float:
-        start = time.monotonic()
-        pv = await self._link.read_pv()
-        self.starts.append(start)
-        self.done.append(time.monotonic())
-        return pv
-
-    async def write_mv(self, mv: float) -> None:
-        self.session = True
-        await self._link.write_mv(mv)
-
-    @property
-    def pv_age(self) -> float | None:
-        return self._link.pv_age
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._link, name)
-
-
-def stamp_reads(loop: Loop, links: list[TimedLink]) -> None:
-    """Make every link ``loop`` opens from now on a :class:`TimedLink`, appended to ``links``."""
-    connect = loop.connect
-
-    def timed() -> TimedLink:
-        links.append(TimedLink(connect()))
-        return links[-1]
-
-    loop.connect = timed
-
-
-def lateness(starts: list[float], done: list[float], period: float) -> np.ndarray:
-    """Seconds each read completed after its due time: read k is due when the first read began + k·period."""
-    if not done:
-        return np.zeros(0)
-    t = np.asarray(done)
-    return t - (starts[0] + period * np.arange(len(t)))
-
-
-def _receive(conn: Any, child: Any, what: str = "plant") -> Any:
+def _receive(conn: Any, child: Any, what: str) -> Any:
     """The ``what`` process's next message; RuntimeError if it dies first (it never answers then)."""
     while not conn.poll(0.2):
         if not child.is_alive():
@@ -130,24 +104,55 @@ def _receive(conn: Any, child: Any, what: str = "plant") -> Any:
     return conn.recv()
 
 
-def _plants_main(n: int, plant: str, ts: float, speed: float, conn: Any) -> None:
-    """Child process: N simulated PLCs behind N Modbus servers; sends the ports, runs until told, sends CPU."""
-    from drivers.modbus_server import serve_modbus
+def _plant_main(spec: LoadSpec, conn: Any) -> None:
+    """Child process: the plant of ``loops + idle`` loops; sends the loops' URLs, runs until told, sends its CPU."""
+    from drivers.modbus_plant import serve_plant
+    from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE
 
     async def main() -> None:
-        halt = asyncio.Event()
-        plcs = [SimulatedPlc(parse_process(plant), ts=ts / PLANT_TICKS_PER_SAMPLE) for _ in range(n)]
-        tasks = [asyncio.create_task(run(plc, speed, halt)) for plc in plcs]
-        servers = [await serve_modbus(plc, "127.0.0.1", 0) for plc in plcs]
-        conn.send([s.port for s in servers])
+        plant = await serve_plant(spec.loops + spec.idle, parse_process(spec.plant),
+                                  ts=spec.ts / PLANT_TICKS_PER_SAMPLE, noise_std=spec.noise, loads=spec.loads,
+                                  speed=spec.speed)
+        conn.send([plant.url(k) for k in range(1, spec.loops + spec.idle + 1)])
         cpu0, wall0 = time.process_time(), time.monotonic()
         await asyncio.get_running_loop().run_in_executor(None, conn.recv)  # "stop"
         cpu = 100.0 * (time.process_time() - cpu0) / (time.monotonic() - wall0)
-        for server in servers:
-            await server.close()
-        halt.set()
-        await asyncio.gather(*tasks)
+        await plant.close()
         conn.send(cpu)
+
+    asyncio.run(main())
+
+
+def clients_main(port: int, token: str, loop_ids: list[str], count: int, conn: Any) -> None:
+    """Child process: ``count`` event streams over ``loop_ids`` (round robin), the even ones read, the odd ones
+    never; "ready" once all are open, then on "stop" (events read, CPU % of a core)."""
+
+    async def stream(loop_id: str, read: bool, events: list[int]) -> tuple[asyncio.StreamReader,
+                                                                             asyncio.StreamWriter]:
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(f"GET /api/v1/loops/{loop_id}/events HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                     f"Authorization: Bearer {token}\r\nAccept: text/event-stream\r\n\r\n".encode())
+        await writer.drain()
+        if read:
+            async def drain() -> None:
+                while data := await reader.read(65536):
+                    events[0] += data.count(b"\nevent: ") + data.startswith(b"event: ")
+
+            asyncio.create_task(drain())
+        return reader, writer
+
+    async def main() -> None:
+        events = [0]
+        opened = []
+        for i in range(count):
+            opened.append(await stream(loop_ids[i % len(loop_ids)], i % 2 == 0, events))
+        conn.send("ready")
+        cpu0, wall0 = time.process_time(), time.monotonic()
+        await asyncio.get_running_loop().run_in_executor(None, conn.recv)  # "stop"
+        cpu = 100.0 * (time.process_time() - cpu0) / (time.monotonic() - wall0)
+        for _, writer in opened:
+            writer.close()
+        conn.send((events[0], cpu))
 
     asyncio.run(main())
 
@@ -189,100 +194,168 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-async def run_load(n: int, speed: float = DEFAULT_SPEED, ts: float = DEFAULT_TS, plant: str = DEFAULT_PLANT,
-                   amp: float = 5.0, time_limit: float = 600.0, opcua: bool = False,
-                   monitor_period: float = 1.0) -> LoadResult:
-    """Tune ``n`` simulated loops at once over Modbus TCP; the result with the sampling lateness and CPU.
-
-    ``opcua``: also publish them over OPC UA to a subscribed client (module
-    docstring); ``monitor_period``: the loops' monitor period, wall seconds
-    (also the OPC UA publishing rate).
-    """
-    parse_process(plant)  # a bad expression fails here, not in the child
-    ours, theirs = multiprocessing.Pipe()
-    child = multiprocessing.get_context("spawn").Process(target=_plants_main, args=(n, plant, ts, speed, theirs),
-                                                         daemon=True)
-    child.start()
-    loop = asyncio.get_running_loop()
+def _peak_rss_mb(pid: int) -> float:
+    """Peak resident memory of process ``pid`` (VmHWM), MB (0 where /proc is missing)."""
     try:
-        ports = await loop.run_in_executor(None, _receive, ours, child)
-        config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
-            {"id": f"L{i:03d}", "link": f"modbus://127.0.0.1:{port}/1", "ts": ts, "speed": speed, "apply": True,
-             "monitor_period": monitor_period, "tuning": {"amp": amp, "time_limit": time_limit}}
-            for i, port in enumerate(ports)], "opcua": {"port": _free_port()} if opcua else None})
-        history = History(config.history)
-        manager = LoopManager(config, history)
-        links: list[TimedLink] = []
-        for item in manager.loops.values():
-            stamp_reads(item, links)
-        await manager.start()
-        server = scada = None
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
+@dataclass
+class _Children:
+    """The run's child processes and their pipes (plant, clients, SCADA)."""
+
+    started: list[tuple[Any, Any, str]] = field(default_factory=list)
+
+    def start(self, target: Any, args: tuple[Any, ...], what: str) -> Any:
+        ours, theirs = multiprocessing.Pipe()
+        child = multiprocessing.get_context("spawn").Process(target=target, args=(*args, theirs), daemon=True)
+        child.start()
+        self.started.append((child, ours, what))
+        return ours, child
+
+    def stop(self) -> None:
+        for child, _, _ in self.started:
+            child.join(10)
+            if child.is_alive():
+                child.kill()
+
+
+def config_of(spec: LoadSpec, urls: list[str], viewer: str) -> DaemonConfig:
+    """The daemon's config for ``spec``: the tuned loops L000…, the idle ones I000…, a viewer token."""
+    from api.auth import token_hash
+
+    loops = [{"id": f"L{i:03d}" if i < spec.loops else f"I{i - spec.loops:03d}", "link": url, "ts": spec.ts,
+              "speed": spec.speed, "apply": True, "monitor_period": spec.monitor_period,
+              "tuning": {"amp": spec.amp, "time_limit": spec.time_limit}} for i, url in enumerate(urls)]
+    return DaemonConfig.model_validate({"history": ":memory:", "loops": loops, "samplers": spec.samplers,
+                                        "tokens": [{"name": VIEWER_NAME, "role": "viewer",
+                                                    "sha256": token_hash(viewer)}],
+                                        "opcua": {"port": _free_port()} if spec.opcua else None})
+
+
+async def run_load(spec: LoadSpec) -> LoadResult:
+    """Run ``spec`` (module docstring): the daemon tunes its loops under the clients' watch; the figures."""
+    import uvicorn
+
+    from api.app import create_app
+
+    parse_process(spec.plant)  # a bad expression fails here, not in the child
+    loop = asyncio.get_running_loop()
+    children = _Children()
+    try:
+        plant_conn, plant = children.start(_plant_main, (spec,), "plant")
+        urls = await loop.run_in_executor(None, _receive, plant_conn, plant, "plant")
+        viewer = secrets.token_urlsafe(24)
+        operator = secrets.token_urlsafe(24)
+        port = _free_port()
+        app = create_app(config_of(spec, urls, viewer), env_token=operator)
+        server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+        serving = asyncio.create_task(server.serve())
+        while not server.started:
+            if serving.done():
+                await serving
+                raise RuntimeError("the daemon did not start")
+            await asyncio.sleep(0.05)
         try:
-            if opcua:
-                from api.opcua import start_opcua
-
-                password = secrets.token_urlsafe(16)
-                server = await start_opcua(manager, config, password, "127.0.0.1")
-                scada_conn, scada_end = multiprocessing.Pipe()
-                scada = multiprocessing.get_context("spawn").Process(
-                    target=_scada_main, args=(server.url, password, list(manager.loops), monitor_period, scada_end),
-                    daemon=True)
-                scada.start()
-                await loop.run_in_executor(None, _receive, scada_conn, scada, "OPC UA client")  # subscribed
-            cpu0, wall0 = time.process_time() + design_cpu(), time.monotonic()
-            opcua0 = None if server is None else server.cpu_time()
-            for loop_id in manager.loops:
-                manager.tune(loop_id, TuneRequest(), "loadbench")
-            await asyncio.gather(*(manager.wait(loop_id) for loop_id in manager.loops))
-            wall = time.monotonic() - wall0
-            cpu = 100.0 * (time.process_time() + design_cpu() - cpu0) / wall
-            opcua1 = None if server is None else server.cpu_time()
-            cpu_opcua = None if opcua0 is None or opcua1 is None else 100.0 * (opcua1 - opcua0) / wall
-            if scada is not None:
-                scada_conn.send("stop")
-                changes = await loop.run_in_executor(None, _receive, scada_conn, scada, "OPC UA client")
+            result = await _measured(spec, app, port, viewer, operator, children)
         finally:
-            if scada is not None:
-                scada.join(10)
-                if scada.is_alive():
-                    scada.kill()
-            if server is not None:
-                await server.stop()
-            await manager.stop()
-            history.close()
-        ours.send("stop")
-        cpu_plants = await loop.run_in_executor(None, _receive, ours, child)
+            server.should_exit = True
+            await serving
+        plant_conn.send("stop")
+        cpu_plant = await loop.run_in_executor(None, _receive, plant_conn, plant, "plant")
     finally:
-        child.join(10)
-        if child.is_alive():
-            child.kill()
-    failures = {loop_id: "no result" if item.result is None else item.result.message
-                for loop_id, item in manager.loops.items() if item.result is None or item.result.ite != 0}
-    late = 1e3 * np.concatenate([lateness(link.starts, link.done, ts / speed) for link in links if link.session]
-                                + [np.zeros(0)])
-    p50, p99 = np.percentile(late, [50, 99]) if late.size else (float("nan"),) * 2
-    return LoadResult(n, n - len(failures), wall, int(late.size), float(p50), float(p99),
-                      float(late.max()) if late.size else float("nan"), cpu, cpu_plants, failures,
-                      changes if opcua else None, cpu_opcua if opcua else None)
+        children.stop()
+    return LoadResult(**{**result, "cpu_plant": cpu_plant})
 
 
-def table_rows(results: list[LoadResult]) -> list[list[str]]:
-    """Rows of the markdown table of the docs (and of the command's table); the OPC UA column when measured."""
-    opcua = any(r.opcua_changes is not None for r in results)
-    return [[str(r.loops), f"{r.succeeded}/{r.loops}", f"{r.wall:.1f}", str(r.samples), f"{r.late_p50:.2f}",
-             f"{r.late_p99:.2f}", f"{r.late_max:.1f}", f"{r.cpu_daemon:.0f}", f"{r.cpu_plants:.0f}"]
-            + ([str(r.opcua_changes if r.opcua_changes is not None else "-"),
-                "-" if r.cpu_opcua is None else f"{r.cpu_opcua:.1f}"] if opcua else [])
-            for r in results]
+async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: str,
+                    children: _Children) -> dict[str, Any]:
+    """The run itself once the daemon serves: clients, every TUNE at once, the wait, the figures."""
+    loop = asyncio.get_running_loop()
+    manager = app.state.manager
+    tuned = [loop_id for loop_id in manager.loops if loop_id.startswith("L")]
+    clients = scada = None
+    if spec.clients:
+        clients = children.start(clients_main, (port, viewer, tuned, spec.clients), "clients")
+        await loop.run_in_executor(None, _receive, *clients, "clients")
+    if spec.opcua:
+        scada = children.start(_scada_main, (app.state.opcua_url, operator, list(manager.loops),
+                                             spec.monitor_period), "OPC UA client")
+        await loop.run_in_executor(None, _receive, *scada, "OPC UA client")
+    pids = getattr(manager.field, "pids", [])
+    cpu0 = time.process_time() + design_cpu() + sum(cpu_seconds(pid) or 0.0 for pid in pids)
+    wall0 = time.monotonic()
+    opcua = getattr(app.state, "opcua", None)
+    opcua0 = None if opcua is None else opcua.cpu_time()
+    answers = await asyncio.gather(*(manager.request_tune(loop_id, TuneRequest(), "loadbench") for loop_id in tuned),
+                                   return_exceptions=True)
+    await asyncio.gather(*(manager.wait(loop_id) for loop_id in tuned))
+    wall = time.monotonic() - wall0
+    cpu = 100.0 * (time.process_time() + design_cpu() + sum(cpu_seconds(pid) or 0.0 for pid in pids) - cpu0) / wall
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0 + sum(_peak_rss_mb(pid) for pid in pids)
+    out: dict[str, Any] = {}
+    if opcua is not None and opcua0 is not None:
+        out["cpu_opcua"] = 100.0 * ((opcua.cpu_time() or 0.0) - opcua0) / wall
+    if clients is not None:
+        clients[0].send("stop")
+        out["events"], out["cpu_clients"] = await loop.run_in_executor(None, _receive, *clients, "clients")
+    if scada is not None:
+        scada[0].send("stop")
+        out["opcua_changes"] = await loop.run_in_executor(None, _receive, *scada, "OPC UA client")
+    codes: Counter[str] = Counter()
+    failures: dict[str, str] = {}
+    for loop_id, answer in zip(tuned, answers):
+        record = manager.loops[loop_id].result
+        if isinstance(answer, BaseException):
+            codes[f"refused {getattr(answer, 'code', type(answer).__name__)}"] += 1
+            failures[loop_id] = str(answer)
+        elif record is None or record.te:
+            codes[str(None if record is None else record.ite)] += 1
+            failures[loop_id] = "no result" if record is None else record.message
+    s = manager.sampling
+    return {**out, "spec": spec, "tuned": len(tuned) - len(failures), "codes": dict(codes), "failures": failures,
+            "wall": wall, "samples": s.late.count, "late_p50": 1e3 * s.late.quantile(0.5),
+            "late_p99": 1e3 * s.late.quantile(0.99), "late_max": 1e3 * s.late.largest,
+            "analysis_p50": 1e3 * s.analysis.quantile(0.5), "analysis_p99": 1e3 * s.analysis.quantile(0.99),
+            "analysis_max": 1e3 * s.analysis.largest, "cpu_daemon": cpu, "rss_daemon": rss}
 
 
-HEADERS = ["loops", "ok", "wall s", "samples", "p50 ms", "p99 ms", "max ms", "CPU daemon %", "CPU plants %"]
+HEADERS = ["loops", "idle", "clients", "tuned", "codes of the rest", "wall s", "samples", "p50 ms", "p99 ms",
+           "max ms", "analysis p50/p99/max ms", "CPU daemon %", "RSS MB", "CPU plant %"]
+CLIENT_HEADERS = ["events read", "CPU clients %"]
 OPCUA_HEADERS = ["OPC UA changes", "CPU OPC UA %"]
 
 
 def headers(results: list[LoadResult]) -> list[str]:
-    """The table's column names (with :data:`OPCUA_HEADERS` when OPC UA was measured)."""
-    return HEADERS + (OPCUA_HEADERS if any(r.opcua_changes is not None for r in results) else [])
+    """The table's column names (the clients' and OPC UA's columns when measured)."""
+    return (HEADERS + (CLIENT_HEADERS if any(r.events is not None for r in results) else [])
+            + (OPCUA_HEADERS if any(r.opcua_changes is not None for r in results) else []))
+
+
+def table_rows(results: list[LoadResult]) -> list[list[str]]:
+    """Rows of the table (markdown and the command's)."""
+    clients = any(r.events is not None for r in results)
+    opcua = any(r.opcua_changes is not None for r in results)
+    rows = []
+    for r in results:
+        codes = ", ".join(f"{code}: {n}" for code, n in sorted(r.codes.items())) or "-"
+        row = [str(r.spec.loops), str(r.spec.idle), str(r.spec.clients), f"{r.tuned}/{r.spec.loops}", codes,
+               f"{r.wall:.1f}", str(r.samples), f"{r.late_p50:.2f}", f"{r.late_p99:.2f}", f"{r.late_max:.1f}",
+               f"{r.analysis_p50:.2f} / {r.analysis_p99:.2f} / {r.analysis_max:.1f}", f"{r.cpu_daemon:.0f}",
+               f"{r.rss_daemon:.0f}", f"{r.cpu_plant:.0f}"]
+        if clients:
+            row += ["-" if r.events is None else str(r.events),
+                    "-" if r.cpu_clients is None else f"{r.cpu_clients:.0f}"]
+        if opcua:
+            row += ["-" if r.opcua_changes is None else str(r.opcua_changes),
+                    "-" if r.cpu_opcua is None else f"{r.cpu_opcua:.1f}"]
+        rows.append(row)
+    return rows
 
 
 def markdown(results: list[LoadResult]) -> str:
@@ -291,3 +364,4 @@ def markdown(results: list[LoadResult]) -> str:
     lines = ["| " + " | ".join(names) + " |", "|" + "---:|" * len(names)]
     lines += ["| " + " | ".join(row) + " |" for row in table_rows(results)]
     return "\n".join(lines)
+

@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from autotuner.cli.app import EXIT_FAILED, app, bad_input, parse_plant, stderr, stdout
+from autotuner.cli.app import EXIT_FAILED, app, bad_input, parse_loads, parse_plant, stderr, stdout
 
 
 @app.command()
@@ -25,10 +25,20 @@ def bench(
     field: Annotated[bool, typer.Option("--field", help="Field conditions: every process under load steps, "
                                         "drift, noise, quantisation and a non-steady start "
                                         "(docs/field-benchmark.md).")] = False,
+    health: Annotated[bool, typer.Option("--health", help="The loop-health monitor instead: simulated loops with "
+                                         "and without faults, detection and false-alarm rates per flag "
+                                         "(docs/health.md).")] = False,
+    repeats: Annotated[int, typer.Option(min=1, max=100, help="With --health: loops per fault, severity and "
+                                         "process (healthy ones 3× as many).")] = 5,
 ) -> None:
     """Benchmark the experiment and the design on every process of a batch against the usual relay tuners."""
     if field and design_only:
         bad_input("--field and --design-only exclude each other")
+    if health:
+        if field or design_only or batch is not None:
+            bad_input("--health takes no batch, --field or --design-only")
+        _health_bench(repeats, workers, output)
+        return
     from autotuner.benchmarks.design_bench import cpu_summary, default_batch, format_table, load_batch, run_batch
     from autotuner.engine.plant.expression import parse_process
 
@@ -65,10 +75,31 @@ def bench(
     stderr.print(f"{len(rows)} processes in {time.perf_counter() - start:.1f} s wall time", highlight=False)
 
 
+def _health_bench(repeats: int, workers: int | None, output: Path | None) -> None:
+    from autotuner.benchmarks.health_bench import run, table
+
+    start = time.perf_counter()
+    outcomes = run(repeats, workers)
+    text = table(outcomes)
+    print(text)
+    if output is not None:
+        output.write_text(text + "\n")
+    stderr.print(f"{len(outcomes)} loops in {time.perf_counter() - start:.1f} s wall time", highlight=False)
+
+
 @app.command("loadbench")
 def loadbench_command(
-    loops: Annotated[list[int] | None, typer.Option("--loops", min=1, max=500, help="Loops tuned at once; "
+    loops: Annotated[list[int] | None, typer.Option("--loops", min=1, max=1000, help="Loops tuned at once; "
                                                     "repeat for several runs. Default: 1, 10, 25, 50.")] = None,
+    idle: Annotated[int, typer.Option(min=0, max=5000, help="Loops monitored besides, not tuned.")] = 0,
+    clients: Annotated[int, typer.Option(min=0, max=5000, help="Viewer event streams held open over the tuned "
+                                         "loops for the whole run, half of them never read.")] = 0,
+    noise: Annotated[float, typer.Option(min=0.0, help="Measurement noise of every loop, σ in PV units.")] = 0.0,
+    load: Annotated[list[str] | None, typer.Option("--load", help="Load step T:SIZE at the process input of every "
+                                                   "loop (plant seconds after the tuner takes the loop : MV "
+                                                   "units); repeat for several.")] = None,
+    samplers: Annotated[int, typer.Option(min=0, max=64, help="The daemon's sampler processes (0: sampling in the "
+                                          "API's process).")] = 1,
     speed: Annotated[float, typer.Option(min=0.1, max=100.0, help="Plant seconds per wall second.")] = 1.0,
     ts: Annotated[float, typer.Option(min=0.001, help="Sample time, plant seconds.")] = 0.1,
     plant: Annotated[str, typer.Option(help="Process transfer function in s.")] = "exp(-0.5*s)/(s+1)",
@@ -78,13 +109,15 @@ def loadbench_command(
     monitor_period: Annotated[float, typer.Option(min=0.05, max=60.0, help="The loops' monitor period (and OPC UA "
                                                   "publishing interval), wall seconds.")] = 1.0,
 ) -> None:
-    """Benchmark: N simulated loops tuned at once over Modbus TCP (localhost); sampling lateness and CPU.
+    """Benchmark: N simulated loops tuned at once (and M monitored) over Modbus TCP on localhost, with clients
+    watching; sampling lateness, analysis CPU, the daemon's CPU and memory.
 
     Not a test: it takes about a minute per run at the defaults (docs/daemon.md, "Load benchmark").
     """
-    from autotuner.benchmarks.load import headers, markdown, run_load, table_rows
+    from autotuner.benchmarks.load import LoadSpec, headers, markdown, run_load, table_rows
 
     parse_plant(plant)
+    steps = tuple(parse_loads(load, "when the tuner takes the loop over"))
     if opcua:
         from api.opcua import require
 
@@ -94,12 +127,15 @@ def loadbench_command(
             bad_input(str(exc))
     results = []
     for n in loops or [1, 10, 25, 50]:
-        result = asyncio.run(run_load(n, speed, ts, plant, opcua=opcua, monitor_period=monitor_period))
+        spec = LoadSpec(n, idle, clients, opcua, noise, steps, plant, ts, speed, samplers=samplers,
+                        monitor_period=monitor_period)
+        result = asyncio.run(run_load(spec))
         results.append(result)
         for loop_id, message in result.failures.items():
             stderr.print(f"{n} loops: {loop_id} failed: {message}", highlight=False, markup=False)
     title = (f"tunings at once over Modbus TCP (localhost): ts {ts:g} s, {speed:g}× real time, one sample every "
-             f"{1e3 * ts / speed:g} ms per loop; lateness of the PV read behind its due time")
+             f"{1e3 * ts / speed:g} ms per loop; noise {noise:g}, loads {list(steps) or 'none'}; lateness of the PV "
+             "read behind its due time")
     if as_markdown:
         print(f"{title}\n\n{markdown(results)}")
     else:
@@ -109,5 +145,5 @@ def loadbench_command(
         for row in table_rows(results):
             table.add_row(*row)
         stdout.print(table)
-    if any(r.succeeded < r.loops for r in results):
+    if any(r.tuned < r.spec.loops for r in results):
         raise typer.Exit(EXIT_FAILED)

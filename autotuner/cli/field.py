@@ -1,5 +1,6 @@
 """Field links without a plant of one's own: ``autotuner sim`` serves a simulated PLC over Modbus TCP
-and/or CAN; ``autotuner jitter`` measures the sampling timing over a real link."""
+and/or CAN (or a plant of many, ``--loops``, over Modbus TCP); ``autotuner jitter`` measures the sampling timing
+over a real link."""
 
 from __future__ import annotations
 
@@ -12,6 +13,11 @@ import typer
 from rich.table import Table
 
 from autotuner.cli.app import DEMO_PLANT, Transport, app, bad_input, parse_loads, parse_plant, stdout
+
+
+# Loops of `sim --loops`: the unit ids 1..247 of one Modbus server (drivers.modbus_plant.UNITS_PER_SERVER; a
+# constant here, since the CLI does not import the drivers to show its help).
+MAX_LOOPS = 247
 
 
 def _host_port(text: str) -> tuple[str, int]:
@@ -36,15 +42,20 @@ def sim_command(
     speed: Annotated[float, typer.Option(min=0.01, max=1000.0, help="Plant seconds per wall second.")] = 1.0,
     ts: Annotated[float | None, typer.Option(help="Plant sample time, s. Default: ~500 per period at 135°.")] = None,
     noise: Annotated[float, typer.Option(help="Standard deviation of measurement noise, PV units.")] = 0.0,
-    seed: Annotated[int, typer.Option(help="Seed of the noise.")] = 0,
+    seed: Annotated[int, typer.Option(help="Seed of the noise (loop k of --loops: SEED + k − 1).")] = 0,
     duration: Annotated[float | None, typer.Option(help="Stop after this many wall seconds (default: run until "
                                                    "Ctrl-C or SIGTERM).")] = None,
     load: Annotated[list[str] | None, typer.Option("--load", help="Load step T:SIZE at the process input (plant "
                                                    "seconds from when a tuner first takes the loop over, i.e. "
                                                    "the PLC's first cycle in MAN : MV units); repeat for "
                                                    "several.")] = None,
+    loops: Annotated[int | None, typer.Option(min=1, max=MAX_LOOPS, help="Serve a plant of this many loops behind "
+                                              "the one --modbus server, loop k on unit id k (docs/modbus.md); "
+                                              "--plant, --ts, --noise, --load, --speed apply to every loop.")]
+    = None,
 ) -> None:
-    """Serve a simulated plant under a PID unit (a simulated PLC) over Modbus TCP and/or CAN."""
+    """Serve a simulated plant under a PID unit (a simulated PLC) over Modbus TCP and/or CAN, or many over Modbus."""
+    from drivers.modbus_plant import serve_plant
     from drivers.simplc import SimulatedPlc
 
     from autotuner.engine.simulated_tuning import default_sample_time
@@ -52,36 +63,55 @@ def sim_command(
 
     if modbus is None and can is None:
         bad_input("give --modbus HOST:PORT and/or --can CHANNEL")
+    if loops is not None and (can is not None or modbus is None):
+        bad_input("--loops serves its loops over Modbus TCP only: give --modbus HOST:PORT and no --can "
+                  "(one CAN node per loop would need a frame layout per loop)")
     can_options = {k: v for k, v in (("port", can_port), ("hop_limit", hop_limit)) if v is not None}
     if can_options and (can is None or interface != "udp_multicast"):
         bad_input("--can-port and --hop-limit are options of --can with --interface udp_multicast")
     process = parse_plant(plant)
     steps = parse_loads(load, "when a tuner takes the loop over")
     address = None if modbus is None else _host_port(modbus)
+    plant_ts = ts or default_sample_time(process) / PLANT_TICKS_PER_SAMPLE
     try:
-        plc = SimulatedPlc(process, ts=(ts or default_sample_time(process) / PLANT_TICKS_PER_SAMPLE),
-                           noise_std=noise, seed=seed, loads=tuple(steps))
+        plc = SimulatedPlc(process, ts=plant_ts, noise_std=noise, seed=seed, loads=tuple(steps))
     except ValueError as exc:
         bad_input(str(exc))
+    about = f"plant {plant}, ts {plc.ts:.4g} s, {speed:g}× real time; Ctrl-C stops"
 
-    async def serve() -> None:
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError, RuntimeError):
-                loop.add_signal_handler(sig, stop.set)
-        if duration is not None:
-            loop.call_later(duration, stop.set)
+    async def serve_one() -> None:
+        stop = _stop_event(duration)
         async with serving(plc, speed, address, None if can is None else (interface, can), can_options) as servers:
             for url, _ in servers:
                 print(f"serving {url}", flush=True)
-            print(f"plant {plant}, ts {plc.ts:.4g} s, {speed:g}× real time; Ctrl-C stops", flush=True)
+            print(about, flush=True)
+            await stop.wait()
+
+    async def serve_many(n: int, host: str, port: int) -> None:
+        stop = _stop_event(duration)
+        async with await serve_plant(n, process, ts=plc.ts, noise_std=noise, seed=seed, loads=plc.loads,
+                                     speed=speed, host=host, port=port) as many:
+            print(f"serving {many.url(1)}" + (f" … {many.url(n)}: {n} loops, loop k on unit id k" if n > 1 else ""),
+                  flush=True)
+            print(about, flush=True)
             await stop.wait()
 
     try:
-        asyncio.run(serve())
+        asyncio.run(serve_one() if loops is None or address is None else serve_many(loops, *address))
     except OSError as exc:  # port in use, no such CAN interface
         bad_input(str(exc))
+
+
+def _stop_event(duration: float | None) -> asyncio.Event:
+    """An event set on SIGINT, SIGTERM or after ``duration`` wall seconds (None: never); call inside the loop."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, stop.set)
+    if duration is not None:
+        loop.call_later(duration, stop.set)
+    return stop
 
 
 @app.command("jitter")

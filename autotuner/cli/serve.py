@@ -64,6 +64,7 @@ def serve_command(
     from autotuner.service.config import ConfigError, load_config
     from autotuner.service.demo import demo_config
     from autotuner.service.history import History, database_password
+    from autotuner.service.ownership import HistoryInUse, claim_history
 
     if (ssl_certfile is None) != (ssl_keyfile is None):
         bad_input("--ssl-certfile and --ssl-keyfile go together")
@@ -72,6 +73,10 @@ def serve_command(
     except ConfigError as exc:
         bad_input(str(exc))
     logs.setup(log_level.value, log_format.value, secrets=[database_password(daemon_config.history) or ""])
+    try:  # before the history is opened: a second daemon must not recover the first one's sessions
+        lock = claim_history(daemon_config.history)
+    except HistoryInUse as exc:
+        bad_input(str(exc))
     try:  # a database that cannot be opened or is damaged is a clear error now, not a failed start inside uvicorn
         History(daemon_config.history, init_empty=init_history).close()
     except ValueError as exc:
@@ -108,6 +113,8 @@ def serve_command(
                    log_level=log_level.value, log_config=None,
                    ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
                    ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile))
+    if lock is not None:
+        lock.release()
     if status == NOT_RESTORED_EXIT:
         stderr.print(f"LOOP NOT RESTORED at shutdown: see the log; the next start resumes the restore "
                      f"(exit {status})", highlight=False)

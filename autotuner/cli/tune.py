@@ -269,7 +269,7 @@ def tune_command(
             finally:
                 history.close()
     elif link is not None:
-        from autotuner.service.link_session import tune_link
+        from autotuner.service.link_session import SessionHooks, SessionPlan, tune_link
         from autotuner.service.remote_tuning import LINK_TIME_LIMIT, field_config, open_link, tune_opened
 
         if ts is None:
@@ -285,8 +285,9 @@ def tune_command(
 
         async def start(on_status: Callable[[Status], None] | None) -> TuneResult:
             opened = open_link(link, None if map_file is None else str(map_file), None if dbc is None else str(dbc))
-            return await tune_opened(opened, controller.value, lambda on: tune_link(
-                on, field_config(config), ts, controller.value, ms, apply, on_status=on_status))
+            plan = SessionPlan(field_config(config), ts, controller.value, ms, apply)
+            return await tune_opened(opened, controller.value,
+                                     lambda on: tune_link(on, plan, SessionHooks(on_status=on_status)))
     elif via is not None:
         from autotuner.service.remote_tuning import default_via_speed, tune_via
 

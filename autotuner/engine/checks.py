@@ -23,6 +23,8 @@ def real(name: str, value: Any) -> float:
 
 def finite(name: str, value: Any) -> float:
     """``value`` as a finite float; ValueError naming ``name`` otherwise."""
+    if type(value) is float and math.isfinite(value):  # the common case, at once (a PID unit's every sample)
+        return value
     x = _number(name, value)
     if not math.isfinite(x):
         raise ValueError(f"{name} must be finite, got {x}")

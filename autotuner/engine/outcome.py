@@ -45,6 +45,10 @@ class Code(IntEnum):
     REFUSED_DEVICE_BUSY = 26
     # The session's start: the saved state could not be recorded durably, so the loop is not touched.
     HISTORY_UNAVAILABLE = 27
+    # The tuner's own capacity (te true): its sampling fell behind mid-session (the loop handed back), or TUNE was
+    # refused up front because the daemon is at its capacity (the loop untouched).
+    OVERLOADED = 28
+    REFUSED_OVERLOADED = 29
 
 
 MESSAGES: dict[Code, str] = {
@@ -64,6 +68,9 @@ MESSAGES: dict[Code, str] = {
     Code.REFUSED_DEVICE_BUSY: "refused: the device already shows TBSY, another tuner owns the loop (untouched)",
     Code.HISTORY_UNAVAILABLE: "refused: the loop's saved state could not be recorded in the history (the loop is "
                               "untouched)",
+    Code.OVERLOADED: "the tuner fell behind its own sampling schedule (a loaded machine, not the process): the loop "
+                     "was handed back",
+    Code.REFUSED_OVERLOADED: "refused: the daemon is at its capacity of loops tuned at once (the loop is untouched)",
     Code.DISTURBANCE: (
         "a load disturbance or drift too large for the experiment: following it needs more than ±amp "
         "of MV shift, or it never settled within the time limit"

@@ -47,6 +47,12 @@ class Trace:
     pv: np.ndarray = described("PV at each sample, PV units")
     mv: np.ndarray = described("MV held from each sample on, MV units")
 
+    def thinned(self, points: int) -> dict[str, list[float]]:
+        """At most ``points`` evenly spaced samples (plant seconds, PV, MV) as lists, the last one included."""
+        n = len(self.t)
+        index = np.unique(np.linspace(0, n - 1, min(n, points)).round().astype(int)) if n else np.zeros(0, int)
+        return {name: [float(x) for x in getattr(self, name)[index]] for name in ("t", "pv", "mv")}
+
 
 @dataclass(frozen=True)
 class TuneResult:

@@ -14,13 +14,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from autotuner.engine.design.point_design import design
+from autotuner.engine.design.point_design import Design, design
 from autotuner.engine.design.unstable_design import Refusal
 from autotuner.engine.design.process_data import exact_point
 from autotuner.engine.plant.process import Process
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.result import Trace, TuneResult
-from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Status
+from autotuner.engine.experiment.relay import Identification, RelayConfig, RelayExperiment, Status
 from autotuner.engine.plant.simulation import PlantSim
 
 # Samples per oscillation period of the default sample time (default_sample_time).
@@ -143,29 +143,61 @@ def run_experiment(
     return experiment, Trace(np.asarray(ts), np.asarray(pvs), np.asarray(mvs))
 
 
-def result_of(experiment: RelayExperiment, trace: Trace, controller: str, ms: float) -> TuneResult:
-    """The outcome of an ended experiment, with ``controller`` designed for ``ms`` on success.
+@dataclass(frozen=True)
+class DesignJob:
+    """What the design needs from an ended experiment (all of it: under 1 KB pickled, for a design worker).
 
-    A design that missed something it was asked for (its notes) turns an OK
-    experiment into that warning code: ``te`` stays false, the message names
-    the miss. A refused design carries its own code (e.g. an unstable process
-    with too long a dead time).
+    ``identification``: what the experiment identified (None: nothing, no
+    design); ``code`` and ``message``: how the experiment ended; ``controller``
+    "PI" or "PID", designed for maximum sensitivity ``ms``; ``amp``: the relay
+    amplitude, MV units (the PID's noise budget).
     """
-    ident = experiment.result
-    des = None
-    code, message = experiment.code or Code.OK, experiment.message
-    if ident is not None:
+
+    identification: Identification | None
+    code: Code
+    message: str
+    controller: str
+    ms: float
+    amp: float
+
+    @classmethod
+    def of(cls, experiment: RelayExperiment, controller: str, ms: float) -> "DesignJob":
+        """The job of an ended ``experiment``."""
+        return cls(experiment.result, experiment.code or Code.OK, experiment.message, controller, ms,
+                   experiment.config.amp)
+
+    def run(self) -> tuple[Code, str, Design | None]:
+        """The outcome: code and message, and the design (None: none).
+
+        A design that missed something it was asked for (its notes) turns an OK
+        experiment into that warning code: ``te`` stays false, the message names
+        the miss. A refused design carries its own code (e.g. an unstable process
+        with too long a dead time).
+        """
+        ident = self.identification
+        code, message = self.code, self.message
+        if ident is None:
+            return code, message, None
         try:
-            des = design(ident.point, ident.static_gain, controller, ms, noise_std=ident.noise_std,
-                         amp=experiment.config.amp, static_gain_std=ident.static_gain_std)
+            des = design(ident.point, ident.static_gain, self.controller, self.ms, noise_std=ident.noise_std,
+                         amp=self.amp, static_gain_std=ident.static_gain_std)
         except Refusal as exc:
-            code, message = exc.code, f"{MESSAGES[exc.code]}: {exc}"
+            return exc.code, f"{MESSAGES[exc.code]}: {exc}", None
         except ValueError as exc:
-            code, message = Code.NO_DESIGN, f"{MESSAGES[Code.NO_DESIGN]}: {exc}"
-        else:
-            if code is Code.OK and des.warning is not Code.OK:
-                code, message = des.warning, f"{MESSAGES[des.warning]}: " + "; ".join(des.notes)
-    return TuneResult(code, message, controller, ident, des, trace)
+            return Code.NO_DESIGN, f"{MESSAGES[Code.NO_DESIGN]}: {exc}", None
+        if code is Code.OK and des.warning is not Code.OK:
+            code, message = des.warning, f"{MESSAGES[des.warning]}: " + "; ".join(des.notes)
+        return code, message, des
+
+    def result(self, trace: Trace) -> TuneResult:
+        """The result of the experiment with its design (:meth:`run`) and ``trace``."""
+        code, message, des = self.run()
+        return TuneResult(code, message, self.controller, self.identification, des, trace)
+
+
+def result_of(experiment: RelayExperiment, trace: Trace, controller: str, ms: float) -> TuneResult:
+    """The outcome of an ended experiment, with ``controller`` designed for ``ms`` on success (:class:`DesignJob`)."""
+    return DesignJob.of(experiment, controller, ms).result(trace)
 
 
 def tune(

@@ -328,6 +328,12 @@ class DaemonConfig(Strict):
     or an SQLAlchemy database URL such as ``postgresql+psycopg://user:pw@host/db``
     (the ``postgres`` extra installs the driver). ``opcua``: the OPC UA
     server's settings (None: no OPC UA server unless ``serve --opcua``).
+    ``samplers``: processes the loops' sampling runs in, apart from the API
+    (0: in the API's process, which clients can then slow down; docs/daemon.md,
+    "A plant"). ``max_sessions``: most loops tuned at once; a TUNE beyond is
+    refused (``overloaded``); None: as many as the samplers keep on time.
+    ``sampler_load``: the share of a core a sampler may be predicted to need
+    with a new session before that TUNE is refused (``overloaded``).
     """
 
     history: str = "autotuner-history.db"
@@ -335,6 +341,9 @@ class DaemonConfig(Strict):
     opcua: OpcUaConfig | None = None
     loops: list[LoopConfig]
     handback: HandBackConfig = HandBackConfig()
+    samplers: Annotated[int, Field(ge=0, le=64)] = 1
+    max_sessions: Annotated[int, Field(ge=1, le=100000)] | None = None
+    sampler_load: Annotated[float, Field(gt=0.0, le=1.0)] = 0.6
 
     @field_validator("history")
     @classmethod

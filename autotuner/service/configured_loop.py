@@ -40,12 +40,12 @@ from autotuner.engine.experiment.relay import Status
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.result import TuneResult
 from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
-from autotuner.service.daemon import (Refused, Settings, connector, fresh_check, relay_config, settings_of,
-                                      simulated_plc)
+from autotuner.service.daemon import Refused, Settings, connector, fresh_check, plan_of, settings_of, simulated_plc
 from autotuner.service.history import History, downsample
-from autotuner.service.link_session import HandBack, tune_link
+from autotuner.service.link_session import HandBack, SessionHooks, SessionPlan, tune_link
 from autotuner.service.remote_tuning import tune_opened
 from autotuner.service.session_record import SessionRecord, waited
+from autotuner.service.session_runner import SessionOutcome, run_session
 
 
 def find_loop(config: DaemonConfig, loop_id: str) -> LoopConfig:
@@ -90,21 +90,22 @@ async def tune_configured(
             code = refused.ite
             assert code is not None  # every refusal of the fresh check has its code
             return TuneResult.failed(code, f"{MESSAGES[code]}: {refused.message}", settings.controller)
+        plan = plan_of(loop, settings, handback)
         if history is None:
-            return await tune_opened(connect(), settings.controller, lambda link: tune_link(
-                link, relay_config(loop, settings), loop.ts, settings.controller, settings.ms, settings.apply,
-                loop.speed, on_status=on_status, handback=handback))
-        return await _recorded(loop, settings, connect, history, user, on_status, handback)
+            return await tune_opened(connect(), settings.controller,
+                                     lambda link: tune_link(link, plan, SessionHooks(on_status=on_status)))
+        return await _recorded(loop.id, settings, plan, connect, history, user, on_status)
     finally:
         halt.set()
         if plant is not None:
             await plant
 
 
-async def _recorded(loop: LoopConfig, settings: Settings, connect: Callable[[], Link], history: History, user: str,
-                    on_status: Callable[[Status], None] | None, handback: HandBack | None) -> TuneResult:
-    """The session, recorded in ``history`` as the daemon records its sessions (writes in order in a thread of
-    their own, each awaited at most ``RECORD_WAIT`` s)."""
+async def _recorded(loop_id: str, settings: Settings, plan: SessionPlan, connect: Callable[[], Link],
+                    history: History, user: str, on_status: Callable[[Status], None] | None) -> TuneResult:
+    """The session (:func:`~autotuner.service.session_runner.run_session`, the daemon's), recorded in ``history``
+    as the daemon records its sessions (writes in order in a thread of their own, each awaited at most
+    ``RECORD_WAIT`` s)."""
     sid = uuid.uuid4().hex
     events = asyncio.get_running_loop()
     recorder = ThreadPoolExecutor(1, thread_name_prefix="history")
@@ -113,36 +114,29 @@ async def _recorded(loop: LoopConfig, settings: Settings, connect: Callable[[], 
         return await waited(events.run_in_executor(recorder, functools.partial(method, *args)))
 
     try:
-        why = await durable(history.begin, sid, loop.id, user, settings.as_json())
+        why = await durable(history.begin, sid, loop_id, user, settings.as_json())
         if why:
             return TuneResult.failed(Code.HISTORY_UNAVAILABLE, f"{MESSAGES[Code.HISTORY_UNAVAILABLE]}: {why}",
                                      settings.controller)
-        record = SessionRecord(durable, history, sid, loop.id, user)
+        record = SessionRecord(lambda name, *args: durable(getattr(history, name), *args), sid, loop_id, user)
         restore_error = ""
-        gains_after = None
 
         def handed_back(error: str) -> None:
             nonlocal restore_error
             restore_error = error
 
-        async def session(link: Link) -> TuneResult:
-            nonlocal gains_after
-            result = await tune_link(link, relay_config(loop, settings), loop.ts, settings.controller, settings.ms,
-                                     settings.apply, loop.speed, on_status=on_status, handback=handback,
-                                     on_saved=record.on_saved, on_handed_back=handed_back)
-            gains_after = await record.gains_after(link, result, settings.apply)
-            return result
-
-        result: TuneResult | None = None
+        outcome: SessionOutcome | None = None
         state = "finished"
         try:
-            result = await tune_opened(record.link(connect()), settings.controller, session)
+            outcome = await run_session(connect, plan, record, SessionHooks(on_status=on_status,
+                                                                             on_handed_back=handed_back))
         except asyncio.CancelledError:  # Ctrl-C, SIGTERM: tune_link has handed the loop back (or said why not)
             state = "interrupted"
             raise
         finally:
-            if result is None:
-                result = TuneResult.failed(Code.ABORTED, "aborted: the command was interrupted", settings.controller)
+            result = outcome.result if outcome is not None else TuneResult.failed(
+                Code.ABORTED, "aborted: the command was interrupted", settings.controller)
+            gains_after = None if outcome is None else outcome.gains_after
             if restore_error and record.saved is not None:  # the next start of the daemon resumes the restore
                 state = "not_restored"
             why = await durable(history.finish, sid, result.record(), gains_after, downsample(result.trace), state,

@@ -42,7 +42,6 @@ from dataclasses import replace
 from datetime import UTC, datetime
 from typing import Any
 
-import numpy as np
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine, RowMapping
 from sqlalchemy.pool import StaticPool
@@ -51,10 +50,8 @@ from autotuner.engine.control.gains import Gains
 from drivers.link import LoopState, Mode
 
 from autotuner.engine.result import ResultRecord, Trace
+from autotuner.service.session_record import TRACE_POINTS
 
-# Largest number of points of a stored trace: a whole experiment at full resolution (the demo's take 300–1500
-# samples; a 2-hour experiment at 1 s is 7200), thinned evenly past that.
-TRACE_POINTS = 8000
 
 _META = sa.MetaData()
 _SESSIONS = sa.Table(
@@ -94,7 +91,7 @@ def database_url(history: str) -> str:
     return "sqlite://" if history == ":memory:" else f"sqlite:///{history}"
 
 
-def _sqlite_file(url: str) -> str | None:
+def sqlite_file(url: str) -> str | None:
     """The file of an SQLite URL (``sqlite:///path``), None for any other database or for :memory:."""
     if not url.startswith("sqlite:///"):
         return None
@@ -144,9 +141,7 @@ def state_of(data: dict[str, Any]) -> LoopState:
 
 def downsample(trace: Trace, points: int = TRACE_POINTS) -> dict[str, list[float]]:
     """At most ``points`` evenly spaced samples of ``trace`` (plant seconds, PV, MV), the last one included."""
-    n = len(trace.t)
-    index = np.unique(np.linspace(0, n - 1, min(n, points)).round().astype(int)) if n else np.zeros(0, int)
-    return {name: [float(x) for x in getattr(trace, name)[index]] for name in ("t", "pv", "mv")}
+    return trace.thinned(points)
 
 
 class History:
@@ -164,7 +159,7 @@ class History:
         url = database_url(history)
         memory = url == "sqlite://"
         self.retry_for = retry_for
-        file = _sqlite_file(url)
+        file = sqlite_file(url)
         self.shown = file or shown_url(url)
         if file is not None and not init_empty and os.path.isfile(file) and os.path.getsize(file) == 0:
             raise ValueError(f"history database {file} is an empty file (0 bytes), not a history: if it is new "

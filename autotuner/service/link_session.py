@@ -22,16 +22,12 @@ times back to plant seconds.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
-import multiprocessing
-import os
-import threading
-import time
 import math
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -40,17 +36,23 @@ from drivers.link import Link, LinkError, LoopState, Mode, TuneFlags, Watchdog
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Status
 from autotuner.engine.result import Trace, TuneResult
-from autotuner.engine.simulated_tuning import result_of
+from autotuner.engine.simulated_tuning import DesignJob
+from autotuner.service.design_pool import Outcome, designed
 
 # Handshake bits (TBSY, ite) and the watchdog's heartbeat are written this often, wall seconds.
 FLAGS_PERIOD = 0.5
 # Pauses between read-backs while the device tracks the saved MV, wall seconds (growing from the first).
 TRACK_POLL = (0.01, 0.1)
-# How often a design worker checks that the process that started it still lives, seconds.
-PARENT_CHECK = 0.5
-# Worker processes of the design (see _designed), started on first use, and the CPU seconds they spent.
-_pool: ProcessPoolExecutor | None = None
-_design_cpu = 0.0
+# A sample the session itself starts late (its event loop, its machine — not the link) by more than what the
+# experiment tolerates (RelayExperiment.stall_tolerance: a tenth of a period, at least 3 sample intervals) leaves
+# a gap its estimates cannot use. More than OVERLOAD_COUNT such samples among the last OVERLOAD_WINDOW, or one
+# OVERLOAD_STALL times that tolerance late: the session ends OVERLOADED (an isolated one only costs the estimates
+# around it).
+OVERLOAD_COUNT, OVERLOAD_WINDOW = 5, 100
+OVERLOAD_STALL = 4.0
+# Codes that blame the process (or its surroundings); after an overload the tuner's lateness may be the cause.
+BLAMES_PROCESS = frozenset({Code.NO_OSCILLATION, Code.NOT_CONVERGED, Code.DISTURBANCE, Code.NOISE_TOO_HIGH,
+                            Code.NOT_STABILISABLE, Code.UNSTABLE_DEAD_TIME_TOO_LONG})
 
 
 async def deadlines(period: float, stop: asyncio.Event | None = None,
@@ -62,25 +64,31 @@ async def deadlines(period: float, stop: asyncio.Event | None = None,
     ``stop``, a wait ends as soon as it is set (yielding None: TBRK acts at
     once, not a sample later); with ``beat``, no wait lasts longer than
     ``beat`` seconds (yielding None between samples: the handshake and the
-    device watchdog's heartbeat go on however long the sample time).
+    device watchdog's heartbeat go on however long the sample time). One
+    waiter on ``stop`` serves every wait (no task per sample); close the
+    generator (``contextlib.aclosing``) to end it.
     """
     start = time.monotonic()
     k = 0
-    while True:
-        due = start + k * period
-        now = time.monotonic()
-        wake = due if beat is None else min(due, now + beat)
-        if wake > now:
-            if stop is None:
-                await asyncio.sleep(wake - now)
+    stopped = None if stop is None else asyncio.ensure_future(stop.wait())
+    try:
+        while True:
+            due = start + k * period
+            now = time.monotonic()
+            wake = due if beat is None else min(due, now + beat)
+            if wake > now:
+                if stopped is None:
+                    await asyncio.sleep(wake - now)
+                else:
+                    await asyncio.wait({stopped}, timeout=wake - now)
+            if time.monotonic() >= due and not (stop is not None and stop.is_set()):
+                yield due
+                k += 1
             else:
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(stop.wait(), wake - now)
-        if time.monotonic() >= due and not (stop is not None and stop.is_set()):
-            yield due
-            k += 1
-        else:
-            yield None
+                yield None
+    finally:
+        if stopped is not None:
+            stopped.cancel()
 
 
 @dataclass
@@ -198,104 +206,139 @@ def _ended(restore_error: str, code: Code, ok: bool = False) -> TuneFlags:
                      ite=float(Code.LOOP_NOT_RESTORED if restore_error else code))
 
 
-async def tune_link(
-    link: Link,
-    config: RelayConfig,
-    ts: float,
-    controller: str = "PI",
-    ms: float = 1.4,
-    apply: bool = False,
-    speed: float = 1.0,
-    stop: asyncio.Event | None = None,
-    on_status: Callable[[Status], None] | None = None,
-    handback: HandBack | None = None,
-    on_saved: Callable[[LoopState, tuple[float, ...]], Awaitable[str]] | None = None,
-    on_handed_back: Callable[[str], None] | None = None,
-) -> TuneResult:
-    """Run the experiment on the loop behind ``link`` every ``ts`` plant seconds and design ``controller``.
+@dataclass(frozen=True)
+class SessionPlan:
+    """What one session on a live loop runs: the experiment's settings, its clock and what is designed.
 
-    ``handback``: how the loop is handed back (default :class:`HandBack`());
-    its watchdog time is wall seconds, written to the device as ``speed``
-    times as many device seconds. ``on_saved(saved, relay_levels)`` is awaited
-    once the loop's state is read, before the loop is touched: it records the
-    saved state durably and returns '' — or why it could not, and the session
-    then ends without touching the loop (HISTORY_UNAVAILABLE): a loop taken
-    over without its saved state on record could not be restored after a
-    crash. A ``stop`` set by then also ends it untouched (ABORTED).
+    ``relay``: the experiment (with the loop's limits and the field
+    tolerances); ``ts``: sample time, plant seconds; ``controller`` "PI" or
+    "PID" designed for maximum sensitivity ``ms``; ``apply``: write the gains
+    on success; ``speed``: plant seconds per wall second (a simulated plant
+    runs faster); ``handback``: how the loop is handed back (its watchdog time
+    is wall seconds, written to the device as ``speed`` times as many device
+    seconds).
     """
-    handback = HandBack() if handback is None else handback
-    if not ts > 0.0 or not speed > 0.0:
-        raise ValueError(f"sample time and speed must be positive, got ts={ts}, speed={speed}")
+
+    relay: RelayConfig
+    ts: float
+    controller: str = "PI"
+    ms: float = 1.4
+    apply: bool = False
+    speed: float = 1.0
+    handback: HandBack = field(default_factory=HandBack)
+
+    def __post_init__(self) -> None:
+        if not self.ts > 0.0 or not self.speed > 0.0:
+            raise ValueError(f"sample time and speed must be positive, got ts={self.ts}, speed={self.speed}")
+
+
+@dataclass
+class SessionHooks:
+    """How a session reports to whoever runs it; every member optional.
+
+    ``stop``: set to abort (TBRK), at once. ``on_status(status)``: after each
+    sample. ``on_saved(saved, relay_levels)``: awaited once the loop's state
+    is read, before it is touched; it records the saved state durably and
+    returns '' — or why it could not, and the session then ends without
+    touching the loop (HISTORY_UNAVAILABLE): a loop taken over without its
+    saved state on record could not be restored after a crash.
+    ``on_handed_back(error)``: once the hand-back is over ('' or why not).
+    ``on_timing(late, own, tolerance)``: per sample, wall seconds its PV read
+    completed behind its due time, the part of that the session's own process
+    caused (not the link: the event loop, the analysis, a starved CPU), and the
+    own lateness the experiment tolerates now (:class:`Overload`).
+    ``on_analysis(cpu)``: per period, the CPU seconds its analysis took.
+    ``design(job)``: the design of the ended experiment (default: the design
+    pool of this process).
+    """
+
+    stop: asyncio.Event | None = None
+    on_status: Callable[[Status], None] | None = None
+    on_saved: Callable[[LoopState, tuple[float, ...]], Awaitable[str]] | None = None
+    on_handed_back: Callable[[str], None] | None = None
+    on_timing: Callable[[float, float, float], None] | None = None
+    on_analysis: Callable[[float], None] | None = None
+    design: Callable[[DesignJob], Awaitable[Outcome]] = designed
+
+
+class Overload:
+    """The session's own lateness, sample by sample, judged against what the experiment tolerates.
+
+    A sample whose read the session started late for reasons of its own (not
+    waiting on the link) by more than ``tolerance`` (wall seconds: the
+    experiment's stall tolerance) is late by the session's fault; the session
+    can no longer keep its schedule when more than :data:`OVERLOAD_COUNT` of
+    the last :data:`OVERLOAD_WINDOW` samples are, or one is
+    :data:`OVERLOAD_STALL` tolerances late. ``count``: such samples so far;
+    ``worst``: the longest such delay, wall seconds.
+    """
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.worst = 0.0
+        self.io_end = -math.inf  # when the session's last link call ended (monotonic)
+        self._samples = 0
+        self._late: collections.deque[int] = collections.deque()  # the numbers of the late samples in the window
+        self._exceeded = False
+
+    def sample(self, due: float, read_start: float, tolerance: float) -> float:
+        """The session's own part of the lateness of the read started at ``read_start`` for ``due`` (monotonic
+        wall seconds), judged against ``tolerance`` (wall seconds)."""
+        self._samples += 1
+        own = max(read_start - max(due, self.io_end), 0.0)
+        if own > tolerance:
+            self.count += 1
+            self.worst = max(self.worst, own)
+            self._late.append(self._samples)
+            self._exceeded = self._exceeded or own > OVERLOAD_STALL * tolerance
+        while self._late and self._late[0] <= self._samples - OVERLOAD_WINDOW:
+            self._late.popleft()
+        self._exceeded = self._exceeded or len(self._late) > OVERLOAD_COUNT
+        return own
+
+    @property
+    def exceeded(self) -> bool:
+        """True when the session can no longer keep its schedule within the experiment's tolerance."""
+        return self._exceeded
+
+    def message(self, speed: float) -> str:
+        """The overload's message (what the experiment saw, in plant seconds)."""
+        return (f"{MESSAGES[Code.OVERLOADED]}: {self.count} samples were taken later than the experiment tolerates "
+                f"by the tuner itself (the longest {self.worst * speed:.3g} s late, not the link's delay): its "
+                "machine or process is loaded beyond what the experiment tolerates; the loop was handed back — "
+                "retry when fewer loops tune at once")
+
+
+async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = None) -> TuneResult:
+    """Run the experiment of ``plan`` on the loop behind ``link``, hand the loop back, design; the result.
+
+    The loop is sampled every ``plan.ts`` plant seconds (``plan.ts /
+    plan.speed`` wall seconds); ``hooks`` report and abort (:class:`SessionHooks`).
+    A session whose own lateness exceeds what the experiment tolerates
+    (:class:`Overload`) ends with OVERLOADED, and a verdict about the process
+    reached after such lateness (no oscillation, a disturbance, an unstable
+    process, …) is reported as OVERLOADED too: the tuner's lateness, not the
+    process, may be its cause.
+    """
+    hooks = SessionHooks() if hooks is None else hooks
+    controller = plan.controller
     try:
         saved = await link.read_state()
     except LinkError as exc:
         return TuneResult.failed(Code.LINK_FAULT, f"cannot read the loop: {exc}", controller)
-
-    experiment = RelayExperiment(config, mv0=saved.mv)
-    if on_saved is not None and (why := await on_saved(saved, experiment.levels)):
+    experiment = RelayExperiment(plan.relay, mv0=saved.mv)
+    if hooks.on_saved is not None and (why := await hooks.on_saved(saved, experiment.levels)):
         return TuneResult.failed(Code.HISTORY_UNAVAILABLE, f"{MESSAGES[Code.HISTORY_UNAVAILABLE]}: {why}", controller)
-    if stop is not None and stop.is_set():
+    if hooks.stop is not None and hooks.stop.is_set():
         return TuneResult.failed(Code.ABORTED, f"{MESSAGES[Code.ABORTED]} before the loop was touched", controller)
     if experiment.done:  # refused before it starts (the relay cannot move the MV): the loop is not touched
         await _publish(link, _ended("", experiment.code))
         return TuneResult.failed(experiment.code, experiment.message, controller)
-    times: list[float] = []
-    pvs: list[float] = []
-    mvs: list[float] = []
+    sampling = _Sampling(link, experiment, plan, hooks)
     failed = False
-    beats = 0
     try:
-        await _publish(link, TuneFlags(tbsy=True, te=False, ite=0.0))
-        await link.write_mv(saved.mv)
-        if handback.watchdog > 0.0:
-            await link.write_watchdog(Watchdog(timeout=handback.watchdog * speed, mv=saved.mv, mode=saved.mode))
-        await link.write_mode(Mode.MAN)
-        start = time.monotonic()
-        flags_due = start
-
-        async def handshake(status: Status) -> None:  # TBSY, ite and the heartbeat every FLAGS_PERIOD
-            nonlocal flags_due, beats
-            if time.monotonic() >= flags_due:
-                flags_due = time.monotonic() + FLAGS_PERIOD
-                beats += 1  # the heartbeat only feeds an armed watchdog: no extra request otherwise
-                await _publish(link, TuneFlags(tbsy=True, te=False, ite=status.ite),
-                               beats if handback.watchdog > 0.0 else None)
-
-        async for due in deadlines(ts / speed, stop, FLAGS_PERIOD):
-            if stop is not None and stop.is_set():
-                experiment.abort()
-                break
-            if due is None:  # between samples: only the handshake and the heartbeat may be due
-                await handshake(experiment.status())
-                continue
-            before = time.monotonic()
-            pv = await link.read_pv()
-            after = time.monotonic()
-            age = link.pv_age
-            t = ((0.5 * (before + after) if age is None else after - age) - start) * speed
-            if times and t <= times[-1]:
-                continue  # the same time-stamped value again: nothing new to act on
-            mv = experiment.step(t, pv)
-            if experiment.done:
-                break
-            before = time.monotonic()
-            await link.write_mv(mv)
-            # When the MV reached the device: a write the link or a busy machine delayed left the previous MV
-            # on the process meanwhile, and the estimates must integrate the MV as the process held it.
-            experiment.applied((0.5 * (before + time.monotonic()) - start) * speed)
-            times.append(t)
-            pvs.append(pv)
-            mvs.append(mv)
-            if experiment.analysis_pending:
-                # A period ended: its analysis (a load fit: tens of ms of CPU) runs off the event loop, so the
-                # daemon's other loops, the handshake and an in-process simulated PLC keep their time.
-                await asyncio.to_thread(experiment.analyse)
-                if experiment.done:
-                    break
-            status = experiment.status()
-            if on_status is not None:
-                on_status(status)
-            await handshake(status)
+        await _take_over(link, saved, plan)
+        await sampling.run()
     except LinkError as exc:
         experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
     except (asyncio.CancelledError, Exception):  # cancelled, or a bug: handed back below, TBSY must not stay set
@@ -303,87 +346,151 @@ async def tune_link(
         failed = True
         raise
     finally:
-        restore_error = await hand_back(link, saved, handback)
-        if on_handed_back is not None:
-            on_handed_back(restore_error)
+        restore_error = await hand_back(link, saved, plan.handback)
+        if hooks.on_handed_back is not None:
+            hooks.on_handed_back(restore_error)
         if failed:  # no result follows to end the handshake with
             await _publish(link, _ended(restore_error, Code.ABORTED))
-    result = await _designed(experiment, controller, ms, _trace(times, pvs, mvs), restore_error)
-    if result.ok and apply:
+    result = _restored(await _result(hooks, sampling.design_job(), sampling.trace()), restore_error)
+    if result.ok and plan.apply:
         try:
             await link.write_gains(result.design.gains)
         except LinkError as exc:
             result = TuneResult(Code.LINK_FAULT, f"gains not written: {exc}", controller,
                                 result.identification, result.design, result.trace)
     await _publish(link, _ended(restore_error, result.code, result.ok))
-    if on_status is not None:
-        on_status(experiment.status())
+    if hooks.on_status is not None:
+        hooks.on_status(experiment.status())
     return result
 
 
-async def _designed(experiment: RelayExperiment, controller: str, ms: float, trace: Trace,
-                    restore_error: str) -> TuneResult:
-    """The result with its design, computed in a worker process.
-
-    The design takes 0.1 s (PI) to 0.4 s (PID) of CPU. In a thread it would
-    hold the GIL most of that time, and many sessions of a daemon ending
-    together would stall every other loop's sampling.
-    """
-    global _pool, _design_cpu
-    args = (experiment, controller, ms, trace, restore_error)
-    if experiment.result is None:  # nothing identified, nothing to design: no worker needed
-        return _result(*args)
-    if _pool is None:
-        # spawn: a worker inherits none of the daemon's sockets or its event loop; one core left for sampling.
-        _pool = ProcessPoolExecutor(max(1, (os.cpu_count() or 2) - 1), mp_context=multiprocessing.get_context("spawn"),
-                                    initializer=_follow_parent, initargs=(os.getpid(),))
-    try:
-        result, cpu = await asyncio.get_running_loop().run_in_executor(_pool, _timed_result, *args)
-    except BrokenProcessPool:  # a worker was killed: the result still comes, from a thread
-        _pool = None
-        return await asyncio.to_thread(_result, *args)
-    _design_cpu += cpu
-    return result
+async def _take_over(link: Link, saved: LoopState, plan: SessionPlan) -> None:
+    """TBSY, the saved MV as the manual one, the watchdog armed (if asked) with the saved state, then MAN."""
+    await _publish(link, TuneFlags(tbsy=True, te=False, ite=0.0))
+    await link.write_mv(saved.mv)
+    if plan.handback.watchdog > 0.0:
+        await link.write_watchdog(Watchdog(timeout=plan.handback.watchdog * plan.speed, mv=saved.mv,
+                                           mode=saved.mode))
+    await link.write_mode(Mode.MAN)
 
 
-def _follow_parent(parent: int) -> None:
-    """In a design worker: exit when the daemon is gone (killed by a signal, it never shuts its pool down)."""
+class _Sampling:
+    """The experiment driven through ``link`` on the schedule of ``plan``, reported through ``hooks``; the
+    samples it took (``t`` plant seconds, ``pv``, ``mv``) and its own lateness (``overload``)."""
 
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(PARENT_CHECK)
-        os._exit(0)
+    def __init__(self, link: Link, experiment: RelayExperiment, plan: SessionPlan, hooks: SessionHooks) -> None:
+        self.link, self.experiment, self.plan, self.hooks = link, experiment, plan, hooks
+        self.t: list[float] = []
+        self.pv: list[float] = []
+        self.mv: list[float] = []
+        self.overload = Overload()
+        self._start = 0.0
+        self._flags_due = 0.0
+        self._beats = 0
 
-    threading.Thread(target=watch, name="follow-parent", daemon=True).start()
+    async def run(self) -> None:
+        """Sample until the experiment ends (or ``hooks.stop`` aborts it); LinkError if the link fails."""
+        self._start = self._flags_due = time.monotonic()
+        stop, experiment = self.hooks.stop, self.experiment
+        schedule = deadlines(self.plan.ts / self.plan.speed, stop, FLAGS_PERIOD)
+        async with contextlib.aclosing(schedule):
+            async for due in schedule:
+                if stop is not None and stop.is_set():
+                    experiment.abort()
+                    return
+                if due is None:  # between samples: only the handshake and the heartbeat may be due
+                    await self._handshake(experiment.status())
+                elif not await self._sample(due) or experiment.done:
+                    return
+
+    async def _sample(self, due: float) -> bool:
+        """One sample due at ``due``: PV read, the experiment's step, MV written, the period's analysis; False
+        once the experiment has ended."""
+        link, experiment, speed, hooks = self.link, self.experiment, self.plan.speed, self.hooks
+        before = time.monotonic()
+        tolerance = experiment.stall_tolerance / speed
+        own = self.overload.sample(due, before, tolerance)
+        pv = await link.read_pv()
+        after = time.monotonic()
+        if hooks.on_timing is not None:
+            hooks.on_timing(after - due, own, tolerance)
+        if self.overload.exceeded:
+            experiment.fail(Code.OVERLOADED, self.overload.message(speed))
+            return False
+        age = link.pv_age
+        t = ((0.5 * (before + after) if age is None else after - age) - self._start) * speed
+        if self.t and t <= self.t[-1]:
+            self.overload.io_end = time.monotonic()
+            return True  # the same time-stamped value again: nothing new to act on
+        mv = experiment.step(t, pv)
+        if experiment.done:
+            return False
+        before = time.monotonic()
+        await link.write_mv(mv)
+        self.overload.io_end = time.monotonic()
+        # When the MV reached the device: a write the link or a busy machine delayed left the previous MV on the
+        # process meanwhile, and the estimates must integrate the MV as the process held it.
+        experiment.applied((0.5 * (before + self.overload.io_end) - self._start) * speed)
+        self.t.append(t)
+        self.pv.append(pv)
+        self.mv.append(mv)
+        if experiment.analysis_pending:
+            # A period ended: its analysis runs off the event loop, so the other loops of this process and the
+            # handshake keep their time.
+            cpu = await asyncio.to_thread(_analysed, experiment)
+            if hooks.on_analysis is not None:
+                hooks.on_analysis(cpu)
+            if experiment.done:
+                return False
+        status = experiment.status()
+        if hooks.on_status is not None:
+            hooks.on_status(status)
+        await self._handshake(status)
+        return True
+
+    async def _handshake(self, status: Status) -> None:
+        """TBSY, ite and the heartbeat every :data:`FLAGS_PERIOD` (the heartbeat only to an armed watchdog)."""
+        if time.monotonic() < self._flags_due:
+            return
+        self._flags_due = time.monotonic() + FLAGS_PERIOD
+        self._beats += 1
+        await _publish(self.link, TuneFlags(tbsy=True, te=False, ite=status.ite),
+                       self._beats if self.plan.handback.watchdog > 0.0 else None)
+        self.overload.io_end = time.monotonic()
+
+    def design_job(self) -> DesignJob:
+        """What the design gets: the ended experiment's, or an overload's when the verdict may be the tuner's."""
+        plan, overload = self.plan, self.overload
+        job = DesignJob.of(self.experiment, plan.controller, plan.ms)
+        if overload.count and job.code in BLAMES_PROCESS:
+            job = DesignJob(None, Code.OVERLOADED, f"{overload.message(plan.speed)} (the experiment had ended: "
+                            f"{job.message})", plan.controller, plan.ms, plan.relay.amp)
+        return job
+
+    def trace(self) -> Trace:
+        """The samples taken."""
+        return Trace(np.asarray(self.t, dtype=float), np.asarray(self.pv, dtype=float),
+                     np.asarray(self.mv, dtype=float))
 
 
-def close_design_pool() -> None:
-    """Stop the design's worker processes (a daemon that stops; the next design starts them again)."""
-    global _pool
-    if _pool is not None:
-        _pool.shutdown(wait=True)
-        _pool = None
+def _analysed(experiment: RelayExperiment) -> float:
+    """Run the pending analysis of ``experiment`` (in a worker thread); the CPU seconds it took."""
+    start = time.thread_time()
+    experiment.analyse()
+    return time.thread_time() - start
 
 
-def design_cpu() -> float:
-    """CPU seconds the design's worker processes have spent in this process's sessions so far."""
-    return _design_cpu
+async def _result(hooks: SessionHooks, job: DesignJob, trace: Trace) -> TuneResult:
+    """The experiment's result with its design (``hooks.design``: a worker process; nothing to design without an
+    identification)."""
+    code, message, design = job.run() if job.identification is None else await hooks.design(job)
+    return TuneResult(code, message, job.controller, job.identification, design, trace)
 
 
-def _timed_result(experiment: RelayExperiment, controller: str, ms: float, trace: Trace,
-                  restore_error: str) -> tuple[TuneResult, float]:
-    cpu0 = time.process_time()
-    return _result(experiment, controller, ms, trace, restore_error), time.process_time() - cpu0
-
-
-def _trace(t: list[float], pv: list[float], mv: list[float]) -> Trace:
-    return Trace(np.asarray(t, dtype=float), np.asarray(pv, dtype=float), np.asarray(mv, dtype=float))
-
-
-def _result(experiment: RelayExperiment, controller: str, ms: float, trace: Trace, restore_error: str) -> TuneResult:
-    result = result_of(experiment, trace, controller, ms)
+def _restored(result: TuneResult, restore_error: str) -> TuneResult:
+    """``result`` as the hand-back leaves it: a loop not handed back is a failure (LINK_FAULT if it was ok)."""
     if not restore_error:
         return result
     code = Code.LINK_FAULT if result.code is Code.OK else result.code
-    return TuneResult(code, f"{result.message}; {restore_error}", controller, result.identification,
-                      result.design, trace)
+    return TuneResult(code, f"{result.message}; {restore_error}", result.controller, result.identification,
+                      result.design, result.trace)

@@ -26,7 +26,7 @@ from drivers.simplc import SimulatedPlc, run
 from autotuner.engine.plant.process import Process
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.relay import RelayConfig, Status
-from autotuner.service.link_session import deadlines, tune_link
+from autotuner.service.link_session import SessionHooks, SessionPlan, deadlines, tune_link
 from autotuner.engine.result import TuneResult
 
 # Sampling a PLC through a link scatters the per-period estimates by about
@@ -163,8 +163,9 @@ async def tune_via(
     """
     plc = SimulatedPlc(process, ts=ts / PLANT_TICKS_PER_SAMPLE, noise_std=noise, seed=seed, loads=tuple(loads))
     async with served(plc, transport, speed) as (url, _):
-        return await tune_opened(open_link(url), controller, lambda link: tune_link(
-            link, field_config(config), ts, controller, ms, speed=speed, on_status=on_status))
+        plan = SessionPlan(field_config(config), ts, controller, ms, speed=speed)
+        return await tune_opened(open_link(url), controller,
+                                 lambda link: tune_link(link, plan, SessionHooks(on_status=on_status)))
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,6 @@ from drivers.link import Link, LinkError, LoopState
 
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.result import TuneResult
-from autotuner.service.history import History
 
 # How long a session waits for the history to record what must be durable before it goes on (the saved state
 # before the loop is touched, a gains intent before the write), and for its end to be recorded before the loop is
@@ -31,7 +30,12 @@ from autotuner.service.history import History
 # later (writes are retried in the history's thread meanwhile; they never block the event loop).
 RECORD_WAIT = 10.0
 
-#: Records ``method(*args)`` of the history and waits for it (bounded): '' once recorded, else why not.
+# Largest number of points of a stored trace: a whole experiment at full resolution (the demo's take 300–1500
+# samples; a 2-hour experiment at 1 s is 7200), thinned evenly past that.
+TRACE_POINTS = 8000
+
+#: Records ``History.<name>(*args)`` and waits for it (bounded): '' once recorded, else why not. Called with the
+#: method's name, so that a session running in another process than the history can ask for it.
 Durable = Callable[..., Awaitable[str]]
 
 log = logging.getLogger("autotuner.service.session_record")
@@ -123,8 +127,8 @@ class SessionRecord:
     ``tap``: the link of :meth:`link`.
     """
 
-    def __init__(self, durable: Durable, history: History, sid: str, loop_id: str, user: str) -> None:
-        self.durable, self.history, self.sid, self.loop_id, self.user = durable, history, sid, loop_id, user
+    def __init__(self, durable: Durable, sid: str, loop_id: str, user: str) -> None:
+        self.durable, self.sid, self.loop_id, self.user = durable, sid, loop_id, user
         self.saved: LoopState | None = None
         self.levels: tuple[float, ...] = ()
         self.mv_range: tuple[float, float] | None = None
@@ -139,7 +143,7 @@ class SessionRecord:
         """``tune_link``'s ``on_saved``: the saved state, the levels and their hull with the saved MV, durably;
         '' once recorded, else why not (the session then ends without touching the loop)."""
         hull = mv_hull(saved.mv, *relay_levels)  # a switch sample lies between the levels
-        why = await self.durable(self.history.saved, self.sid, saved, relay_levels, hull)
+        why = await self.durable("saved", self.sid, saved, relay_levels, hull)
         if why:
             log.error("loop %s: session %s ends without touching the loop: its saved state is not recorded (%s)",
                       self.loop_id, self.sid, why)
@@ -153,7 +157,7 @@ class SessionRecord:
         """Before an MV outside the range on record: the widened range, durably; LinkError (not written) if not."""
         assert self.saved is not None and self.mv_range is not None
         hull = mv_hull(*self.mv_range, mv)
-        why = await self.durable(self.history.saved, self.sid, self.saved, self.levels, hull)
+        why = await self.durable("saved", self.sid, self.saved, self.levels, hull)
         if why:
             raise LinkError(f"MV {mv:g} not written: the session's MV range must be recorded first; {why}")
         self.mv_range = hull
@@ -162,7 +166,7 @@ class SessionRecord:
 
     async def intend(self, gains: Gains) -> None:
         """Before the gains write: its intent, durably; LinkError (the gains are not written) if not."""
-        why = await self.durable(self.history.intend, self.sid, self.user, gains)
+        why = await self.durable("intend", self.sid, self.user, gains)
         if why:
             raise LinkError(f"the intent to write them must be recorded first; {why}")
 

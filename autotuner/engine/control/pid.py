@@ -141,8 +141,7 @@ class PidUnit:
             sp, pv = self._last
             before = self._static_terms(sp, pv)
             object.__setattr__(self, name, value)
-            self._integral += before - self._static_terms(sp, pv)
-            self._bound_integral()
+            self._integral = self._bounded(self._integral + (before - self._static_terms(sp, pv)))
             # A new c changes c·sp − pv without the signal moving; re-basing the
             # derivative's previous input avoids a spurious derivative kick.
             self._x_prev = self.gains.c * sp - pv
@@ -200,16 +199,15 @@ class PidUnit:
             out += g.k * g.td * self._dfilt
         return self._sign() * out
 
-    def _bound_integral(self) -> None:
-        """Keep the integral state within INTEGRAL_SPANS spans of finite output limits (module docstring)."""
+    def _bounded(self, x: float) -> float:
+        """Integral state ``x`` kept within INTEGRAL_SPANS spans of finite output limits (module docstring)."""
         lo, hi = self.lolim, self.hilim
         if not (math.isfinite(lo) and math.isfinite(hi)):
-            return
+            return x
         span = INTEGRAL_SPANS * (hi - lo)
-        x = self._integral
         if math.isnan(x):  # inf − inf of an overflowing extreme gain: start again from the middle
             x = 0.5 * (lo + hi)
-        self._integral = min(max(x, lo - span), hi + span)
+        return min(max(x, lo - span), hi + span)
 
     def _clip(self, x: float) -> float:
         return min(max(x, self.lolim), self.hilim)
@@ -256,40 +254,37 @@ class PidUnit:
         e = sp - pv
         x = self.gains.c * sp - pv
         g = self.gains
+        integral = self._integral
 
         if not first:
             tf = g.td / g.nd
             self._dfilt = (tf * self._dfilt + (x - self._x_prev)) / (tf + h)
             if self.has_i:
                 tt = self.tt_effective
-                self._integral += (1.0 - math.exp(-h / tt)) * self._track_err
-                self._integral += self._sign() * g.ki * h * 0.5 * (e + self._e_prev)
-                self._bound_integral()
+                integral += (1.0 - math.exp(-h / tt)) * self._track_err
+                integral += self._sign() * g.ki * h * 0.5 * (e + self._e_prev)
+                integral = self._bounded(integral)
 
         rest = self._static_terms(sp, pv) + dv
-        v = rest + self._integral
+        v = rest + integral
         raw = hv if man else v
         mv = self._clip(raw)
 
         if man:
             # Exact, not via tt: the operator may switch back after one sample.
-            self._integral = mv - rest
-            self._track_err = 0.0
+            integral = mv - rest
+            track_err = 0.0
         elif self.has_i:
             target = mv if tv is None else self._clip(tv)
-            self._track_err = target - v
+            track_err = target - v
         else:
-            self._track_err = 0.0
+            track_err = 0.0
 
-        self.dmv = 0.0 if first else mv - self.mv
-        self.mv = mv
-        self.de = e
-        self.hl = raw > self.hilim
-        self.ll = raw < self.lolim
-        self._t_prev = t
-        self._e_prev = e
-        self._x_prev = x
-        self._last = (sp, pv)
+        # The state of the sample, set at once: none of it is configuration, so it bypasses __setattr__'s checks
+        # (the cost of a simulated plant's tick is mostly this method's, docs/modbus.md).
+        self.__dict__.update(
+            _integral=integral, _track_err=track_err, dmv=0.0 if first else mv - self.mv, mv=mv, de=e,
+            hl=raw > self.hilim, ll=raw < self.lolim, _t_prev=t, _e_prev=e, _x_prev=x, _last=(sp, pv))
         return mv
 
     def reset(self, mv: float, sp: float, pv: float, *, dv: float = 0.0) -> None:

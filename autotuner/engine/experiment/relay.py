@@ -471,6 +471,18 @@ class RelayExperiment:
         if self._record.held and self._record.held == len(self._record) and math.isfinite(t):
             self._record.applied(t)
 
+    @property
+    def stall_tolerance(self) -> float:
+        """The longest time without a sample (s) that leaves the estimates usable: a tenth of the period as well
+        as it is known now, and at least three sample intervals (a longer stall leaves its estimates out)."""
+        dt = self._mean_interval()
+        return max(_STALL * self._period_guess(dt), _GAP * (dt or 0.0))
+
+    def _mean_interval(self) -> float | None:
+        """The mean time between the samples so far (s); None before two."""
+        samples = len(self._record)
+        return (self._record.time(-1) - self._record.time(0)) / (samples - 1) if samples >= 2 else None
+
     def status(self) -> Status:
         """Stage, progress (0–1), ite and the live relay/filter state."""
         if self.done:
@@ -1438,7 +1450,7 @@ class RelayExperiment:
         """Estimated seconds to the end: the noise stage's rest plus the periods the stopping rule still needs."""
         samples = len(self._record)
         elapsed = self._record.time(-1) - self._record.time(0) if samples else 0.0
-        dt = elapsed / (samples - 1) if samples >= 2 else None
+        dt = self._mean_interval()
         noise_left = max(self.config.noise_samples - samples, 0) * (dt or 0.0)
         period = self._period_guess(dt)
         done = max(len(self._rising) - 1, 0)

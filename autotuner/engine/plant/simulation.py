@@ -17,6 +17,7 @@ previous interval, as a real sampled measurement would.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from collections.abc import Sequence
@@ -55,6 +56,27 @@ def _hold_integrals(a: np.ndarray, b: np.ndarray, tau: float) -> tuple[np.ndarra
     return e[:n, :n], e[:n, n]
 
 
+@functools.lru_cache(maxsize=64)
+def _discretise(process: Process, ts: float) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """(d, Φ, Γ0, Γ1, C, D) of the module docstring for sample time ``ts`` seconds, read-only arrays.
+
+    Remembered per (process, ts): a plant of many loops of one process (drivers.modbus_plant) would otherwise
+    take the matrix exponentials once per loop (they dominate its start, ~10 ms each on a busy machine).
+    """
+    samples = process.delay / ts
+    d = round(samples)
+    if abs(samples - d) > _GRID_TOL * max(1.0, samples):
+        d = math.floor(samples)
+    theta = max(0.0, process.delay - d * ts)
+    a, b, c, dd = _realise(process)
+    phi, _ = _hold_integrals(a, b, ts)
+    e_late, g0 = _hold_integrals(a, b, ts - theta)
+    g1 = e_late @ _hold_integrals(a, b, theta)[1]
+    for array in (phi, g0, g1, c):
+        array.setflags(write=False)  # shared by every PlantSim of (process, ts)
+    return d, phi, g0, g1, c, dd
+
+
 class PlantSim:
     """Simulated process in deviation form around an operating point: pv = pv0 + F*(mv - mv0 + load) + noise.
 
@@ -91,16 +113,8 @@ class PlantSim:
         self.mv_limits = (float(lo), float(hi))
         self._rng = np.random.default_rng(seed)
 
-        samples = process.delay / ts
-        d = round(samples)
-        if abs(samples - d) > _GRID_TOL * max(1.0, samples):
-            d = math.floor(samples)
-        theta = max(0.0, process.delay - d * ts)
-        a, b, self._c, self._d = _realise(process)
-        self._phi, _ = _hold_integrals(a, b, ts)
-        e_late, self._g0 = _hold_integrals(a, b, ts - theta)
-        self._g1 = e_late @ _hold_integrals(a, b, theta)[1]
-        self._x = np.zeros(len(b))
+        d, self._phi, self._g0, self._g1, self._c, self._d = _discretise(process, self.ts)
+        self._x = np.zeros(len(self._g0))
         # u[k-d-1] ... u[k-1] in deviation units; advance() appends u[k].
         self._u: deque[float] = deque([0.0] * (d + 1))
 

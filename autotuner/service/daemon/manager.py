@@ -1,0 +1,700 @@
+"""The loop manager: every loop's PIDAT state machine, its commands and its records; the field does the I/O.
+
+Per loop (methods.md §3.4): TUNE on an idle loop starts a session (refused
+while the loop, or another loop of its exclusion group, is busy, or while
+the daemon tunes as many loops at once as it may); while it runs ``tbsy`` is
+true and ``ite`` counts down the estimated plant seconds left; at the end
+``ite`` becomes the code (0 ok, see :class:`Code`) and ``te`` tells failure;
+TBRK aborts. The session itself runs in the field
+(:class:`~autotuner.service.daemon.field.Field`): it saves the loop, restores
+it in every outcome and writes gains only on success when asked.
+
+Every session goes to the history: who, when, the settings, the loop's saved
+state (before the experiment touches it) with the relay's MV levels, the
+result, the gains after and a downsampled trace.
+
+Restore until it holds (docs/handback.md, :mod:`~autotuner.service.daemon.restore`):
+a loop whose session could not hand it back is *not restored* — recorded so,
+``ite`` :attr:`Code.LOOP_NOT_RESTORED` in its status (and on the device when
+it can be written), logged at ERROR — and tried again with back-off for as
+long as the daemon runs, and after a restart. On :meth:`LoopManager.start`, a
+session still recorded as running (the daemon died during it) is recovered
+the same way.
+
+:meth:`LoopManager.shutdown` (SIGTERM/SIGINT) aborts every session and hands
+every loop back first, within a bound, then ends the event streams; loops it
+could not hand back stay recorded as not restored for the next start.
+
+A loop configured with ``handshake: true`` obeys the device's TUNE and TBRK
+bits (:mod:`~autotuner.service.daemon.watch`): a rising edge of TUNE is a
+TUNE from user ``plc`` with the loop's defaults, a rising edge of TBRK aborts
+the running session. A TUNE the state does not allow is not run: while the
+loop's own session runs it is ignored (TBSY and ``ite`` are that session's);
+otherwise TE is set and ``ite`` shows the refusal's code, the loop untouched.
+
+:meth:`LoopManager.apply` writes a finished session's designed gains to the
+controller on request, reads them back and records who applied them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+import uuid
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from drivers.link import LinkError, Mode, TuneFlags
+
+from autotuner.engine.control.gains import Gains
+from autotuner.engine.design.analysis import usable_gains
+from autotuner.engine.experiment.relay import Stage, Status
+from autotuner.engine.outcome import Code
+from autotuner.engine.result import ResultRecord, TuneResult
+from autotuner.engine.simulated_tuning import DesignJob
+from autotuner.service.config import DaemonConfig, HandBackConfig, TuneRequest
+from autotuner.service.daemon.field import Field, LocalField
+from autotuner.service.daemon.loop import Loop, Session
+from autotuner.service.daemon.recorder import Recorder
+from autotuner.service.daemon.refused import Refused
+from autotuner.service.daemon.restore import Pending
+from autotuner.service.daemon.settings import Settings, plan_of, settings_of
+from autotuner.service.daemon.timing import Histogram, TimingBatch
+from autotuner.service.daemon.watch import Reading
+from autotuner.service.design_pool import Outcome, close_design_pool, designed
+from autotuner.service.history import History, downsample, state_of
+from autotuner.service.link_session import NotTracking, SessionPlan
+from autotuner.service.session_record import mv_hull, same_gains, waited
+from autotuner.service.session_runner import SessionOutcome
+
+# How long :meth:`LoopManager.stop` waits for the history's writes, wall seconds.
+STOP_WAIT = 10.0
+# Past the shutdown's bound, how long a try already under way may still finish, wall seconds.
+SHUTDOWN_GRACE = 2.0
+# Who the history records for sessions started by the device's TUNE bit.
+PLC_USER = "plc"
+# After a sample late by the daemon's own fault, new TUNEs are refused this long while sessions run, wall seconds.
+OVERLOAD_HOLD = 10.0
+# Longest pause between two tries of a gains write to reconcile, wall seconds.
+RECONCILE_RETRY_MAX = 5.0
+log = logging.getLogger("autotuner.service.daemon")
+
+
+@dataclass
+class Sampling:
+    """Every session sample's timing since the daemon started (wall seconds; :mod:`~autotuner.service.daemon.timing`):
+    ``late`` behind its due time, ``own`` the daemon's own part, ``overloaded`` samples late enough by the
+    daemon's fault to hurt an experiment; ``analysis`` the CPU seconds of each period's analysis."""
+
+    late: Histogram = field(default_factory=Histogram)
+    own: Histogram = field(default_factory=Histogram)
+    analysis: Histogram = field(default_factory=Histogram)
+    overloaded: int = 0
+
+    def merge(self, batch: TimingBatch) -> None:
+        """Add a field's batch."""
+        self.late.merge(batch.late)
+        self.own.merge(batch.own)
+        self.analysis.merge(batch.analysis)
+        self.overloaded += batch.overloaded
+
+
+class LoopManager:
+    """All loops of ``config``; sessions recorded in ``history``; their devices reached through ``field``
+    (default: a :class:`~autotuner.service.daemon.field.LocalField` on this event loop)."""
+
+    def __init__(self, config: DaemonConfig, history: History, field: Field | None = None) -> None:
+        self.history = history
+        self.recorder = Recorder(history)
+        self.field: Field = LocalField(config.loops) if field is None else field
+        reaches = getattr(self.field, "reaches", {})
+        self.loops: dict[str, Loop] = {c.id: Loop(c, reaches.get(c.id)) for c in config.loops}
+        self.handback_config: HandBackConfig = config.handback
+        self._stopping = False
+        self._shutdown: asyncio.Task[list[str]] | None = None
+        self._streams_closed = False
+        self._reconcilers: list[asyncio.Task[None]] = []
+        self.max_sessions, self.sampler_load = config.max_sessions, config.sampler_load
+        self.sampling = Sampling()
+        self.outcomes: Counter[int] = Counter()  # sessions ended since the start, by code
+        self._overloaded_until = -math.inf
+        self.field.bind(self)
+
+    # -- life cycle ---------------------------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Start the field (simulated plants); put back the loops of sessions a crash left running or not restored;
+        then watch every loop.
+
+        One try each, at once and together; a loop that cannot be handed back
+        yet (its device offline) is retried in the background: the start
+        never waits for a device.
+        """
+        await self.field.start()
+        left = await self.recorder.record(lambda: (*self.history.running(), *self.history.not_restored()))
+        recovered = [loop for record in left if (loop := self._recover(record)) is not None]
+        done = await asyncio.gather(*(self._try_restore(loop) for loop in recovered))
+        for loop, ok in zip(recovered, done):
+            if not ok:
+                loop.restorer = asyncio.create_task(self._restore_until_held(loop))
+        for record in await self.recorder.record(self.history.open_intents):
+            self._reconcilers.append(asyncio.create_task(self._reconcile(record)))
+        for loop_id, loop in self.loops.items():
+            loop.latest = await self.recorder.record(self.history.latest, loop_id)
+            if loop.latest is not None:  # its trace, so a page opened after the restart draws the last experiment
+                record = await self.recorder.record(self.history.get, loop.latest["id"])
+                if record is not None:
+                    loop.events.trend.seed(record, loop.config.speed)
+        self.field.watch()  # after the restores: a watch never reads a loop a restore is still putting back
+
+    async def shutdown(self) -> list[str]:
+        """Abort every session (TBRK) and hand every loop back first, within ``handback.shutdown`` seconds, then
+        end the event streams; the ids of the loops not handed back (recorded so, logged CRITICAL: the next start
+        resumes their restore). Once: later calls wait for the first one."""
+        if self._shutdown is None:
+            self._shutdown = asyncio.create_task(self._hand_back_all())
+        return await asyncio.shield(self._shutdown)
+
+    async def _hand_back_all(self) -> list[str]:
+        bound = self.handback_config.shutdown
+        deadline = time.monotonic() + bound
+        self._stopping = True
+        watches = asyncio.create_task(self.field.halt_watches())
+        restorers = [loop.restorer for loop in self.loops.values() if loop.restorer is not None]
+        for restorer in restorers:
+            restorer.cancel()
+        tasks = [loop.running.task for loop in self.loops.values() if loop.running and loop.running.task]
+        for loop_id, loop in self.loops.items():
+            if loop.busy:
+                self.field.abort(loop_id)
+        self.field.cap(bound)  # no hand-back try of a session starts past the bound
+        log.log(logging.WARNING if tasks or restorers else logging.INFO,
+                "stopping: %d experiment(s) aborted, every loop handed back first (at most %g s)", len(tasks), bound)
+        if tasks:
+            await asyncio.wait(tasks, timeout=bound + SHUTDOWN_GRACE)
+        if restorers:
+            await asyncio.wait(restorers, timeout=SHUTDOWN_GRACE)
+        last = [loop for loop in self.loops.values() if loop.pending is not None]  # a last try for each
+        if last and time.monotonic() < deadline:
+            tries = [asyncio.create_task(self._try_restore(loop)) for loop in last]
+            await asyncio.wait(tries, timeout=max(deadline - time.monotonic(), 0.0) + SHUTDOWN_GRACE)
+        await watches
+        unrestored: list[str] = []
+        for loop in self.loops.values():
+            loop.restorer = None
+            if loop.running is not None:  # its hand-back did not end within the bound
+                # In the history's thread after the session's earlier records; stop() waits for it before the exit.
+                self.recorder.record(self.history.finish, loop.running.sid, TuneResult.failed(
+                    Code.LOOP_NOT_RESTORED, "the daemon stopped before the loop was handed back",
+                    "PI").record(), None, None, "not_restored")
+                unrestored.append(loop.config.id)
+            elif loop.pending is not None:
+                unrestored.append(loop.config.id)
+        for loop_id in unrestored:
+            loop = self.loops[loop_id]
+            what = "its hand-back did not end" if loop.pending is None else loop.pending.error
+            log.critical("loop %s: LOOP NOT RESTORED at shutdown (%s); recorded: the next start resumes the "
+                         "restore", loop_id, what)
+        self.close_streams()
+        return unrestored
+
+    def close_streams(self) -> None:
+        """End every event stream (the daemon stops): a last ``state`` event, then the end."""
+        self._streams_closed = True
+        for loop in self.loops.values():
+            self._publish(loop, "state", loop.as_json())
+            self._publish(loop, "end", {})
+
+    @property
+    def streams_closed(self) -> bool:
+        """The event streams have ended (a new one ends at once)."""
+        return self._streams_closed
+
+    @property
+    def stopping(self) -> bool:
+        """The daemon shuts down: no new session."""
+        return self._stopping
+
+    async def stop(self) -> None:
+        """:meth:`shutdown` (if not done yet), then stop the field (its plants) and the design's workers."""
+        await self.shutdown()
+        for reconciler in self._reconcilers:
+            reconciler.cancel()
+        await self.recorder.drain(STOP_WAIT)  # what the sessions' ends still have to record
+        self.recorder.close()
+        await self.field.stop()
+        await asyncio.to_thread(close_design_pool)
+
+    # -- commands -----------------------------------------------------------------------------------------------
+
+    def get(self, loop_id: str) -> Loop:
+        """The loop ``loop_id``; Refused('not_found') if there is none."""
+        loop = self.loops.get(loop_id)
+        if loop is None:
+            raise Refused("not_found", f"no loop {loop_id!r}")
+        return loop
+
+    async def request_tune(self, loop_id: str, request: TuneRequest, user: str) -> str:
+        """TUNE as the API and the device's handshake ask it: :meth:`tune` after a fresh read of the loop.
+
+        Before anything is written to the loop, a link of its own reads the PV
+        and the handshake bits: refused (the loop untouched) if the PV is
+        outside the loop's PV limits, not finite or stale, if the link fails or
+        reports itself disconnected (``Link.health``), or if the device already
+        shows TBSY. The state checks of :meth:`tune` come first (no I/O for a
+        busy loop) and again after the read (another TUNE may have won meanwhile).
+        """
+        loop = self.get(loop_id)
+        self._admit(loop, request)
+        if self._stopping:
+            raise Refused("stopping", "the daemon is stopping")
+        await self.field.check(loop_id)
+        return self.tune(loop_id, request, user)
+
+    def _admit(self, loop: Loop, request: TuneRequest) -> Settings:
+        """The settings of a TUNE of ``loop``; Refused if the loop or its group is busy or a setting is out of bounds."""
+        loop_id = loop.config.id
+        if self._stopping:
+            raise Refused("stopping", "the daemon is stopping")
+        if loop.busy:
+            raise Refused("busy", f"loop {loop_id!r} is tuning (session {loop.session})")
+        if loop.pending is not None:
+            raise Refused("not_restored", f"loop {loop_id!r} is not handed back yet (session {loop.pending.sid}): "
+                                          f"{loop.pending.error}")
+        if loop.applying:
+            raise Refused("busy", f"gains are being written to loop {loop_id!r}")
+        settings = settings_of(loop.config, request)
+        self._check_capacity(loop_id, plan_of(loop.config, settings))
+        group = loop.config.group
+        if group is not None:
+            for other in self.loops.values():
+                if other.busy and other.config.group == group:
+                    raise Refused("group_busy", f"loop {other.config.id!r} of exclusion group {group!r} is tuning",
+                                  Code.GROUP_BUSY)
+        if settings.amp > loop.config.max_amp:
+            raise Refused("invalid", f"amp: {settings.amp:g} is above loop {loop_id!r}'s largest relay amplitude "
+                          f"{loop.config.max_amp:g} MV units (the span of its MV limits, else its tuning.max_amp)")
+        return settings
+
+    def _check_capacity(self, loop_id: str, plan: SessionPlan) -> None:
+        """Refused('overloaded') while the daemon tunes ``max_sessions`` loops, while the loop's sampler would need
+        more than ``sampler_load`` of a core with ``plan``'s session added (:mod:`~autotuner.service.daemon.capacity`),
+        or while its samples are late by its own fault (:data:`OVERLOAD_HOLD` seconds after the last such sample,
+        while any session runs)."""
+        tuning = sum(loop.busy for loop in self.loops.values())
+        if self.max_sessions is not None and tuning >= self.max_sessions:
+            raise Refused("overloaded", f"loop {loop_id!r} not tuned: the daemon tunes {tuning} loops, its "
+                          f"max_sessions; retry when one has ended", Code.REFUSED_OVERLOADED)
+        if (load := self.field.load(loop_id, plan)) > self.sampler_load:
+            raise Refused("overloaded", f"loop {loop_id!r} not tuned: with it, its sampler would need {load:.0%} of "
+                          f"a core, beyond its sampler_load {self.sampler_load:.0%} ({tuning} loops tuning); retry "
+                          "when fewer tune", Code.REFUSED_OVERLOADED)
+        if tuning and time.monotonic() < self._overloaded_until:
+            raise Refused("overloaded", f"loop {loop_id!r} not tuned: the daemon's samples of the {tuning} loops "
+                          "it tunes are late by its own fault (a loaded machine); retry when fewer tune",
+                          Code.REFUSED_OVERLOADED)
+
+    def tune(self, loop_id: str, request: TuneRequest, user: str) -> str:
+        """TUNE: start a session on an idle loop now; its id. Refused if the loop or its group is busy.
+
+        Without the fresh read of :meth:`request_tune` (tests, and code that has just read the loop).
+        """
+        loop = self.get(loop_id)
+        settings = self._admit(loop, request)
+        sid = uuid.uuid4().hex
+        self.recorder.record(self.history.begin, sid, loop_id, user, settings.as_json())  # before the session's
+        loop.session, loop.status, loop.result = sid, None, None
+        loop.events.trend.start(sid)
+        loop.running = Session(sid, start=time.monotonic())
+        loop.running.task = asyncio.create_task(self._session(loop, loop.running, user, settings))
+        self._publish(loop, "state", loop.as_json())
+        return sid
+
+    def abort(self, loop_id: str) -> str:
+        """TBRK: abort the running session (the loop is restored); its id. Refused('idle') if none runs."""
+        loop = self.get(loop_id)
+        if loop.running is None:
+            raise Refused("idle", f"loop {loop_id!r} is not tuning")
+        self.field.abort(loop_id)
+        return loop.running.sid
+
+    async def apply(self, loop_id: str, sid: str | None, user: str) -> dict[str, Any]:
+        """Write the designed gains of session ``sid`` (None: the loop's newest) to the idle loop ``loop_id``.
+
+        The gains are read back (if that read fails, the written ones are
+        taken), recorded in the history as applied by ``user`` with the gains
+        after, and become the loop's current gains. ``{"loop", "session",
+        "gains"}``. Refused: not_found (loop, or a session of this loop),
+        busy (the loop tunes, or is being written), nothing_to_apply (no
+        session yet, or it failed or has no gains), link (the write failed;
+        nothing recorded).
+        """
+        loop = self.get(loop_id)
+        if loop.busy or loop.applying:
+            raise Refused("busy", f"loop {loop_id!r} is tuning or being written")
+        loop.applying = True  # before the first await: a TUNE or another apply meanwhile is refused
+        try:
+            sid, gains = await self._designed_gains(loop_id, sid)
+            why = await self.recorder.durable(self.history.intend, sid, user, gains)
+            if why:
+                raise Refused("history_unavailable", f"gains not written to loop {loop_id!r}: the intent to "
+                              f"write them must be recorded first; {why}")
+            after = await self.field.write_gains(loop_id, gains)
+        except LinkError as exc:  # the intent stays open: reconciled with the device at the next start
+            raise Refused("link", f"gains not written to loop {loop_id!r}: {exc}") from None
+        finally:
+            loop.applying = False
+        why = await self.recorder.durable(self.history.applied, sid, user, after)
+        if why:
+            log.error("loop %s: gains of session %s written, their record delayed: %s", loop_id, sid, why)
+        loop.gains = after
+        # Awaited (bounded): whoever reads the loop next — the REST client, the OPC UA reply's status — sees the
+        # session applied (pending_gains false), not the record from before until the next refresh.
+        await waited(self._refresh_latest(loop))
+        log.info("loop %s: gains of session %s applied by %s", loop_id, sid, user)
+        self._publish(loop, "state", loop.as_json())
+        return {"loop": loop_id, "session": sid, "gains": after.as_json()}
+
+    async def _designed_gains(self, loop_id: str, sid: str | None) -> tuple[str, Gains]:
+        """The session (None: the loop's newest finished one) whose gains an apply writes, and those gains; read
+        after the history's writes before (a session just ended is recorded first). Refused if there are none."""
+        record = await self.recorder.record(self.history.latest, loop_id) if sid is None else \
+            await self.recorder.record(self.history.get, sid)
+        if record is None and sid is None:
+            raise Refused("nothing_to_apply", f"loop {loop_id!r} has no finished session")
+        if record is None or record["loop"] != loop_id:
+            raise Refused("not_found", f"no session {sid!r} of loop {loop_id!r}")
+        sid = record["id"]
+        if record["outcome"] != "success":
+            raise Refused("nothing_to_apply", f"session {sid} did not succeed: {record['message']}")
+        gains = None if record["result"] is None else usable_gains(record["result"].gains)
+        if gains is None:
+            raise Refused("nothing_to_apply", f"session {sid} has no usable gains")
+        return sid, gains
+
+    async def wait(self, loop_id: str) -> None:
+        """Until the running session of ``loop_id`` (if any) has ended and the history's pending writes are done."""
+        running = self.get(loop_id).running
+        if running is not None and running.task is not None:
+            await asyncio.shield(running.task)
+        await self.recorder.drain()
+
+    # -- events -------------------------------------------------------------------------------------------------
+
+    def subscribe(self, loop_id: str) -> asyncio.Queue[dict[str, Any]]:
+        """A queue receiving the loop's events ``{"event": "sample"|"state"|"end", "data": {...}}``."""
+        return self.get(loop_id).events.subscribe()
+
+    def unsubscribe(self, loop_id: str, queue: asyncio.Queue[dict[str, Any]]) -> None:
+        """Stop sending events to ``queue``."""
+        self.get(loop_id).events.unsubscribe(queue)
+
+    def replay(self, loop_id: str) -> dict[str, Any]:
+        """The loop's trend kept in memory (:class:`~autotuner.service.trend.Trend`): the running or last
+        session's samples from its start, then the monitor's; as columns."""
+        return self.get(loop_id).events.trend.replay()
+
+    @staticmethod
+    def _publish(loop: Loop, event: str, data: dict[str, Any]) -> None:
+        loop.events.publish(event, data)
+
+    def _refresh_latest(self, loop: Loop) -> asyncio.Future[Any]:
+        """Read the loop's newest session in the history's thread (after the writes before), then publish; the
+        read's future, which a caller may await (:func:`waited`): ``loop.latest`` is set by then (the callback
+        setting it was added first)."""
+        future = self.recorder.record(self.history.latest, loop.config.id)
+
+        def done(f: asyncio.Future[Any]) -> None:
+            if not f.cancelled() and f.exception() is None:
+                loop.latest = f.result()
+                self._publish(loop, "state", loop.as_json())
+
+        future.add_done_callback(done)
+        return future
+
+    # -- the session --------------------------------------------------------------------------------------------
+
+    async def _session(self, loop: Loop, running: Session, user: str, settings: Settings) -> None:
+        sid, loop_id = running.sid, loop.config.id
+        plan = plan_of(loop.config, settings, self.handback_config.session())
+        outcome: SessionOutcome | None = None
+        state, why_none = "finished", "aborted: the daemon stopped"
+        pending: Pending | None = None
+        try:
+            outcome = await self.field.run(loop_id, sid, user, plan)
+        except asyncio.CancelledError:
+            state = "interrupted"
+            raise
+        except Exception as exc:  # the field lost the session (a sampler process ended): recovered as after a crash
+            log.error("loop %s: session %s lost: %s", loop_id, sid, exc)
+            state, why_none = "interrupted", f"interrupted: {exc}"
+        finally:
+            try:
+                if outcome is None:  # cancelled (the field has handed the loop back, or said why not) or lost
+                    result: ResultRecord = TuneResult.failed(Code.ABORTED, why_none, settings.controller).record()
+                    restore_error = running.restore_error
+                    if restore_error is None:  # the hand-back never reported: not known to be done
+                        restore_error = "" if state == "finished" else why_none
+                    gains_after, trace, applied_by, intended = None, None, None, running.intended
+                else:
+                    result, restore_error, gains_after = outcome.result.record(), outcome.restore_error, \
+                        outcome.gains_after
+                    trace, applied_by, intended = downsample(outcome.result.trace), outcome.applied_by, \
+                        outcome.intended
+                loop.result = result
+                self.outcomes[result.ite] += 1
+                if result.ite == Code.LINK_FAULT:
+                    loop.link_errors += 1
+                if restore_error and running.saved is not None:  # shown with the idle loop, not while still busy
+                    pending = Pending(sid, running.saved, running.mv_range or mv_hull(running.saved.mv,
+                                                                                      *running.levels),
+                                      Code(result.ite), state, restore_error)
+                    log.error("loop %s: LOOP NOT RESTORED at the end of session %s (%s); retrying", loop_id, sid,
+                              restore_error)
+                end = (self.history.finish, sid, result, gains_after, trace,
+                       "not_restored" if pending is not None else state, applied_by)
+                if self._stopping:  # the shutdown's bound is for the hand-back: the record goes on in its thread
+                    self.recorder.record(*end)
+                elif why := await self.recorder.durable(*end):
+                    log.error("loop %s: the end of session %s is not recorded yet: %s", loop_id, sid, why)
+                if intended is not None and gains_after is None:  # unknown whether the write happened: ask later
+                    self._reconcilers.append(asyncio.create_task(self._reconcile(
+                        {"id": sid, "loop": loop_id, "gains_intent": {"gains": intended.as_json()}})))
+                refreshed = self._refresh_latest(loop)
+                if not self._stopping:
+                    # Awaited (bounded) before the loop shows idle: a client that sees TBSY fall reads this
+                    # session as the last one (last_outcome, pending_gains), not the one before it.
+                    await waited(refreshed)
+                if running.saved is not None and pending is None:  # what the session left: its mode, the gains
+                    loop.mode, loop.gains, loop.sp = Mode(running.saved.mode), gains_after, running.saved.sp
+                if math.isfinite(running.pv):  # the session's last values, not the monitor's
+                    loop.pv = running.pv
+                    loop.mv = running.mv if math.isfinite(running.mv) else loop.mv
+            finally:  # whatever failed above, the loop is idle again (TUNE accepted, TBRK refused)
+                loop.running = None
+                loop.pending = pending
+                if pending is not None and not self._stopping:
+                    loop.restorer = asyncio.create_task(self._restore_until_held(loop))
+                self._publish(loop, "state", loop.as_json())
+
+    # -- what the field reports (FieldSink) ---------------------------------------------------------------------
+
+    def status(self, loop_id: str, status: Status, pv: float, mv: float) -> None:
+        """A running session's status after a sample (the field's report)."""
+        loop = self.loops[loop_id]
+        running = loop.running
+        if running is None:
+            return
+        stage_changed = loop.status is None or loop.status.stage is not status.stage
+        loop.status = status
+        running.pv, running.mv = pv, mv
+        if status.stage is not Stage.DONE and math.isfinite(pv):
+            self._publish(loop, "sample", {
+                "t": (time.monotonic() - running.start) * loop.config.speed, "time": time.time(), "pv": pv,
+                "sp": None if running.saved is None else running.saved.sp, "mv": mv, "relay": status.relay,
+                "filter_phase_deg": status.filter_phase_deg, "stage": status.stage.value,
+                "progress": status.progress, "ite": status.ite, "periods": status.periods,
+            })
+        if stage_changed:
+            self._publish(loop, "state", loop.as_json())
+
+    def handed_back(self, loop_id: str, error: str) -> None:
+        """The running session's hand-back is over (the field's report)."""
+        running = self.loops[loop_id].running
+        if running is not None:
+            running.restore_error = error
+
+    def timings(self, batch: TimingBatch) -> None:
+        """The sessions' sample timings since the last batch (the field's report): kept, and a sample late by the
+        daemon's own fault holds new TUNEs off for :data:`OVERLOAD_HOLD` seconds."""
+        self.sampling.merge(batch)
+        if batch.overloaded:
+            if time.monotonic() >= self._overloaded_until:
+                worst = max(batch.worst.items(), key=lambda item: item[1])
+                log.warning("the daemon is overloaded: a sample of loop %s was %.3g s late by the daemon's own "
+                            "fault (%d loop(s) tuning); new TUNEs are refused for %g s", worst[0], worst[1],
+                            sum(loop.busy for loop in self.loops.values()), OVERLOAD_HOLD)
+            self._overloaded_until = time.monotonic() + OVERLOAD_HOLD
+
+    async def durable(self, loop_id: str, name: str, *args: Any) -> str:
+        """A running session's durable record (its saved state and MV range, or a gains intent)."""
+        why = await self.recorder.session_record(name, *args)
+        running = self.loops[loop_id].running
+        if not why and running is not None:
+            if name == "saved":
+                running.saved, running.levels, running.mv_range = args[1], args[2], args[3]
+            elif name == "intend":
+                running.intended = args[2]
+        return why
+
+    async def design(self, job: DesignJob) -> Outcome:
+        """An ended experiment's design, in the daemon's worker pool."""
+        return await designed(job)
+
+    def reading(self, loop_id: str, reading: Reading) -> None:
+        """A monitor reading of the idle loop: kept in the status, published (a state too if mode or gains changed)."""
+        loop = self.loops[loop_id]
+        if loop.busy:
+            return  # a session started meanwhile: its samples are the live values
+        state = reading.state
+        changed = (loop.mode, loop.gains) != (state.mode, state.gains)
+        loop.mode, loop.gains = Mode(state.mode), state.gains
+        loop.pv, loop.sp, loop.mv = reading.pv, state.sp, state.mv
+        self._publish(loop, "sample", {"time": reading.time, "pv": reading.pv, "sp": state.sp, "mv": state.mv,
+                                       "mode": loop.mode.name})
+        if changed:
+            self._publish(loop, "state", loop.as_json())
+
+    def link_failed(self, loop_id: str, error: str) -> None:
+        """The watch's link failed: logged once per outage, kept as ``monitor_error``; the mode is unknown."""
+        loop = self.loops[loop_id]
+        loop.link_errors += 1
+        if loop.monitor_error is None:
+            log.warning("loop %s: %s link failed (%s); retrying", loop_id, _watching(loop), error)
+        changed = loop.monitor_error != error or loop.mode is not None
+        loop.monitor_error = error
+        if not loop.busy:
+            loop.mode = None
+        if changed:
+            self._publish(loop, "state", loop.as_json())
+
+    def link_back(self, loop_id: str) -> None:
+        """The watch's link works again."""
+        loop = self.loops[loop_id]
+        if loop.monitor_error is not None:
+            log.info("loop %s: %s link back", loop_id, _watching(loop))
+            loop.monitor_error = None
+            self._publish(loop, "state", loop.as_json())
+
+    async def edges(self, loop_id: str, last: TuneFlags, flags: TuneFlags) -> TuneFlags | None:
+        """The device's bits changed: TBRK first (a break wins), then TUNE; a TUNE edge while TBRK is held is
+        ignored. The flags to write back: a refused TUNE's TE and code (None: nothing to write)."""
+        loop = self.loops[loop_id]
+        if self._stopping:
+            return None  # the daemon is stopping: no new session
+        if flags.tbrk and not last.tbrk and loop.busy:
+            log.info("loop %s: TBRK from the device aborts session %s", loop_id, loop.session)
+            self.abort(loop_id)
+        if not flags.tune or last.tune:
+            return None
+        if flags.tbrk:
+            log.info("loop %s: TUNE from the device ignored while TBRK is set", loop_id)
+            return None
+        try:
+            sid = await self.request_tune(loop_id, TuneRequest(), user=PLC_USER)
+        except Refused as refused:
+            log.info("loop %s: TUNE from the device refused: %s", loop_id, refused.message)
+            if refused.ite is not None and refused.code != "device_busy":  # TBSY/ite then belong to the other tuner
+                return TuneFlags(tbsy=False, te=True, ite=float(refused.ite))
+            return None
+        log.info("loop %s: TUNE from the device started session %s", loop_id, sid)
+        return None
+
+    # -- gains writes and restores after a crash ----------------------------------------------------------------
+
+    async def _reconcile(self, record: dict[str, Any]) -> None:
+        """Close an open gains intent (a crash between the write and its record) with the gains the device holds.
+
+        Retried (growing pauses) until the device answers: the history then
+        records the gains read back, as applied by whoever intended the write
+        if they are the intended gains, else as not applied.
+        """
+        loop = self.loops.get(record["loop"])
+        sid, intended = record["id"], Gains.from_json(record["gains_intent"]["gains"])
+        if loop is None:
+            log.warning("session %s: its gains write is unconfirmed and loop %r is no longer configured", sid,
+                        record["loop"])
+            return
+        pause = 0.5
+        while (read_back := await self.field.read_gains(loop.config.id)) is None:
+            log.info("loop %s: gains write of session %s unconfirmed, the device is unreachable; retrying",
+                     loop.config.id, sid)
+            await asyncio.sleep(pause)
+            pause = min(2.0 * pause, RECONCILE_RETRY_MAX)
+        applied = same_gains(read_back, intended)
+        why = await self.recorder.durable(self.history.resolve_intent, sid, read_back, applied)
+        log.warning("loop %s: the gains write of session %s was interrupted; the device %s the intended gains%s",
+                    loop.config.id, sid, "holds" if applied else "does not hold",
+                    f" (not recorded yet: {why})" if why else "")
+        self._refresh_latest(loop)
+
+    def _recover(self, record: dict[str, Any]) -> Loop | None:
+        """A session the last run left running or not restored: its loop, now pending a restore (None: nothing to
+        restore — the session never touched its loop, or the loop is no longer configured)."""
+        loop = self.loops.get(record["loop"])
+        saved = record["saved"]
+        if record["state"] == "running":
+            message = "interrupted: the daemon stopped during the session"
+            if saved is None:
+                message += " (before it touched the loop)"
+            elif loop is None:
+                message += f"; loop {record['loop']!r} is no longer configured: check it by hand"
+            result = TuneResult.failed(Code.ABORTED, message, record["request"].get("controller", "PI")).record()
+            self.recorder.record(self.history.finish, record["id"], result, None, None,
+                                 "not_restored" if saved is not None and loop is not None else "interrupted")
+            code = Code.ABORTED
+        else:
+            result = record["result"]
+            code = result.code if result else Code.ABORTED
+            if loop is None:
+                log.critical("loop %s: session %s left it not restored, and it is no longer configured: check it "
+                             "by hand", record["loop"], record["id"])
+        if loop is None or saved is None:
+            return None
+        loop.session, loop.result = record["id"], result
+        # The MVs the session may have written: its recorded range (older records: the relay levels and saved MV).
+        mv_range = mv_hull(saved["mv"], *saved.get("relay_levels", ()), *saved.get("mv_range", ()))
+        loop.pending = Pending(record["id"], state_of(saved), mv_range, code, "interrupted",
+                               "not tried since the daemon started", attempts=0)
+        return loop
+
+    async def _restore_until_held(self, loop: Loop) -> None:
+        """Try the pending restore of ``loop`` again and again, the pause doubling from ``retry_first`` up to
+        ``retry_max`` seconds, until it is dealt with (or the daemon stops)."""
+        pause = self.handback_config.retry_first
+        while loop.pending is not None and not self._stopping:
+            await asyncio.sleep(pause)
+            if await self._try_restore(loop):
+                return
+            pause = min(2.0 * pause, self.handback_config.retry_max)
+
+    async def _try_restore(self, loop: Loop) -> bool:
+        """One try at the pending restore of ``loop``; True when it is dealt with (handed back, found back, or
+        left as an operator set it), False when it must be tried again."""
+        p = loop.pending
+        assert p is not None
+        loop_id = loop.config.id
+        try:
+            done = await self.field.restore(loop_id, p, self.handback_config.track_timeout)
+        except (LinkError, NotTracking) as exc:
+            p.attempts += 1
+            p.error = str(exc) or type(exc).__name__
+            log.error("loop %s: LOOP NOT RESTORED (session %s, %d tries): %s", loop_id, p.sid, p.attempts, p.error)
+            self._publish(loop, "state", loop.as_json())
+            return False
+        log.log(logging.WARNING if done.warning else logging.INFO, "loop %s: %s (session %s, try %d)", loop_id,
+                done.message, p.sid, p.attempts)
+        # In the history's thread, after the session's end (a write queued before it, e.g. one retried while the
+        # database is locked): the event loop never waits on the database, and the records keep their order.
+        written = self.recorder.record(self.history.restored, p.sid, p.final, done.message, int(done.code))
+        try:  # shown restored once recorded (bounded; not during a shutdown, whose bound is for the hand-backs)
+            if not self._stopping and (why := await waited(written)):
+                log.error("loop %s: the restore of session %s is not recorded yet: %s", loop_id, p.sid, why)
+        finally:  # cancelled while waiting (a shutdown): the loop is dealt with all the same
+            loop.pending = None
+            if loop.result is not None:
+                loop.result = replace(loop.result, ite=int(done.code), te=True,
+                                      message=f"{loop.result.message}; {done.message}")
+            self._refresh_latest(loop)
+            self._publish(loop, "state", loop.as_json())
+        return True
+
+
+def _watching(loop: Loop) -> str:
+    """What a loop's watch is called in the log."""
+    return "handshake" if loop.config.handshake else "monitor"
+
+

@@ -1,0 +1,68 @@
+"""The sampling timing's histogram: percentiles within a bucket's width of numpy's, counts exact."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from autotuner.service.config import DaemonConfig, TuneRequest
+from autotuner.service.daemon.capacity import DEFAULT_COST, MIN_SAMPLES, Cost
+from autotuner.service.daemon.field import nominal_rate
+from autotuner.service.daemon.settings import plan_of, settings_of
+from autotuner.service.daemon.timing import PER_DECADE, Histogram, Timings
+
+
+def test_quantiles_are_within_a_buckets_width_of_the_samples_own():
+    values = np.random.default_rng(7).lognormal(-5.0, 1.5, 20000)
+    h = Histogram()
+    for v in values:
+        h.add(float(v))
+    width = 10.0 ** (1.0 / PER_DECADE)
+    for q in (0.01, 0.5, 0.9, 0.99, 0.999):
+        exact = float(np.quantile(values, q))
+        assert exact / width <= h.quantile(q) <= exact * width, q
+    assert h.largest == values.max() and h.count == len(values)
+    assert h.total == pytest.approx(values.sum())
+    assert h.cumulative([1e-3, 1e-2, float("inf")]) == [int((values <= 1e-3).sum()), int((values <= 1e-2).sum()),
+                                                         len(values)]
+
+
+def test_merged_histograms_count_every_value_and_an_empty_one_has_no_quantile():
+    a, b = Histogram(), Histogram()
+    for v in (0.001, 0.002):
+        a.add(v)
+    b.add(0.5)
+    a.merge(b)
+    assert a.count == 3 and a.largest == 0.5 and a.quantile(1.0) == 0.5
+    assert np.isnan(Histogram().quantile(0.5))
+
+
+def test_timings_name_the_loops_late_by_the_fields_own_fault_and_hand_over_once():
+    t = Timings()
+    t.add("A", 0.004, 0.001, tolerance=0.02)
+    t.add("B", 0.090, 0.050, tolerance=0.02)
+    t.add("B", 0.060, 0.030, tolerance=0.02)
+    t.analysed(0.002)
+    batch = t.take()
+    assert batch.late.count == 3 and batch.analysis.count == 1
+    assert batch.overloaded == 2 and batch.worst == {"B": 0.050}
+    again = t.take()  # handed over: nothing new since, but the process's CPU meanwhile
+    assert again.late.count == 0 and again.overloaded == 0 and again.cpu >= 0.0
+
+
+def test_the_cost_per_sample_follows_what_was_measured_and_a_load_is_cost_times_rate():
+    cost = Cost()
+    cost.update(0.5, MIN_SAMPLES - 1)  # too few samples to say anything
+    assert cost.per_sample == DEFAULT_COST
+    for _ in range(60):
+        cost.update(0.2, 1000)  # 200 µs per sample, again and again
+    assert cost.per_sample == pytest.approx(200e-6, rel=1e-4)
+    assert cost.load(1500.0) == pytest.approx(0.3, rel=1e-4)
+
+
+def test_the_nominal_rate_counts_sessions_by_their_plan_and_idle_loops_by_their_monitor():
+    config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
+        {"id": f"L{k}", "link": f"modbus://10.0.0.1:502/{k}", "ts": 0.1, "monitor_period": 2.0} for k in range(4)]})
+    plan = plan_of(config.loops[0], settings_of(config.loops[0], TuneRequest()))
+    assert nominal_rate(config.loops, {}) == pytest.approx(4 * 0.5)
+    assert nominal_rate(config.loops, {"L0": plan, "L1": plan}) == pytest.approx(2 * 10.0 + 2 * 0.5)
