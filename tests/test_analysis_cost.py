@@ -96,17 +96,18 @@ def test_a_refit_whose_record_moved_away_searches_it_all() -> None:
 
 
 class _Counts:
-    """What each period's analysis did: the load fits' model runs and grids, the samples the Fourier
-    coefficients and the static ratio's lag were given."""
+    """What each period's analysis did: the load fits' model runs, grids and scanned step times, the samples
+    the Fourier coefficients and the static ratio's lag were given."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
         self.runs: list[int] = []
         self.grid = 0
         self.fits = 0
+        self.scanned = 0
         self.fourier = 0
         self.lagged = 0
-        fit, held, sampled, lagged = (LoadFitter.fit, relay.held_coefficient, relay.sampled_coefficient,
-                                      load_fit._lagged_mean)
+        fit, scan, held, sampled, lagged = (LoadFitter.fit, LoadFitter._scan_step, relay.held_coefficient,
+                                            relay.sampled_coefficient, load_fit._lagged_mean)
 
         def counted_fit(fitter: LoadFitter, *args, **kwargs):
             before = fitter.runs
@@ -122,14 +123,19 @@ class _Counts:
                 return function(t, values, *args, **kwargs)
             return counted
 
+        def counted_scan(fitter: LoadFitter, x, steps, ramp, free, ks):
+            self.scanned += len(ks)
+            return scan(fitter, x, steps, ramp, free, ks)
+
         monkeypatch.setattr(LoadFitter, "fit", counted_fit)
+        monkeypatch.setattr(LoadFitter, "_scan_step", counted_scan)
         monkeypatch.setattr(relay, "held_coefficient", reads(held, "fourier"))
         monkeypatch.setattr(relay, "sampled_coefficient", reads(sampled, "fourier"))
         monkeypatch.setattr(load_fit, "_lagged_mean", reads(lagged, "lagged"))
 
     def start(self) -> None:
         self.runs.append(0)
-        self.fits = self.grid = self.fourier = self.lagged = 0
+        self.fits = self.grid = self.scanned = self.fourier = self.lagged = 0
 
 
 def _run(config: RelayConfig, counts: _Counts, noise: float, loads: list[tuple[float, float]]):
@@ -148,7 +154,7 @@ def _run(config: RelayConfig, counts: _Counts, noise: float, loads: list[tuple[f
             counts.start()
             experiment.analyse()
             analyses.append((counts.runs[-1], counts.fits, counts.grid, counts.fourier, counts.lagged,
-                             len(experiment._record)))
+                             len(experiment._record), counts.scanned))
         sim.advance(mv)
     return analyses, experiment
 
@@ -161,12 +167,14 @@ def test_a_disturbed_run_of_40_periods_does_bounded_work_in_each_period(monkeypa
     assert len(experiment._record) >= 39 * 100 and experiment._fit is not None
     refits = [a for a in analyses if a[1] > 0]
     assert len(refits) >= 30  # the fit ran in most periods, on records of up to 4 000 samples
-    for runs, fits, grid, fourier, _, _ in analyses:
+    for runs, fits, grid, fourier, *_ in analyses:
         assert fits <= 3 and runs <= fits * (SEARCH_RUNS + NEAR_RUNS)
         assert grid <= load_fit._GRID_MAX
         assert fourier <= 4 * 100  # the samples of the latest periods, not of the record
-    # Near the accepted fit, most refits run a fraction of a full search.
-    assert np.median([a[0] for a in refits[-20:]]) <= NEAR_RUNS
+    # Near the accepted fit, a refit scans the step time near the accepted one (twice ± 1/12 period, 8
+    # samples here) instead of every 1/12 period of the record at 11 values of x: at 30 periods that
+    # would be 11 × 360 step times.
+    assert np.median([a[6] for a in refits[-20:]]) <= 2 * (2 * 8 + 1)
 
 
 def test_a_quiet_run_of_40_periods_reads_a_bounded_stretch_of_its_record(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -175,7 +183,7 @@ def test_a_quiet_run_of_40_periods_reads_a_bounded_stretch_of_its_record(monkeyp
     config = RelayConfig(amp=1.0, max_periods=40, gain_tol=1e-6, noise_tol=1e-6, static_tol=1e-6)
     analyses, experiment = _run(config, counts, 0.005, [])
     assert len(experiment._record) >= 39 * 100 and experiment._fit is None
-    for runs, fits, grid, fourier, lagged, _ in analyses:
+    for runs, fits, grid, fourier, lagged, *_ in analyses:
         assert fits <= 3 and runs <= fits * SEARCH_RUNS
         assert fourier <= 4 * 100
         # The static ratio's lag reads 36 of its time constants before the window (|F|/K0 = 0.58 here:

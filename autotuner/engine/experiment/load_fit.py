@@ -95,11 +95,12 @@ _RANK = 1e-8
 
 # The most candidate models one fit runs (each filters the record once: the fit's work, whatever the
 # record's length). The full search: its grid of x, four searches of x and the curvature's two points.
-# A refit near an earlier fit: one step-time scan at the earlier x, two searches (the earlier ramp and the
-# other: the scan's three points next to the earlier x, then Brent's method), the curvature's two — and the full search after it when the record has moved away from the
+# A refit near an earlier fit: the full search's models without a step, twice a step-time scan near the
+# earlier one and a search of x with the step (the scan's points next to the earlier x, then Brent's
+# method), the curvature's two — and the full search after it when the record has moved away from the
 # earlier fit.
 SEARCH_RUNS = _X_GRID + 4 * _X_STEPS + 2  # (the step's two searches start from the scan's best grid point)
-NEAR_RUNS = 1 + 2 * (3 + _X_STEPS) + 2
+NEAR_RUNS = _X_GRID + 2 * _X_STEPS + 2 * (1 + _X_STEPS) + 2  # (the scan's points are the grid's, run already)
 
 
 @dataclass(frozen=True)
@@ -588,15 +589,7 @@ class LoadFitter:
         A term is searched only where it could pay for itself (:meth:`_Criterion.worth_a_term`): a
         quiet record's search ends after the first scan of x, with the answer the whole search gives.
         """
-        # The free response of the lag (a PV still settling at the start) is
-        # left out of the search: over a few periods it is nearly a ramp or an
-        # offset, and with a long lag it is ill-conditioned against both.
-        best = self._scored(self._best_x((), False, False, lo, hi)[0], (), False, criterion)
-        if not criterion.worth_a_term(best.rss):
-            return best
-        ramp = self._scored(self._best_x((), True, False, lo, hi)[0], (), True, criterion)
-        if ramp.score < best.score:
-            best = ramp
+        best = self._without_steps(lo, hi, criterion)
         # Load steps: scan their time with the current x, then refine x.
         for _ in range(self.max_steps):
             first = self.start + self.n // 4
@@ -623,6 +616,18 @@ class LoadFitter:
             best = model
         return best
 
+    def _without_steps(self, lo: float, hi: float, criterion: _Criterion) -> _Model:
+        """The best model without load steps: x over [lo, hi] without and with a ramp (the ramp only where
+        it could pay for itself)."""
+        # The free response of the lag (a PV still settling at the start) is
+        # left out of the search: over a few periods it is nearly a ramp or an
+        # offset, and with a long lag it is ill-conditioned against both.
+        best = self._scored(self._best_x((), False, False, lo, hi)[0], (), False, criterion)
+        if not criterion.worth_a_term(best.rss):
+            return best
+        ramp = self._scored(self._best_x((), True, False, lo, hi)[0], (), True, criterion)
+        return ramp if ramp.score < best.score else best
+
     def _step_near(self, x: float, steps: tuple[int, ...], ramp: bool, k: int, last: int, spacing: int) -> int:
         """The sample within ``spacing`` of ``k`` (and before ``last``) where a load step fits best."""
         near = np.arange(max(k - spacing, 0), min(k + spacing + 1, last))
@@ -631,29 +636,31 @@ class LoadFitter:
         return int(near[int(np.argmin(self._scan_step(x, steps, ramp, False, near)))])
 
     def _refit_near(self, near: LoadFit, lo: float, hi: float, criterion: _Criterion) -> _Model | None:
-        """The model with ``near``'s terms, x near its own (:meth:`_near_x`), the step time within a step
-        grid's spacing of its own; the other choice of the ramp where the criterion now prefers it (a
-        drift). None when ``near``'s x is outside [lo, hi], or the best x lies beyond the search."""
+        """The full search's model, with the step's time and x searched near ``near``'s instead of over a
+        coarse scan of both: the step time within a step grid's spacing of ``near``'s, x from the scan's
+        points next to ``near``'s (:meth:`_near_x`). The ramp is chosen as the full search chooses it
+        (without the step: a ramp can mimic a settling PV once the step explains the rest), the step kept
+        where it pays for itself. None when ``near``'s x is outside [lo, hi], or the best x lies beyond
+        the search."""
         if not lo <= near.x <= hi:
             return None
-        ramp = near.ramp != 0.0
-        steps: tuple[int, ...] = ()
-        if near.step_time is not None:
-            k = int(round((near.step_time - self.t[0]) / self.dt))
-            # (A load from the start stays there: the full search puts no step between it and the relay's start.)
-            last = len(self.t) - self.n // 2
-            steps = (k if k == 0 else self._step_near(near.x, (), ramp, k, last, max(self.n // _STEP_GRID, 1)),)
-        best = None
-        for terms in (ramp, not ramp):
-            if best is not None and self._scored(best.x, steps, terms, criterion).score >= best.score:
-                break  # (the other ramp at the same x: no better, so not searched)
-            x = self._near_x(steps, terms, near.x, lo, hi)
+        best = self._without_steps(lo, hi, criterion)
+        if near.step_time is None or not criterion.worth_a_term(best.rss):
+            return best
+        k = int(round((near.step_time - self.t[0]) / self.dt))
+        last, spacing = len(self.t) - self.n // 2, max(self.n // _STEP_GRID, 1)
+        x: float | None = near.x
+        # The step time at the earlier x, x with it, the step time again at that x and x once more: the
+        # full search's refinement after its scan. (A load from the start stays there: the full search
+        # puts no step between it and the relay's start.)
+        for _ in range(2):
+            if k:
+                k = self._step_near(x, (), best.ramp, k, last, spacing)
+            x = self._near_x((k,), best.ramp, x, lo, hi)
             if x is None:
                 return None
-            model = self._scored(x, steps, terms, criterion)
-            if best is None or model.score < best.score:
-                best = model
-        return best
+        model = self._scored(x, (k,), best.ramp, criterion)
+        return model if model.score < best.score else best
 
     def _result(self, model: _Model, points: float) -> LoadFit:
         """The fit of ``model``: its coefficients, the standard error of x from the residual's curvature."""

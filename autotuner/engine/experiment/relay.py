@@ -447,11 +447,12 @@ class RelayExperiment:
 
         The switch itself is in the MV the last :meth:`step` returned: a full
         load fit takes milliseconds of CPU, and a switch waiting for it would
-        reach the process that much late. Its work is bounded, whatever the
-        record's length (docs/experiment.md, "The analysis's cost"). :meth:`step` runs it at the
-        next sample if the caller has not; a field session runs it after its
-        write, in a worker thread, so that its event loop (other loops, the
-        handshake) keeps time meanwhile. Nothing to do otherwise.
+        reach the process that much late. :meth:`step` runs it at the next
+        sample if the caller has not; a field session runs it after its write,
+        in a worker thread, so that its event loop (other loops, the handshake)
+        keeps time meanwhile. Nothing to do otherwise. Its work is bounded,
+        whatever the record's length (docs/experiment.md, "The analysis's cost
+        per period").
         """
         analyse, self._analyse = self._analyse, None
         if analyse is not None and not self.done:
