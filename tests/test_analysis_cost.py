@@ -171,10 +171,10 @@ def test_a_disturbed_run_of_40_periods_does_bounded_work_in_each_period(monkeypa
         assert fits <= 3 and runs <= fits * (SEARCH_RUNS + NEAR_RUNS)
         assert grid <= load_fit._GRID_MAX
         assert fourier <= 4 * 100  # the samples of the latest periods, not of the record
-    # Near the accepted fit, a refit scans the step time near the accepted one (twice ± 1/12 period, 8
-    # samples here) instead of every 1/12 period of the record at 11 values of x: at 30 periods that
+    # Near the accepted fit, a refit scans the step time near the accepted one (twice ± a quarter period,
+    # 25 samples here) instead of every 1/12 period of the record at 11 values of x: at 30 periods that
     # would be 11 × 360 step times.
-    assert np.median([a[6] for a in refits[-20:]]) <= 2 * (2 * 8 + 1)
+    assert np.median([a[6] for a in refits[-20:]]) <= 2 * (2 * 25 + 1)
 
 
 def test_a_quiet_run_of_40_periods_reads_a_bounded_stretch_of_its_record(monkeypatch: pytest.MonkeyPatch) -> None:

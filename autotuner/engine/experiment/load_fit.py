@@ -85,6 +85,9 @@ _MEMORY = 36.0
 _X_GRID = 11
 _X_TOL = 2.5e-4
 _X_STEPS = 16
+# A refit searches near an earlier fit whose x is this certain (a fifth of the scan's cell); near a less
+# certain one it can settle in another basin of x and step time than the full search's scan finds.
+_NEAR_STD = 0.02
 # A refit whose residual grew beyond this many times the earlier fit's (plus the model's own mismatch,
 # _RESOLUTION) meets something the earlier terms do not explain, such as a second load: the full search runs.
 _MISFIT = 2.0
@@ -637,18 +640,19 @@ class LoadFitter:
 
     def _refit_near(self, near: LoadFit, lo: float, hi: float, criterion: _Criterion) -> _Model | None:
         """The full search's model, with the step's time and x searched near ``near``'s instead of over a
-        coarse scan of both: the step time within a step grid's spacing of ``near``'s, x from the scan's
+        coarse scan of both: the step time within a quarter period of ``near``'s, x from the scan's
         points next to ``near``'s (:meth:`_near_x`). The ramp is chosen as the full search chooses it
         (without the step: a ramp can mimic a settling PV once the step explains the rest), the step kept
-        where it pays for itself. None when ``near``'s x is outside [lo, hi], or the best x lies beyond
-        the search."""
-        if not lo <= near.x <= hi:
+        where it pays for itself. None when ``near``'s x is outside [lo, hi] or uncertain (``_NEAR_STD``),
+        or the best x lies beyond the search."""
+        if not (lo <= near.x <= hi and near.x_std <= _NEAR_STD):
             return None
         best = self._without_steps(lo, hi, criterion)
         if near.step_time is None or not criterion.worth_a_term(best.rss):
             return best
         k = int(round((near.step_time - self.t[0]) / self.dt))
-        last, spacing = len(self.t) - self.n // 2, max(self.n // _STEP_GRID, 1)
+        # Within a quarter period of it: as far as two fits that agree may put it (RelayExperiment._agree).
+        last, spacing = len(self.t) - self.n // 2, max(self.n // 4, 1)
         x: float | None = near.x
         # The step time at the earlier x, x with it, the step time again at that x and x once more: the
         # full search's refinement after its scan. (A load from the start stays there: the full search
