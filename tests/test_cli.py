@@ -191,6 +191,7 @@ def test_bench_small_batch(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     table = output.read_text()
     assert table.startswith("| id |") and "P1-X" in table and "**median**" in table
+    assert "| noise-free | 1 |" in table and "analyse() CPU ms" in table  # the experiment's CPU per call
     assert table.strip() in result.stdout
     assert "wall time" in result.stderr
 
@@ -384,6 +385,7 @@ def test_bench_field_runs_every_scenario_on_a_batch(tmp_path: Path) -> None:
         assert f"### {scenario.name}" in out.read_text()
     assert "field scenarios:" in result.stdout and "of 14 runs tuned with Ms ≤ 1.6" in result.stdout
     assert "ZN PI:" in result.stdout and "AH PID:" in result.stdout
+    assert "| clean (reference) | 1 |" in result.stdout and "| field scenarios | 14 |" in result.stdout
     clean = next(line for line in result.stdout.splitlines() if line.startswith("| clean"))
     assert "| 1 | 1 | 1 (100.0 %) |" in clean  # the undisturbed run tunes and keeps Ms ≤ 1.6
 

@@ -24,13 +24,14 @@ import os
 import statistics
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
 
+from autotuner.benchmarks.cpu import CpuCost, cpu_table, cpu_times
 from autotuner.engine.design.closed_loop import check_gains
 from autotuner.engine.design.point_design import DEFAULT_ND, TD_RATIOS, design, fit_model
 from autotuner.engine.plant.expression import parse_process
@@ -82,6 +83,8 @@ class Row:
     ah_pi_ms: float
     ah_pid_ms: float
     migo_pid_over_pi: float
+    cpu: CpuCost | None = field(default=None, repr=False, compare=False)  # the clean PI run's calls
+    noisy_cpu: CpuCost | None = field(default=None, repr=False, compare=False)
 
 
 def ideal_relay(process: Process, ts: float, amp: float, periods: int = 8) -> tuple[float, float]:
@@ -121,7 +124,8 @@ def run_one(row: dict[str, str]) -> Row:
     migo_pid = max((migo([plant], w135, 1.4, r, DEFAULT_ND) for r in TD_RATIOS), key=lambda m: m.ki)
     config = RelayConfig(amp=1.0, time_limit=200 * 2.0 * math.pi / w135)
 
-    clean = {c: tune(PlantSim(process, ts), config, c) for c in ("PI", "PID")}
+    times = cpu_times()
+    clean = {c: tune(PlantSim(process, ts), config, c, times=times if c == "PI" else None) for c in ("PI", "PID")}
     pi, pid = clean["PI"], clean["PID"]
     assert pi.ok and pid.ok, (row["id"], pi.message, pid.message)
     ident = pi.identification
@@ -129,7 +133,9 @@ def run_one(row: dict[str, str]) -> Row:
     # PV oscillation amplitude of the clean run's last period sets the noise level.
     half = len(pi.trace.pv) // 2
     amplitude = 0.5 * float(np.ptp(pi.trace.pv[half:]))
-    noisy = tune(PlantSim(process, ts, noise_std=NOISE_FRACTION * amplitude, seed=1), config, "PI")
+    noisy_times = cpu_times()
+    noisy = tune(PlantSim(process, ts, noise_std=NOISE_FRACTION * amplitude, seed=1), config, "PI",
+                 times=noisy_times)
     if noisy.ok:
         n_ident = noisy.identification
         n_true = complex(process.freqresp(n_ident.point.omega))
@@ -167,6 +173,8 @@ def run_one(row: dict[str, str]) -> Row:
         ah_pi_ms=_judge(process, ah_pi, w),
         ah_pid_ms=_judge(process, ah_pid, w),
         migo_pid_over_pi=migo_pid.ki / migo_pi.ki,
+        cpu=CpuCost.of(times),
+        noisy_cpu=CpuCost.of(noisy_times),
     )
 
 
@@ -256,6 +264,12 @@ _DESIGN_COLUMNS = (
     ("PID Ms", "pid_ms", "ms"),
     ("PID ki / PI ki", "pid_over_pi", "{:.3f}"),
 )
+
+
+def cpu_summary(rows: list[Row]) -> str:
+    """The experiment's CPU per period's analysis and per sample (markdown), clean and noisy (PI runs)."""
+    return cpu_table({"noise-free": [r.cpu for r in rows if r.cpu is not None],
+                      f"{100 * NOISE_FRACTION:g} % noise": [r.noisy_cpu for r in rows if r.noisy_cpu is not None]})
 
 
 def format_table(rows: list) -> str:

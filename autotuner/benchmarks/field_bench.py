@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from autotuner.benchmarks.cpu import CpuCost, cpu_table, cpu_times
 from autotuner.benchmarks.design_bench import AH_PHASE, AH_RADIUS, ideal_relay, pool_map
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.design.closed_loop import check_gains
@@ -90,6 +91,7 @@ class Run:
     ms: float
     ratio: float
     periods: float
+    cpu: CpuCost | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -117,13 +119,14 @@ def _run(process, ts: float, period: float, scenario: Scenario, scale: float, cl
     for _ in range(int(round(settle / ts))):
         sim.advance(sim.mv0)
     config = RelayConfig(amp=1.0, time_limit=limit)
-    experiment, trace = run_experiment(sim, config)
+    times = cpu_times()
+    experiment, trace = run_experiment(sim, config, times=times)
     result = result_of(experiment, trace, "PI", 1.4)
     if not result.ok:
-        return Run(int(result.code), False, math.inf, 0.0, math.inf), result
+        return Run(int(result.code), False, math.inf, 0.0, math.inf, CpuCost.of(times)), result
     gains = result.design.gains
     return Run(int(result.code), True, check_gains(process, gains, w).ms, gains.ki / migo_ki,
-               result.identification.periods), result
+               result.identification.periods, CpuCost.of(times)), result
 
 
 def field_one(row: dict[str, str]) -> FieldRow:
@@ -276,6 +279,12 @@ def summary(rows: list[FieldRow]) -> tuple[str, str]:
     lines.append("")
     lines.append("peers (ideal relay + describing function, undisturbed, same processes): " + "; ".join(peer_lines))
     return "\n".join(lines), line
+
+
+def cpu_summary(rows: list[FieldRow]) -> str:
+    """The experiment's CPU per period's analysis and per sample (markdown): the clean runs, the field runs."""
+    return cpu_table({"clean (reference)": [r.clean.cpu for r in rows if r.clean.cpu is not None],
+                      "field scenarios": [run.cpu for r in rows for run in r.runs if run.cpu is not None]})
 
 
 def per_scenario_tables(rows: list[FieldRow]) -> str:

@@ -39,7 +39,7 @@ def bench(
             bad_input("--health takes no batch, --field or --design-only")
         _health_bench(repeats, workers, output)
         return
-    from autotuner.benchmarks.design_bench import default_batch, format_table, load_batch, run_batch
+    from autotuner.benchmarks.design_bench import cpu_summary, default_batch, format_table, load_batch, run_batch
     from autotuner.engine.plant.expression import parse_process
 
     start = time.perf_counter()
@@ -52,19 +52,23 @@ def bench(
     except (OSError, ValueError) as exc:  # unreadable file, bad expression
         bad_input(f"bad batch {batch}: {exc}")
     if field:
-        from autotuner.benchmarks.field_bench import (per_scenario_tables, run_field, run_unstable, summary,
-                                                      unstable_table)
+        from autotuner.benchmarks import field_bench
 
-        results = run_field(rows, workers)
-        table, line = summary(results)
-        unstable = unstable_table(run_unstable(workers)) if batch is None else ""
-        print(f"{table}\n\n{line}" + (f"\n\nunstable processes:\n\n{unstable}" if unstable else ""))
+        results = field_bench.run_field(rows, workers)
+        table, line = field_bench.summary(results)
+        cpu = f"experiment CPU (process time per call):\n\n{field_bench.cpu_summary(results)}"
+        unstable = field_bench.unstable_table(field_bench.run_unstable(workers)) if batch is None else ""
+        print(f"{table}\n\n{line}\n\n{cpu}" + (f"\n\nunstable processes:\n\n{unstable}" if unstable else ""))
         if output is not None:
-            output.write_text(f"{table}\n\n{line}\n\n" + (f"## Unstable processes\n\n{unstable}\n\n" if unstable
-                                                              else "") + f"## Per scenario\n\n{per_scenario_tables(results)}")
+            output.write_text(f"{table}\n\n{line}\n\n{cpu}\n\n"
+                              + (f"## Unstable processes\n\n{unstable}\n\n" if unstable else "")
+                              + f"## Per scenario\n\n{field_bench.per_scenario_tables(results)}")
         stderr.print(f"{len(rows)} processes in {time.perf_counter() - start:.1f} s wall time", highlight=False)
         return
-    table = format_table(run_batch(rows, workers, design_only))
+    results = run_batch(rows, workers, design_only)
+    table = format_table(results)
+    if not design_only:
+        table += f"\n\nexperiment CPU (process time per call, PI runs):\n\n{cpu_summary(results)}"
     print(table)
     if output is not None:
         output.write_text(table + "\n")

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -73,19 +73,64 @@ def ramp_loads(rate: float, ts: float, until: float) -> list[tuple[float, float]
     return [(k * ts, rate * ts) for k in range(1, int(math.ceil(until / ts)) + 2)]
 
 
+@dataclass
+class CallTimes:
+    """The time each call into the experiment took, read from the caller's clock (the engine reads none).
+
+    clock: returns seconds (the benchmarks pass ``time.process_time``: CPU time).
+    step: seconds of each :meth:`RelayExperiment.step` call without the analysis it ran first;
+    analyse: seconds of each period's analysis (one per switch of the relay).
+    """
+
+    clock: Callable[[], float]
+    step: list[float] = field(default_factory=list)
+    analyse: list[float] = field(default_factory=list)
+
+
+class _TimedExperiment(RelayExperiment):
+    """The experiment with each period's analysis timed where :meth:`RelayExperiment.step` runs it (at the
+    next sample, first): the same calls in the same order as untimed, so the same results."""
+
+    def __init__(self, config: RelayConfig, mv0: float, times: CallTimes) -> None:
+        super().__init__(config, mv0)
+        self._times = times
+
+    def analyse(self) -> None:
+        """:meth:`RelayExperiment.analyse`, its time recorded when there was a period to analyse."""
+        if not self.analysis_pending:
+            return
+        start = self._times.clock()
+        super().analyse()
+        self._times.analyse.append(self._times.clock() - start)
+
+
+def _timed_step(experiment: RelayExperiment, t: float, pv: float, times: CallTimes) -> float:
+    """``experiment.step(t, pv)``, timed without the analysis it runs first (timed on its own)."""
+    analyses = len(times.analyse)
+    start = times.clock()
+    mv = experiment.step(t, pv)
+    times.step.append(times.clock() - start - sum(times.analyse[analyses:]))
+    return mv
+
+
 def run_experiment(
     sim: PlantSim,
     config: RelayConfig,
     on_status: Callable[[Status], None] | None = None,
     status_every: int = 50,
+    times: CallTimes | None = None,
 ) -> tuple[RelayExperiment, Trace]:
-    """Drive the experiment against the simulation until it ends; the MV starts at the plant's ``mv0``."""
-    experiment = RelayExperiment(config, mv0=sim.mv0)
+    """Drive the experiment against the simulation until it ends; the MV starts at the plant's ``mv0``.
+
+    ``on_status`` gets the status every ``status_every`` samples (and at the end); ``times``, when
+    given, records how long each step and each period's analysis took.
+    """
+    experiment = RelayExperiment(config, mv0=sim.mv0) if times is None else _TimedExperiment(config, sim.mv0, times)
     ts, pvs, mvs = [], [], []
     n = 0
     while not experiment.done:
         t, pv = sim.t, sim.measure()
-        mv = experiment.step(t, pv)
+        mv = experiment.step(t, pv) if times is None else _timed_step(experiment, t, pv, times)
         ts.append(t)
         pvs.append(pv)
         mvs.append(mv)
@@ -161,7 +206,12 @@ def tune(
     controller: str = "PI",
     ms: float = 1.4,
     on_status: Callable[[Status], None] | None = None,
+    times: CallTimes | None = None,
 ) -> TuneResult:
-    """Run the experiment on ``sim`` and design ``controller`` ("PI" or "PID") for maximum sensitivity ``ms``."""
-    experiment, trace = run_experiment(sim, config, on_status)
+    """Run the experiment on ``sim`` and design ``controller`` ("PI" or "PID") for maximum sensitivity ``ms``.
+
+    ``on_status`` gets the experiment's status every 50 samples; ``times`` records each call's time
+    (:func:`run_experiment`).
+    """
+    experiment, trace = run_experiment(sim, config, on_status, times=times)
     return result_of(experiment, trace, controller, ms)

@@ -13,6 +13,9 @@ whatever is not periodic (transients, noise).
 
 Coefficients are normalised so that ``A·cos(ω(t − ta) + φ)`` over whole
 periods gives ``A·e^{jφ}``, and ``omega = 0`` gives the (weighted) mean.
+
+Each function reads only the samples that reach into its window (found by
+bisection): its work is the window's, however long the record it is given.
 """
 
 from __future__ import annotations
@@ -48,7 +51,11 @@ def held_coefficient(t: np.ndarray, u: np.ndarray, ta: float, tb: float, omega: 
     in seconds, increasing, with ``t[0] ≤ ta < tb``.
     """
     width = tb - ta
-    edges = np.clip(np.append(t[: len(u)], np.inf), ta, tb) - ta
+    # The samples from the last one at or before ta to the last one before tb: the others hold outside.
+    first = max(int(np.searchsorted(t[: len(u)], ta, side="right")) - 1, 0)
+    end = int(np.searchsorted(t[: len(u)], tb, side="left"))
+    t, u = t[first:end], u[first:end]
+    edges = np.clip(np.append(t, np.inf), ta, tb) - ta
     edges[-1] = width
     integral = np.dot(u, np.diff(_primitive(edges, omega, width, hann)))
     return _normalise(integral, omega, width, hann)
@@ -57,6 +64,10 @@ def held_coefficient(t: np.ndarray, u: np.ndarray, ta: float, tb: float, omega: 
 def sampled_coefficient(t: np.ndarray, y: np.ndarray, ta: float, tb: float, omega: float, hann: bool = True) -> complex:
     """Coefficient at ``omega`` (rad/s) over ``[ta, tb]`` of the continuous signal sampled as ``y`` at ``t``."""
     width = tb - ta
+    # The samples inside the window and the one on each side of it (the interpolation at its ends).
+    first = max(int(np.searchsorted(t, ta, side="right")) - 1, 0)
+    end = int(np.searchsorted(t, tb, side="left")) + 1
+    t, y = t[first:end], y[first:end]
     inside = (t > ta) & (t < tb)
     tau = np.concatenate(([0.0], t[inside] - ta, [width]))
     values = np.concatenate(([np.interp(ta, t, y)], y[inside], [np.interp(tb, t, y)]))

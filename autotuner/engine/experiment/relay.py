@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from enum import Enum
 
 import numpy as np
@@ -42,6 +42,7 @@ from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
 from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter, settled_ratio
 from autotuner.engine.experiment.point import Point
+from autotuner.engine.experiment.record import Record, Samples
 from autotuner.engine.experiment.stopping import Tolerances, Verdict, amp_factor, judge, slow_memory
 from autotuner.engine.experiment.phase_filter import PhaseFilter
 
@@ -254,6 +255,19 @@ _REACT_SAMPLES = 3
 _RUNAWAY_WINDOW = 0.15
 # The runaway test's steps must grow this close to geometrically (s0·s2 ≥ _GEOMETRIC·s1², less the noise).
 _GEOMETRIC = 0.97
+# ... and by more than this share of the distance from the set point: the rounding of the windows' means
+# (running sums since the switch: about 1e-13 of it) is no growth.
+_ROUNDING = 1e-9
+
+
+@dataclass
+class _Fits:
+    """The load fits of one record (its length) and estimate (their count): the fitter, the answers by
+    question (unstable, near)."""
+
+    record: tuple[int, int]
+    fitter: LoadFitter | None
+    answers: dict[tuple[bool, LoadFit | None], LoadFit | None] = field(default_factory=dict)
 
 
 class RelayExperiment:
@@ -285,17 +299,15 @@ class RelayExperiment:
         self._stalled_until = -math.inf  # the end of the latest window that held a stall (_STALL)
         self._stalls: list[float] = []  # the longest gap of each such window, s
         self._candidate: LoadFit | None = None
+        self._fits = _Fits((0, 0), None)
         # The analysis of the period that ended at a switch, run after the switch is out (see analyse).
         self._analyse: Callable[[], None] | None = None
         self._progress = 0.0
         self._follow_rate = 0.0
         self._follow_from = 0.0
-        self._t: list[float] = []
-        self._y: list[float] = []
-        self._u: list[float] = []
-        # When each MV of ``_u`` reached the process (s): the sample's time unless the caller said it
-        # came later (``applied``: a write that a busy link or a stalled session delayed).
-        self._s: list[float] = []
+        # The samples, the MV held from each and when it reached the process (s): the sample's time unless
+        # the caller said it came later (``applied``: a write that a busy link or a stalled session delayed).
+        self._record = Record()
         self.stage = Stage.NOISE
         self.code: Code | None = None
         self.message = ""
@@ -311,6 +323,7 @@ class RelayExperiment:
         self._omega = 0.0
         self._dt = 0.0
         self._switches: list[int] = []
+        self._longest_half = 0.0  # the longest time between two switches so far, s (_check_oscillation)
         self._rising: list[int] = []
         # Sub-sample times of the rising crossings: the period they give is
         # free of the sampling jitter of the switch instants.
@@ -340,6 +353,10 @@ class RelayExperiment:
         self._full_level = False
         self._turn = 0.0  # seconds from the first switch to the PV's first turn (see _reaction)
         self._rescued_at = 0
+        # Running sums of the PV's distance from the set point over the samples after _sums_from (the
+        # latest switch or rescue): the long runaway windows' means at O(1) per sample (_runaway).
+        self._sums_from = -1
+        self._sums = [0.0]
         self._aimed = False  # an unstable process's target has been set from an estimate
         if self._mv_high <= mv0 or self._mv_low >= mv0:
             self._finish(
@@ -391,8 +408,9 @@ class RelayExperiment:
         if not (math.isfinite(t) and math.isfinite(pv)):
             self._finish(Code.BAD_SAMPLE, f"non-finite sample: t={t}, pv={pv}")
             return self.mv0
-        if self._t and t <= self._t[-1]:
-            self._finish(Code.BAD_SAMPLE, f"timestamp {t} s does not follow {self._t[-1]} s")
+        record = self._record
+        if len(record) and t <= record.time(-1):
+            self._finish(Code.BAD_SAMPLE, f"timestamp {t} s does not follow {record.time(-1)} s")
             return self.mv0
         lo, hi = self.config.pv_limits
         if not lo <= pv <= hi:
@@ -401,23 +419,22 @@ class RelayExperiment:
         self.analyse()
         if self.done:
             return self.mv0
-        self._t.append(t)
-        self._y.append(pv)
-        if t - self._t[0] > self.config.time_limit:
+        record.add(t, pv)
+        if t - record.time(0) > self.config.time_limit:
             self._timeout()
             return self.mv0
         if self.stage is Stage.NOISE:
-            if len(self._y) >= self.config.noise_samples:
+            if len(record) >= self.config.noise_samples:
                 self._start_relay()
             else:
-                self._hold(t, self.mv0)
+                record.hold(self.mv0)
                 return self.mv0
         mv = self._relay_step(t, pv)
         if self.done:
             return self.mv0
-        step = self.config.mv_rate * (t - self._t[-2])
-        mv = min(max(mv, self._u[-1] - step), self._u[-1] + step)
-        self._hold(t, mv)
+        step = self.config.mv_rate * (t - record.time(-2))
+        mv = min(max(mv, record.mv(-1) - step), record.mv(-1) + step)
+        record.hold(mv)
         return mv
 
     @property
@@ -428,12 +445,14 @@ class RelayExperiment:
     def analyse(self) -> None:
         """Analyse the period that ended at the last sample's switch: its estimates, the stopping rule, the load fit.
 
-        The switch itself is in the MV the last :meth:`step` returned: a load
-        fit takes tens of milliseconds of CPU, and a switch waiting for it
-        would reach the process that much late. :meth:`step` runs it at the
-        next sample if the caller has not; a field session runs it after its
-        write, in a worker thread, so that its event loop (other loops, the
-        handshake) keeps time meanwhile. Nothing to do otherwise.
+        The switch itself is in the MV the last :meth:`step` returned: a full
+        load fit takes milliseconds of CPU, and a switch waiting for it would
+        reach the process that much late. :meth:`step` runs it at the next
+        sample if the caller has not; a field session runs it after its write,
+        in a worker thread, so that its event loop (other loops, the handshake)
+        keeps time meanwhile. Nothing to do otherwise. Its work is bounded,
+        whatever the record's length (docs/experiment.md, "The analysis's cost
+        per period").
         """
         analyse, self._analyse = self._analyse, None
         if analyse is not None and not self.done:
@@ -450,24 +469,20 @@ class RelayExperiment:
         sample's time. A time before that sample (clocks that disagree) is
         taken as the sample's.
         """
-        if self._s and len(self._s) == len(self._t) and math.isfinite(t):
-            self._s[-1] = max(t, self._t[-1])
-
-    def _hold(self, t: float, mv: float) -> None:
-        self._u.append(mv)
-        self._s.append(t)
-
-    def _held(self, n: int) -> np.ndarray:
-        """When the first ``n`` recorded MVs reached the process (s): the times their holds start from."""
-        return np.asarray(self._s[:n])
+        if self._record.held and self._record.held == len(self._record) and math.isfinite(t):
+            self._record.applied(t)
 
     @property
     def stall_tolerance(self) -> float:
         """The longest time without a sample (s) that leaves the estimates usable: a tenth of the period as well
         as it is known now, and at least three sample intervals (a longer stall leaves its estimates out)."""
-        t = self._t
-        dt = (t[-1] - t[0]) / (len(t) - 1) if len(t) >= 2 else None
+        dt = self._mean_interval()
         return max(_STALL * self._period_guess(dt), _GAP * (dt or 0.0))
+
+    def _mean_interval(self) -> float | None:
+        """The mean time between the samples so far (s); None before two."""
+        samples = len(self._record)
+        return (self._record.time(-1) - self._record.time(0)) / (samples - 1) if samples >= 2 else None
 
     def status(self) -> Status:
         """Stage, progress (0–1), ite and the live relay/filter state."""
@@ -476,7 +491,7 @@ class RelayExperiment:
             progress = 1.0
         else:
             left = self._seconds_left()
-            elapsed = self._t[-1] - self._t[0] if self._t else 0.0
+            elapsed = self._record.time(-1) - self._record.time(0) if len(self._record) else 0.0
             ite = left
             # Progress never goes backwards, even when a measured period
             # turns out longer than the estimate before it.
@@ -496,8 +511,7 @@ class RelayExperiment:
     # -- stages -----------------------------------------------------------
 
     def _start_relay(self) -> None:
-        t = np.asarray(self._t)
-        y = np.asarray(self._y)
+        t, y = self._record.t, self._record.y
         slope, offset = np.polyfit(t - t[0], y, 1)
         residual = y - (offset + slope * (t - t[0]))
         self._noise = float(np.std(residual, ddof=2))
@@ -514,17 +528,17 @@ class RelayExperiment:
         self._eps = 3.0 * self._noise if h is None else h
         self.stage = Stage.RELAY
         self._relay = 1
-        self._relay_start = len(self._t) - 1
+        self._relay_start = len(self._record) - 1
         self._filtered = 0.0
-        self._crossing = self._t[-1]
+        self._crossing = self._record.time(-1)
 
     def _relay_step(self, t: float, pv: float) -> float:
         e = self._sign * (self._sp - pv)
         before = self._filtered
-        dt = t - self._t[-2]
+        dt = t - self._record.time(-2)
         self._filtered = self._filter.step(e, dt)
         self._peak_error = max(self._peak_error, abs(self._filtered))
-        k = len(self._t) - 1
+        k = len(self._record) - 1
         old = self._relay_mv()
         if self._relay > 0 and self._filtered < -self._eps:
             self._switch(-1, k, -self._eps, before, dt)
@@ -545,17 +559,19 @@ class RelayExperiment:
         # area, makes the limit cycle periodic in continuous time instead of
         # jittering by a sample at every switch. The frequency-response
         # estimate depends on that periodicity.
-        late = (self._crossing - self._t[k - 1]) / dt
+        late = (self._crossing - self._record.time(k - 1)) / dt
         return old * late + self._relay_mv() * (1.0 - late)
 
     def _switch(self, relay: int, k: int, threshold: float, before: float, dt: float) -> None:
         frac = (threshold - before) / (self._filtered - before)
-        self._crossing = self._t[k - 1] + frac * dt
+        self._crossing = self._record.time(k - 1) + frac * dt
         self._relay = relay
+        if self._switches:
+            self._longest_half = max(self._longest_half, self._record.time(k) - self._record.time(self._switches[-1]))
         self._switches.append(k)
         if len(self._switches) == 1:
             # At least a sample: a process without dead time answers within one (noise-free, no hysteresis).
-            self._react = self._crossing - self._t[self._relay_start]
+            self._react = self._crossing - self._record.time(self._relay_start)
         if self._full_level:
             # A rescued half period (_check_runaway) ends: the weaker bias from now on.
             self._full_level = False
@@ -571,7 +587,7 @@ class RelayExperiment:
         if self._follow_rate:
             # A drifting load is followed continuously: no step, no transient.
             lo, hi = self.config.mv_limits
-            level = min(max(level - self._follow_rate * (self._t[-1] - self._follow_from), lo), hi)
+            level = min(max(level - self._follow_rate * (self._record.time(-1) - self._follow_from), lo), hi)
         return level
 
     def _set_levels(self) -> None:
@@ -597,15 +613,17 @@ class RelayExperiment:
         process: the experiment ends with UNSTABLE_DEAD_TIME_TOO_LONG.
         """
         react = self._reaction(k)
-        if not self._switches or react <= 0.0:
+        if not self._switches:
             return False
-        t = self._t
         # Since the last switch, or since the level was strengthened (its effect takes as long to arrive).
         last = max(self._switches[-1], self._rescued_at)
+        self._sum_distance(last, k)
+        if react <= 0.0:
+            return False
         m = max(int(round(_RUNAWAY_WINDOW * react / self._dt)), 2)  # samples per window
         # The dead time after the switch has passed, and three windows since (the PV accelerates
         # away during the dead time whatever the process).
-        elapsed = t[k] - t[last] - react
+        elapsed = self._record.time(k) - self._record.time(last) - react
         if elapsed < 3 * m * self._dt:
             return False
         level = self._mv_high if self._relay > 0 else self._mv_low
@@ -641,6 +659,25 @@ class RelayExperiment:
         self._last = None
         return True
 
+    def _sum_distance(self, last: int, k: int) -> None:
+        """Add sample ``k``'s distance of the PV from the set point to the sums since sample ``last`` (the
+        latest switch or rescue), starting them anew when ``last`` moved."""
+        if last != self._sums_from:
+            self._sums_from, self._sums = last, [0.0]
+        if k > last:
+            self._sums.append(self._sums[-1] + (self._record.pv(k) - self._sp))
+
+    def _mean_distance(self, i: int, m: int) -> float:
+        """The PV's mean distance from the set point over the ``m`` samples up to sample ``i``.
+
+        From the running sums since the latest switch (O(1) per mark, whatever the time since the switch);
+        a window reaching back to the switch (samples denser than the noise stage's) is summed as it is.
+        """
+        first = i - m + 1
+        if first > self._sums_from:
+            return (self._sums[i - self._sums_from] - self._sums[first - 1 - self._sums_from]) / m
+        return float(np.sum(self._record.y[first:i + 1] - self._sp)) / m
+
     def _runaway(self, k: int, m: int, samples: bool) -> tuple[list[float], np.ndarray] | None:
         """(distances from the set point, their steps) when the PV moves away faster and faster, else None.
 
@@ -651,11 +688,13 @@ class RelayExperiment:
         an unstable pole's grow as ``s0·s2 = s1²``.
         """
         marks = (k - 3 * m, k - 2 * m, k - m, k)
-        y = self._y
-        values = [y[i] for i in marks] if samples else [sum(y[i - m + 1:i + 1]) / m for i in marks]
-        away = [self._relay * self._sign * (self._sp - v) for v in values]
+        distances = ([self._record.pv(i) - self._sp for i in marks] if samples
+                     else [self._mean_distance(i, m) for i in marks])
+        away = [-self._relay * self._sign * d for d in distances]
         steps = np.diff(away)
-        floor = 3.0 * self._noise / (1.0 if samples else math.sqrt(m))
+        # (And by more than the means' rounding: a followed drift's PV is a ramp, whose equal steps come out of
+        # running sums a rounding apart, and a noise-free record's floor is nothing else.)
+        floor = 3.0 * self._noise / (1.0 if samples else math.sqrt(m)) + _ROUNDING * max(abs(a) for a in away)
         if not (steps[0] > floor and steps[1] > steps[0] + floor and steps[2] > steps[1] + floor):
             return None
         if steps[0] * steps[2] < _GEOMETRIC * steps[1] ** 2 - floor * (steps[0] + steps[2]):
@@ -676,13 +715,13 @@ class RelayExperiment:
         if not self._turn and self._switches:
             first = self._switches[0]
             if len(self._switches) >= 2:
-                self._turn = self._t[self._switches[1]] - self._t[first]
+                self._turn = self._record.time(self._switches[1]) - self._record.time(first)
             elif k - 1 > first:
                 # After the first switch the relay pushes the PV back: it turns when its distance from the set
                 # point stops growing.
-                away = [self._relay * self._sign * (self._sp - self._y[i]) for i in (k - 1, k)]
+                away = [self._relay * self._sign * (self._sp - self._record.pv(i)) for i in (k - 1, k)]
                 if away[1] < away[0]:
-                    self._turn = self._t[k - 1] - self._t[first]
+                    self._turn = self._record.time(k - 1) - self._record.time(first)
         return self._turn
 
     def _runaway_at_full_amp(self, amp: float, reach: float) -> None:
@@ -728,9 +767,9 @@ class RelayExperiment:
 
     def _stalled_note(self) -> str:
         """What a stall of the samples over the last period adds to a runaway's refusal ("" without one)."""
-        tt = np.asarray(self._t)
-        start = self._t[self._switches[-3]] if len(self._switches) >= 3 else self._t[self._relay_start]
-        gap = self._longest_gap(tt, start, float(tt[-1]))
+        record = self._record
+        start = record.time(self._switches[-3] if len(self._switches) >= 3 else self._relay_start)
+        gap = self._longest_gap(record.since(start).t, start, record.time(-1))
         if gap <= _GAP * self._dt:
             return ""
         # The relay cannot switch without a sample: on an unstable process a stall acts as extra dead time.
@@ -740,7 +779,7 @@ class RelayExperiment:
     def _peak_away(self) -> float:
         """Largest deviation of the PV from the set point over the last whole period before the current half (PV units)."""
         start, end = self._switches[-3], self._switches[-1]
-        return float(max(abs(v - self._sp) for v in self._y[start:end]))
+        return float(np.max(np.abs(self._record.y[start:end] - self._sp)))
 
     def _enter_unstable(self) -> None:
         """An open-loop unstable process: the weaker bias, levels changed (estimates from now on)."""
@@ -749,7 +788,7 @@ class RelayExperiment:
             self._bias = min(self._bias, _UNSTABLE_BIAS)
             if not self._full_level:
                 self._set_levels()
-            self._changed_at = self._t[-1]
+            self._changed_at = self._record.time(-1)
 
     def _move_target(self, point: Point, x: float) -> None:
         """Aim at a phase an unstable process reaches, from the model the latest estimate fixes.
@@ -775,7 +814,7 @@ class RelayExperiment:
         self._target_deg = min(max(self._target_deg, wanted), _MAX_TARGET_DEG)
 
     def _on_period(self) -> None:
-        t = self._t
+        time = self._record.time
         if self._first_low:
             self._first_low = False
             if not self._full_level:
@@ -783,7 +822,7 @@ class RelayExperiment:
         if len(self._rising) == 1:
             # First rising switch: only half a period is known. Start the filter
             # at the describing-function guess.
-            half = t[self._rising[0]] - t[self._switches[-2]]
+            half = time(self._rising[0]) - time(self._switches[-2])
             omega = math.pi / half
             ratio = min(1.0, self._eps / self._peak_error) if self._peak_error > 0 else 0.0
             if self._react > _REACT_SAMPLES * self._dt and half > _SLOW_RETURN * self._react:
@@ -792,35 +831,33 @@ class RelayExperiment:
             theta = 0.0 if self._unstable else math.pi - math.radians(self._target_deg) - math.asin(ratio)
             self._set_filter(theta, omega)
             return
-        # (The switch's own MV, recorded already, holds from this sample on: after every window.)
-        tt = np.asarray(t)
-        uu = np.asarray(self._u)
-        yy = np.asarray(self._y)
+        # The samples of this period's estimates: from the third latest crossing on (the drift and the
+        # two-period means start there). (The switch's own MV, recorded already, holds from this sample
+        # on: after every window.)
+        raw = self._record.since(self._crossings[max(len(self._crossings) - 3, 0)])
         if self._fit is not None:
             # Disturbed: refit with this period (static gain, the relay's centre).
-            self._refit(tt, uu, yy)
+            self._refit()
             if self.done:
                 return
             # The point is estimated from the PV as measured (detrended as
             # usual) over windows after the load step only: subtracting the
             # fitted load response would make the point hostage to the fit,
             # which a hiccup of the link can mislead.
-            detrended = yy - self._drift(tt, yy, self._crossings[-3:]) if len(self._crossings) >= 3 else yy
             if self._follow_rate and len(self._crossings) >= 3:
                 # The MV follows a drift: its ramp is slow too, not part of the oscillation.
-                uu = uu - self._drift(self._held(len(uu)), uu, self._crossings[-3:])
-        elif len(self._crossings) >= 3:
-            detrended = yy - self._drift(tt, yy, self._crossings[-3:])
-        else:
-            detrended = yy
+                raw = replace(raw, u=raw.u - self._drift(raw.s, raw.u, self._crossings[-3:]))
+        detrended = raw
+        if len(self._crossings) >= 3:
+            detrended = replace(raw, y=raw.y - self._drift(raw.t, raw.y, self._crossings[-3:]))
         ta, tb = self._crossings[-2], self._crossings[-1]
         omega = 2.0 * math.pi / (tb - ta)
-        value = self._estimate(tt, uu, yy, ta, tb, omega, hann=False)
+        value = self._estimate(raw, ta, tb, omega, hann=False)
         lag = self._lag(value)
         self._lags.append(lag)
         # (A PV still settling at TUNE makes any process's first ratio negative: the load fit judges that one.)
         first = len(self._lags) == 1 and not self._settling[0]
-        if first and self._mean_ratio(tt, uu, yy, ta, tb, abs(value)) < _SUSPECT_RATIO:
+        if first and self._mean_ratio(raw, ta, tb, abs(value)) < _SUSPECT_RATIO:
             self._enter_unstable()
             self._set_filter(0.0, omega)
         # An open-loop unstable process shows a negative mean ratio from its first estimates on (or ran
@@ -829,21 +866,21 @@ class RelayExperiment:
         negative = self._negative_ratio()
         recognised = self._unstable or (len(self._estimates) <= _HINT_ESTIMATES and self._unstable_hint())
         # (Asked once, when the process would first be taken for unstable: the load fit costs two fits.)
-        if negative and recognised and self._fit is None and (self._unstable or not self._stable_with_load(tt, uu, yy)):
+        if negative and recognised and self._fit is None and (self._unstable or not self._stable_with_load()):
             # An open-loop unstable process: a weaker bias, and a phase it reaches.
             self._enter_unstable()
             self._move_target(self._estimates[-1][0], self._wide[-1])
         elif negative is False:
             self._unstable = False  # a rescued level (_check_runaway) on a process the estimates call stable
         # (A change of the levels made just now, at the end of the period, leaves the period clean.)
-        clean = ta >= self._changed_at or self._changed_at >= self._t[-1]
+        clean = ta >= self._changed_at or self._changed_at >= time(-1)
         if clean and not (self._unstable and not self._aimed):
             # A period that saw the relay's levels change is a transient: the
             # filter is not corrected from it (nor, on a process that is or may be
             # unstable, before an estimate has said which phase it reaches).
             self._adapt(omega, lag)
         if len(self._rising) >= 3:
-            self._judge(tt, uu, detrended)
+            self._judge(raw, detrended.y)
         if self.done or self._fit is not None:
             return
         # Quiet so far: look for a disturbance every few periods while the
@@ -855,20 +892,22 @@ class RelayExperiment:
         early = periods >= 3 and jump > 3.0 * _JUMP
         again = self._candidate is not None
         if again or early or periods >= _CHECK_FROM and (jump > _JUMP or (periods - _CHECK_FROM) % _CHECK_EVERY == 0):
-            self._look_for_disturbance(tt, uu, yy)
+            self._look_for_disturbance()
 
     # -- disturbances -------------------------------------------------------
 
-    def _fitter(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> LoadFitter | None:
+    def _fitter(self) -> LoadFitter | None:
+        """The load fitter of the whole record with the latest estimate's point (None before one, or resonant)."""
         if not self._estimates or len(self._crossings) < 4:
             return None
         if self._resonant():
             return None
         point = self._estimates[-1][0]
-        n = len(uu)
+        record = self._record.all()
+        n = len(record.u)
         scale = point.gain * self.config.amp
-        return LoadFitter(tt[:n], self._sign * (yy[:n] - self._sp), uu[:n], self.mv0, self._relay_start,
-                          point.omega, point.gain, self._lag(point.value), scale, held_from=self._held(n))
+        return LoadFitter(record.t[:n], self._sign * (record.y[:n] - self._sp), record.u, self.mv0, self._relay_start,
+                          point.omega, point.gain, self._lag(point.value), scale, held_from=record.s)
 
     def _resonant(self) -> bool:
         """True when |F(jω)| reads above the static gain: a resonance, which no first-order model describes.
@@ -887,14 +926,27 @@ class RelayExperiment:
         return not any((i < 1.0 or abs(i - x) > x / 3.0) and abs(p.gain - latest.gain) <= 0.1 * latest.gain
                        for p, i in self._estimates[1:-1])
 
-    def _look_for_disturbance(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
+    def _load_fit(self, unstable: bool, near: LoadFit | None = None) -> LoadFit | None:
+        """The load fit of the record (``near``: see LoadFitter.fit), or None when there is none to make.
+
+        Made once per record, estimate and question: a quiet period's analysis may ask twice (before it
+        accepts a result and when it looks for a disturbance), with the same answer.
+        """
+        record = (self._record.held, len(self._estimates))
+        if self._fits.record != record:
+            self._fits = _Fits(record, self._fitter())
+        fits, question = self._fits, (unstable, near)
+        if question not in fits.answers:
+            fits.answers[question] = None if fits.fitter is None else fits.fitter.fit(unstable, near)
+        return fits.answers[question]
+
+    def _look_for_disturbance(self) -> bool:
         """Fit the slow part of the record; True (and the disturbed mode on) if it needed a disturbance."""
         if not self.config.follow_loads:
             return False
-        fitter = self._fitter(tt, uu, yy)
-        if fitter is None:
+        fit = self._load_fit(self._unstable)
+        if fit is None:
             return False
-        fit = fitter.fit(unstable=self._unstable)
         if not self._significant(fit):
             self._candidate = None
             return False
@@ -904,14 +956,14 @@ class RelayExperiment:
         previous, self._candidate = self._candidate, fit
         if previous is None or not self._agree(previous, fit):
             return True  # look again next period before accepting anything
-        self._enter_disturbed(fit, tt)
+        self._enter_disturbed(fit)
         return True
 
     def _agree(self, a: LoadFit, b: LoadFit) -> bool:
         """Two fits describe the same disturbance (step time within a quarter period, sizes within a third)."""
         if a.x_std > _X_STD_MAX or b.x_std > _X_STD_MAX:
             return False
-        period = self._t[self._rising[-1]] - self._t[self._rising[-2]]
+        period = self._record.time(self._rising[-1]) - self._record.time(self._rising[-2])
         if (a.step_time is None) != (b.step_time is None):
             return False
         if a.step_time is not None:
@@ -920,7 +972,7 @@ class RelayExperiment:
         # Ramps agree within a third, or when they differ by less than a load worth
         # following over the whole record (the information criterion keeps a negligible
         # ramp in one fit and not the next).
-        duration = self._t[-1] - self._t[0]
+        duration = self._record.time(-1) - self._record.time(0)
         difference = abs(a.ramp - b.ramp)
         negligible = difference * duration < _LOAD_FRACTION * self.config.amp
         return negligible or difference <= max(abs(a.ramp), abs(b.ramp)) / 3.0
@@ -929,13 +981,13 @@ class RelayExperiment:
         """A fitted disturbance worth estimating through: larger than a fraction of amp (or of the PV scale)."""
         amp = self.config.amp
         step = fit.step_time is not None and abs(fit.step) >= _LOAD_FRACTION * amp
-        duration = self._t[-1] - self._t[0]
+        duration = self._record.time(-1) - self._record.time(0)
         ramp = abs(fit.ramp) * duration >= 2.0 * _LOAD_FRACTION * amp
         point = self._estimates[-1][0]
         free = abs(fit.free) >= _LOAD_FRACTION * point.gain * amp
         return step or ramp or free
 
-    def _enter_disturbed(self, fit: LoadFit, tt: np.ndarray) -> None:
+    def _enter_disturbed(self, fit: LoadFit) -> None:
         self._fit = fit
         self._fitted_at = len(self._rising)
         self._disturbance_seen = True
@@ -946,11 +998,11 @@ class RelayExperiment:
                 self._flipped = True
         self._follow_load()
 
-    def _refit(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> None:
-        fitter = self._fitter(tt, uu, yy)
-        if fitter is None:
+    def _refit(self) -> None:
+        """Refit the record with this period, near the accepted fit (LoadFitter.fit's ``near``)."""
+        fit = self._load_fit(self._unstable, near=self._fit)
+        if fit is None:
             return
-        fit = fitter.fit(unstable=self._unstable)
         if not self._agree(self._fit, fit):
             # Keep following what was accepted until two new fits agree on something else.
             previous, self._candidate = self._candidate, fit
@@ -966,9 +1018,10 @@ class RelayExperiment:
         """Shift the relay's centre to cancel the fitted load at the process input (within ±amp)."""
         fit = self._fit
         assert fit is not None
-        t = self._t[-1]
-        period = self._t[self._rising[-1]] - self._t[self._rising[-2]] if len(self._rising) >= 2 else 0.0
-        load = fit.load_at(t + 0.5 * period, self._t[0])
+        time = self._record.time
+        t = time(-1)
+        period = time(self._rising[-1]) - time(self._rising[-2]) if len(self._rising) >= 2 else 0.0
+        load = fit.load_at(t + 0.5 * period, time(0))
         amp = self.config.amp
         # The ramp part is followed continuously from now on; the centre takes the rest.
         then = t + 0.5 * period
@@ -1008,7 +1061,7 @@ class RelayExperiment:
         point, x = self._estimates[-1][0], self._wide[-1]
         return x < 0.0 and self._on_rising_branch(point, x)
 
-    def _stable_with_load(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> bool:
+    def _stable_with_load(self) -> bool:
         """True unless an unstable model explains the record clearly better than a stable one with a load.
 
         A load step early in the experiment shifts the relay's mean MV against
@@ -1019,10 +1072,10 @@ class RelayExperiment:
         """
         if not self.config.follow_loads:
             return False
-        fitter = self._fitter(tt, uu, yy)
-        if fitter is None:
+        unstable, stable = (self._load_fit(mode) for mode in (True, False))
+        if unstable is None or stable is None:
             return False
-        return fitter.fit(unstable=True).score > fitter.fit(unstable=False).score - _UNSTABLE_EVIDENCE
+        return unstable.score > stable.score - _UNSTABLE_EVIDENCE
 
     def _negative_ratio(self) -> bool | None:
         """True when the mean two-period ratio |F|/K0 of the latest two estimates is below −static_tol.
@@ -1075,19 +1128,19 @@ class RelayExperiment:
         spacing = 0.5 * (bounds[-1] + bounds[-2] - bounds[1] - bounds[0])
         return (last - first) / spacing * (tt - 0.5 * (bounds[0] + bounds[-1]))
 
-    def _judge(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> None:
+    def _judge(self, raw: Samples, detrended: np.ndarray) -> None:
         """Estimate the point over the last period and stop if it has converged.
 
-        ``yy`` has its drift (or the fitted disturbance) removed already.
+        ``raw``: the samples from the third latest crossing on; ``detrended``: their PV with its drift removed.
         """
         ta, tb = self._crossings[-2], self._crossings[-1]
-        point, inverse_gain = self._period_point(tt, uu, yy, self._crossings[-3:])
+        point, inverse_gain = self._period_point(raw, detrended, self._crossings[-3:])
         # Windows that reach back before a load step are left out.
         self._estimates.append((point, inverse_gain))
         self._windows.append(ta)
-        self._wide.append(self._wide_inverse(tt, uu, yy) if self._fit is None else inverse_gain)
+        self._wide.append(self._wide_inverse(replace(raw, y=detrended)) if self._fit is None else inverse_gain)
         self._wide_spans.append((self._crossings[-3], tb))
-        gap = self._longest_gap(tt, self._crossings[-3], tb)
+        gap = self._longest_gap(raw.t, self._crossings[-3], tb)
         if gap > max(_STALL * (tb - ta), _GAP * self._dt):
             # No sample, so no switch, for that long: the cycle around it is no limit cycle. This estimate
             # and those before it are left out, as after a change of the relay's levels.
@@ -1105,8 +1158,8 @@ class RelayExperiment:
         # With noise, all estimates since the last disturbance may be averaged but the first
         # (the period right after the filter's first correction).
         longest = len(usable) - 1 if noisy else 2 + (periods - _MIN_PERIODS) // 2
-        self._accept(tt, uu, judge(usable, self._target_deg, self._tolerances(), longest, noisy,
-                                   None if self._fit is None else self._fit.x_std))
+        self._accept(judge(usable, self._target_deg, self._tolerances(), longest, noisy,
+                           None if self._fit is None else self._fit.x_std))
 
     def _judge_half(self) -> None:
         """At a falling switch of a quiet, noise-free run: stop if the period ending here agrees with the last.
@@ -1124,61 +1177,62 @@ class RelayExperiment:
         usable = self._usable()
         if ta < self._since() or not usable:
             return
-        tt, uu, yy = np.asarray(self._t), np.asarray(self._u), np.asarray(self._y)
+        raw = self._record.since(min(self._falls[-3], self._crossings[-2]))
         # A sampling gap (a stalled link) in the overlap biases both windows alike, so they agree: only the
         # disjoint rising windows may judge such a record.
-        if self._longest_gap(tt, self._crossings[-2], tt[-1]) > _GAP * self._dt:
+        if self._longest_gap(raw.t, self._crossings[-2], raw.t[-1]) > _GAP * self._dt:
             return
-        detrended = yy - self._drift(tt, yy, self._falls[-3:])
-        candidates = [*usable, self._period_point(tt, uu, detrended, self._falls[-3:])]
+        detrended = raw.y - self._drift(raw.t, raw.y, self._falls[-3:])
+        candidates = [*usable, self._period_point(raw, detrended, self._falls[-3:])]
         longest = 2 + (periods - _MIN_PERIODS) // 2
         c = self.config
         tol = replace(self._tolerances(), gain_tol=c.gain_tol * _HALF_TOL, static_tol=c.static_tol * _HALF_TOL)
-        self._accept(tt, uu, judge(candidates, self._target_deg, tol, longest, False))
+        self._accept(judge(candidates, self._target_deg, tol, longest, False))
 
-    def _accept(self, tt: np.ndarray, uu: np.ndarray, verdict: Verdict | None) -> None:
+    def _accept(self, verdict: Verdict | None) -> None:
         if verdict is None:
             return
         # Before accepting a quiet result, make sure the record holds no
         # disturbance that the simple means would have mixed in.
-        if self._fit is None and self._look_for_disturbance(tt, uu, np.asarray(self._y)):
+        if self._fit is None and self._look_for_disturbance():
             return
         self._succeed(verdict.point, self._fit.x if self._fit is not None else verdict.inverse_gain)
 
-    def _period_point(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray, bounds: list[float]) -> tuple[Point, float]:
+    def _period_point(self, raw: Samples, detrended: np.ndarray, bounds: list[float]) -> tuple[Point, float]:
         """The point over the last whole period of ``bounds`` (crossing times, s) and |F|/K0 over the last two.
 
-        ``yy`` is the PV detrended. The static ratio takes the means over two
-        periods where there are two (the noise of a mean falls with its
-        length), with the MV's as the slow lag has passed it on.
+        ``raw``: the samples from ``bounds[0]`` on; ``detrended``: their PV with its drift removed (for the
+        point). The static ratio takes the means over two periods where there are two (the noise of a
+        mean falls with its length), with the MV's as the slow lag has passed it on.
         """
         ta, tb = bounds[-2], bounds[-1]
         # One whole period, rectangular: a Hann window over a single period
         # would mix the fundamental with the mean and the second harmonic.
         omega = 2.0 * math.pi / (tb - ta)
-        value = self._estimate(tt, uu, yy, ta, tb, omega, hann=False)
+        value = self._estimate(replace(raw, y=detrended), ta, tb, omega, hann=False)
         point = Point(omega, value)
         if self._fit is not None:
             return point, self._fit.x
         start = bounds[0]
-        du = held_coefficient(self._held(len(uu)), uu - self.mv0, start, tb, 0.0, hann=False).real
-        dy = sampled_coefficient(tt, np.asarray(self._y) - self._sp, start, tb, 0.0, hann=False).real
+        du = held_coefficient(raw.s, raw.u - self.mv0, start, tb, 0.0, hann=False).real
+        dy = sampled_coefficient(raw.t, raw.y - self._sp, start, tb, 0.0, hann=False).real
         # Compare estimates through |F|/K0, which stays bounded as K0 grows.
         plain = self._sign * du / dy * abs(value) if dy != 0.0 else 0.0
-        return point, settled_ratio(self._held(len(uu)), uu - self.mv0, self._sign * dy, plain, point.gain, omega,
-                                    self._lag(value), start, tb, *self._settling)
+        # The MV since the start: the slow lag remembers it (settled_ratio reads what its lag still holds).
+        history = self._record.all()
+        return point, settled_ratio(history.s, history.u, self._sign * dy, plain, point.gain, omega,
+                                    self._lag(value), start, tb, *self._settling, u0=self.mv0)
 
-    def _wide_inverse(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray) -> float:
+    def _wide_inverse(self, samples: Samples) -> float:
         """|F|/K0 over the last two whole periods with a Hann window (the mean weighted to their middle)."""
         ta, tb = self._crossings[-3], self._crossings[-1]
-        value = self._estimate(tt, uu, yy, ta, tb, 4.0 * math.pi / (tb - ta), hann=True)
-        return self._mean_ratio(tt, uu, yy, ta, tb, abs(value), hann=True)
+        value = self._estimate(samples, ta, tb, 4.0 * math.pi / (tb - ta), hann=True)
+        return self._mean_ratio(samples, ta, tb, abs(value), hann=True)
 
-    def _mean_ratio(self, tt: np.ndarray, uu: np.ndarray, yy: np.ndarray, ta: float, tb: float, gain: float,
-                    hann: bool = False) -> float:
+    def _mean_ratio(self, samples: Samples, ta: float, tb: float, gain: float, hann: bool = False) -> float:
         """``gain`` (|F|, PV per MV unit) over the static ratio of the means over ``[ta, tb]`` (s): |F|/K0."""
-        du = held_coefficient(self._held(len(uu)), uu - self.mv0, ta, tb, 0.0, hann).real
-        dy = sampled_coefficient(tt, yy - self._sp, ta, tb, 0.0, hann).real
+        du = held_coefficient(samples.s, samples.u - self.mv0, ta, tb, 0.0, hann).real
+        dy = sampled_coefficient(samples.t, samples.y - self._sp, ta, tb, 0.0, hann).real
         return self._sign * du / dy * gain if dy != 0.0 else 0.0
 
     def _tolerances(self) -> Tolerances:
@@ -1217,14 +1271,15 @@ class RelayExperiment:
         static_std = math.inf
         if fit is not None and not integrating and fit.x != 0.0:
             static_std = point.gain * fit.x_std / (fit.x * fit.x)
-        duration = self._t[-1] - self._t[0]
+        time = self._record.time
+        duration = time(-1) - time(0)
         discarded = sum(1 for start in self._windows if start < self._discard_before) if fit is not None else 0
         self.result = Identification(
             point=point,
             static_gain=static,
             duration=duration,
             periods=duration * point.omega / (2.0 * math.pi),
-            samples=len(self._t),
+            samples=len(self._record),
             hysteresis=self._eps,
             noise_std=self._noise,
             phase_target_deg=self._target_deg,
@@ -1232,7 +1287,7 @@ class RelayExperiment:
             static_gain_std=static_std,
             disturbance=fit is not None or self._unsettled_start(point, inverse_gain),
             periods_discarded=discarded,
-            load_estimate=0.0 if fit is None else fit.load_at(self._t[-1], self._t[0]),
+            load_estimate=0.0 if fit is None else fit.load_at(time(-1), time(0)),
         )
         self._finish(Code.OK, MESSAGES[Code.OK])
 
@@ -1249,13 +1304,13 @@ class RelayExperiment:
 
     # -- helpers ----------------------------------------------------------
 
-    def _estimate(self, t: np.ndarray, u: np.ndarray, y: np.ndarray, ta: float, tb: float, omega: float, hann: bool) -> complex:
-        """F(jω) over ``[ta, tb]`` (s): the PV sampled at ``t``, the MV as the process held it (``applied``)."""
+    def _estimate(self, samples: Samples, ta: float, tb: float, omega: float, hann: bool) -> complex:
+        """F(jω) over ``[ta, tb]`` (s): the PV as sampled, the MV as the process held it (``applied``)."""
         # Means are removed first: over a window that is not exactly whole
         # periods they would leak into the coefficient.
-        s = self._held(len(u))
-        u = u - held_coefficient(s, u, ta, tb, 0.0, hann).real
-        y = y - sampled_coefficient(t, y, ta, tb, 0.0, hann).real
+        t, s = samples.t, samples.s
+        u = samples.u - held_coefficient(s, samples.u, ta, tb, 0.0, hann).real
+        y = samples.y - sampled_coefficient(t, samples.y, ta, tb, 0.0, hann).real
         return self._sign * sampled_coefficient(t, y, ta, tb, omega, hann) / held_coefficient(s, u, ta, tb, omega, hann)
 
     @staticmethod
@@ -1304,8 +1359,7 @@ class RelayExperiment:
             return
         if len(self._switches) < 3:
             return
-        halves = np.diff([self._t[i] for i in self._switches])
-        if self._t[k] - self._t[self._switches[-1]] > 5.0 * max(halves):
+        if self._record.time(k) - self._record.time(self._switches[-1]) > 5.0 * self._longest_half:
             if self._pushed_away(k):
                 self._finish(
                     Code.DISTURBANCE,
@@ -1322,9 +1376,9 @@ class RelayExperiment:
         the authority to bring the PV back: something larger than amp pushes it.
         """
         last = self._switches[-1]
-        before = self._y[self._switches[-3]:last]
-        swing = 0.5 * (max(before) - min(before)) if before else 0.0
-        error = self._sign * (self._sp - self._y[k])
+        before = self._record.y[self._switches[-3]:last]
+        swing = 0.5 * float(np.max(before) - np.min(before)) if len(before) else 0.0
+        error = self._sign * (self._sp - self._record.pv(k))
         pushing = error * self._relay > 0.0  # the relay pushes against an error that keeps growing
         return pushing and abs(error) > swing + self._eps
 
@@ -1377,11 +1431,11 @@ class RelayExperiment:
         least twice the time since the relay started (the first switch comes
         after a quarter to half a period).
         """
-        t = self._t
+        time = self._record.time
         if len(self._rising) >= 2:
-            return t[self._rising[-1]] - t[self._rising[-2]]
+            return time(self._rising[-1]) - time(self._rising[-2])
         if len(self._switches) >= 2:
-            return 2.0 * (t[self._switches[-1]] - t[self._switches[-2]])
+            return 2.0 * (time(self._switches[-1]) - time(self._switches[-2]))
         c = self.config
         if c.expected_period is not None:
             guess = c.expected_period
@@ -1390,14 +1444,15 @@ class RelayExperiment:
         else:
             guess = _SAMPLES_PER_PERIOD * (dt if dt else 1.0)
         if self.stage is Stage.RELAY:
-            guess = max(guess, 2.0 * (t[-1] - t[self._relay_start]))
+            guess = max(guess, 2.0 * (time(-1) - time(self._relay_start)))
         return guess
 
     def _seconds_left(self) -> float:
         """Estimated seconds to the end: the noise stage's rest plus the periods the stopping rule still needs."""
-        t = self._t
-        dt = (t[-1] - t[0]) / (len(t) - 1) if len(t) >= 2 else None
-        noise_left = max(self.config.noise_samples - len(t), 0) * (dt or 0.0)
+        samples = len(self._record)
+        elapsed = self._record.time(-1) - self._record.time(0) if samples else 0.0
+        dt = self._mean_interval()
+        noise_left = max(self.config.noise_samples - samples, 0) * (dt or 0.0)
         period = self._period_guess(dt)
         done = max(len(self._rising) - 1, 0)
         needed = _MIN_PERIODS + 1.0
@@ -1409,7 +1464,7 @@ class RelayExperiment:
         needed = min(needed, float(self.config.max_periods))
         left = noise_left + max(needed - done, 0.5) * period
         if math.isfinite(self.config.time_limit):
-            left = min(left, max(self.config.time_limit - (t[-1] - t[0] if t else 0.0), 0.0))
+            left = min(left, max(self.config.time_limit - elapsed, 0.0))
         return max(left, dt or period / _SAMPLES_PER_PERIOD)
 
     def _finish(self, code: Code, message: str) -> None:
