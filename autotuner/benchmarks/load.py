@@ -2,7 +2,10 @@
 
 The plant is a child process (:func:`drivers.modbus_plant.serve_plant`: one
 task ticks every loop, 247 loops per Modbus server, loop k on unit id k) —
-the field devices, kept off the daemon's CPU account. The daemon is the real
+the field devices, kept off the daemon's CPU account, and at real-time
+priority where the machine allows it (:data:`PLANT_RT_PRIORITY`): devices
+have CPUs of their own, and a plant waiting for the same two cores as the
+daemon and its clients would answer late and make its lateness the daemon's. The daemon is the real
 one: the app of ``autotuner serve`` (its loop manager, its sampler
 process(es), its design workers) served by uvicorn in this process, with N +
 M loops (``modbus://127.0.0.1:PORT/UNIT``, ``apply: true``). With
@@ -18,7 +21,8 @@ sampling lateness — when each PV read completed behind its due time, as the
 sessions themselves measure it (``SessionHooks.on_timing``; the link's round
 trip included: what the experiment sees as jitter), p50/p99/max; the analysis
 CPU per period (p50/p99/max); the daemon's CPU (its process, its samplers and
-design workers; % of one core) and peak RSS (its process and samplers), the
+design workers, the samplers' analysis workers; % of one core) and peak RSS
+(its process, its samplers and theirs), the
 plant's CPU and the clients'.
 """
 
@@ -26,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import multiprocessing
+import os
 import resource
 import secrets
 import socket
@@ -36,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from autotuner.engine.plant.expression import parse_process
-from autotuner.service.channel import cpu_seconds
+from autotuner.service.channel import descendants, tree_cpu_seconds
 from autotuner.service.config import DaemonConfig, TuneRequest
 from autotuner.service.design_pool import design_cpu
 
@@ -47,6 +52,8 @@ DEFAULT_SPEED = 1.0
 VIEWER_NAME = "dashboard"
 # Requests in flight on each plant server's connection (the loops' URLs' ?pipeline=).
 PIPELINE = 16
+# The plant process's real-time priority (SCHED_RR), above the samplers' (docs/daemon.md): it stands for devices.
+PLANT_RT_PRIORITY = 30
 
 
 @dataclass(frozen=True)
@@ -92,6 +99,7 @@ class LoadResult:
     cpu_daemon: float
     rss_daemon: float
     cpu_plant: float
+    plant_realtime: bool = False
     cpu_clients: float | None = None
     events: int | None = None
     opcua_changes: int | None = None
@@ -112,12 +120,13 @@ def _plant_main(spec: LoadSpec, conn: Any) -> None:
     from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE
 
     async def main() -> None:
+        realtime = _plant_priority()
         plant = await serve_plant(spec.loops + spec.idle, parse_process(spec.plant),
                                   ts=spec.ts / PLANT_TICKS_PER_SAMPLE, noise_std=spec.noise, loads=spec.loads,
                                   speed=spec.speed)
         # The loops of one plant server share one connection; 16 requests in flight on it (the plant answers
         # pipelined requests: docs/modbus.md), as a PLC that takes them would be configured.
-        conn.send([plant.url(k, PIPELINE) for k in range(1, spec.loops + spec.idle + 1)])
+        conn.send(([plant.url(k, PIPELINE) for k in range(1, spec.loops + spec.idle + 1)], realtime))
         cpu0, wall0 = time.process_time(), time.monotonic()
         await asyncio.get_running_loop().run_in_executor(None, conn.recv)  # "stop"
         cpu = 100.0 * (time.process_time() - cpu0) / (time.monotonic() - wall0)
@@ -125,6 +134,15 @@ def _plant_main(spec: LoadSpec, conn: Any) -> None:
         conn.send(cpu)
 
     asyncio.run(main())
+
+
+def _plant_priority() -> bool:
+    """In the plant's process: real-time round-robin scheduling above the daemon's samplers; whether granted."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(PLANT_RT_PRIORITY))
+    except (PermissionError, OSError):
+        return False
+    return True
 
 
 def clients_main(port: int, token: str, loop_ids: list[str], count: int, conn: Any) -> None:
@@ -253,7 +271,7 @@ async def run_load(spec: LoadSpec) -> LoadResult:
     children = _Children()
     try:
         plant_conn, plant = children.start(_plant_main, (spec,), "plant")
-        urls = await loop.run_in_executor(None, _receive, plant_conn, plant, "plant")
+        urls, plant_realtime = await loop.run_in_executor(None, _receive, plant_conn, plant, "plant")
         viewer = secrets.token_urlsafe(24)
         operator = secrets.token_urlsafe(24)
         port = _free_port()
@@ -274,7 +292,7 @@ async def run_load(spec: LoadSpec) -> LoadResult:
         cpu_plant = await loop.run_in_executor(None, _receive, plant_conn, plant, "plant")
     finally:
         children.stop()
-    return LoadResult(**{**result, "cpu_plant": cpu_plant})
+    return LoadResult(**{**result, "cpu_plant": cpu_plant, "plant_realtime": plant_realtime})
 
 
 async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: str,
@@ -292,7 +310,7 @@ async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: 
                                              spec.monitor_period), "OPC UA client")
         await loop.run_in_executor(None, _receive, *scada, "OPC UA client")
     pids = getattr(manager.field, "pids", [])
-    cpu0 = time.process_time() + design_cpu() + sum(cpu_seconds(pid) or 0.0 for pid in pids)
+    cpu0 = time.process_time() + design_cpu() + sum(tree_cpu_seconds(pid) or 0.0 for pid in pids)
     wall0 = time.monotonic()
     opcua = getattr(app.state, "opcua", None)
     opcua0 = None if opcua is None else opcua.cpu_time()
@@ -300,8 +318,8 @@ async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: 
                                    return_exceptions=True)
     await asyncio.gather(*(manager.wait(loop_id) for loop_id in tuned))
     wall = time.monotonic() - wall0
-    cpu = 100.0 * (time.process_time() + design_cpu() + sum(cpu_seconds(pid) or 0.0 for pid in pids) - cpu0) / wall
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0 + sum(_peak_rss_mb(pid) for pid in pids)
+    cpu = 100.0 * (time.process_time() + design_cpu() + sum(tree_cpu_seconds(pid) or 0.0 for pid in pids) - cpu0) / wall
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0 + sum(_peak_rss_mb(p) for pid in pids for p in (pid, *descendants(pid)))
     out: dict[str, Any] = {}
     if opcua is not None and opcua0 is not None:
         out["cpu_opcua"] = 100.0 * ((opcua.cpu_time() or 0.0) - opcua0) / wall

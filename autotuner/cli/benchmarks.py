@@ -135,7 +135,10 @@ def loadbench_command(
             stderr.print(f"{n} loops: {loop_id} failed: {message}", highlight=False, markup=False)
     title = (f"tunings at once over Modbus TCP (localhost): ts {ts:g} s, {speed:g}× real time, one sample every "
              f"{1e3 * ts / speed:g} ms per loop; noise {noise:g}, loads {list(steps) or 'none'}; lateness of the PV "
-             "read behind its due time")
+             "read behind its due time; the plant at "
+             + ("real-time priority (it stands for devices with CPUs of their own)"
+                if all(r.plant_realtime for r in results) else "ordinary priority (real time not granted: its own "
+                                                              "lateness counts in the figures)"))
     if as_markdown:
         print(f"{title}\n\n{markdown(results)}")
     else:

@@ -103,6 +103,29 @@ def cpu_seconds(pid: int) -> float | None:
     return (int(utime) + int(stime)) / os.sysconf("SC_CLK_TCK")
 
 
+def descendants(pid: int) -> list[int]:
+    """The processes running now that ``pid`` started, and those they started (none where /proc is missing)."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            parent = int(stat.read_text().rpartition(")")[2].split()[1])  # field 4 of proc(5)
+        except (OSError, IndexError, ValueError):
+            continue  # gone meanwhile
+        children.setdefault(parent, []).append(int(stat.parent.name))
+    found, todo = [], list(children.get(pid, []))
+    while todo:
+        found.append(current := todo.pop())
+        todo.extend(children.get(current, []))
+    return found
+
+
+def tree_cpu_seconds(pid: int) -> float | None:
+    """CPU seconds process ``pid`` and its :func:`descendants` have used so far; None where /proc is missing or
+    ``pid`` is gone. (A sampler's analysis workers count as the sampler's.)"""
+    own = cpu_seconds(pid)
+    return None if own is None else own + sum(cpu_seconds(child) or 0.0 for child in descendants(pid))
+
+
 class Forward(logging.Handler):
     """Sends every record to the daemon's log over ``channel`` (the traceback, if any, in the message)."""
 

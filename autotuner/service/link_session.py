@@ -269,6 +269,22 @@ class SessionPlan:
             raise ValueError(f"sample time and speed must be positive, got ts={self.ts}, speed={self.speed}")
 
 
+def analysed(experiment: RelayExperiment) -> tuple[RelayExperiment, float]:
+    """Run the pending analysis of ``experiment`` (in a worker thread or process); it and the CPU seconds it took."""
+    start = time.thread_time()
+    experiment.analyse()
+    return experiment, time.thread_time() - start
+
+
+#: How a session has a period's analysis run off its event loop (:attr:`SessionHooks.analyse`).
+Analyse = Callable[[RelayExperiment], Awaitable[tuple[RelayExperiment, float]]]
+
+
+async def analysed_in_thread(experiment: RelayExperiment) -> tuple[RelayExperiment, float]:
+    """:func:`analysed` in a thread of this process (the analysis holds its GIL most of the time)."""
+    return await asyncio.to_thread(analysed, experiment)
+
+
 @dataclass
 class SessionHooks:
     """How a session reports to whoever runs it; every member optional.
@@ -286,7 +302,10 @@ class SessionHooks:
     own lateness the experiment tolerates now (:class:`Overload`).
     ``on_analysis(cpu)``: per period, the CPU seconds its analysis took.
     ``design(job)``: the design of the ended experiment (default: the design
-    pool of this process).
+    pool of this process). ``analyse(experiment)``: a period's pending
+    analysis (:func:`analysed`) off the event loop — the experiment analysed
+    (a copy, from a worker process) and the CPU seconds it took (default: a
+    thread of this process).
     """
 
     stop: asyncio.Event | None = None
@@ -296,6 +315,7 @@ class SessionHooks:
     on_timing: Callable[[float, float, float], None] | None = None
     on_analysis: Callable[[float], None] | None = None
     design: Callable[[DesignJob], Awaitable[Outcome]] = designed
+    analyse: Analyse = analysed_in_thread
 
 
 class Overload:
@@ -321,13 +341,19 @@ class Overload:
         wall seconds), judged against ``tolerance`` (wall seconds)."""
         self._samples += 1
         own = max(read_start - max(due, self.io_end), 0.0)
-        if own > tolerance:
-            self.count += 1
-            self.worst = max(self.worst, own)
-            self._late.append(self._samples)
+        self.delayed(own, tolerance)
         while self._late and self._late[0] <= self._samples - OVERLOAD_WINDOW:
             self._late.popleft()
         return own
+
+    def delayed(self, delay: float, tolerance: float) -> None:
+        """Something of the latest sample's the session did ``delay`` wall seconds late by its own fault — its
+        read, or its MV's write (a relay switch, stepped only once the last period's analysis was over) —, judged
+        against ``tolerance`` (wall seconds)."""
+        if delay > tolerance:
+            self.count += 1
+            self.worst = max(self.worst, delay)
+            self._late.append(self._samples)
 
     @property
     def exceeded(self) -> bool:
@@ -336,8 +362,9 @@ class Overload:
 
     def message(self, speed: float) -> str:
         """The overload's message (what the experiment saw, in plant seconds)."""
-        return (f"{MESSAGES[Code.OVERLOADED]}: {self.count} samples were taken later than the experiment tolerates "
-                f"by the tuner itself (the longest {self.worst * speed:.3g} s late, not the link's delay): its "
+        return (f"{MESSAGES[Code.OVERLOADED]}: {self.count} samples were taken (or their relay switches written) "
+                f"later than the experiment tolerates by the tuner itself (the longest {self.worst * speed:.3g} s "
+                "late, not the link's delay): its "
                 "machine or process is loaded beyond what the experiment tolerates; the loop was handed back — "
                 "retry when fewer loops tune at once")
 
@@ -368,14 +395,16 @@ async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = 
         await _publish(link, _ended("", experiment.code))
         return TuneResult.failed(experiment.code, experiment.message, controller)
     sampling = _Sampling(link, experiment, plan, hooks)
+    del experiment  # an analysis in a worker process returns its own copy: sampling.experiment is the one
     failed = False
     try:
         await _take_over(link, saved, plan)
         await sampling.run()
     except LinkError as exc:
-        experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
+        sampling.experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {exc}")
     except (asyncio.CancelledError, Exception):  # cancelled, or a bug: handed back below, TBSY must not stay set
-        experiment.abort()
+        await sampling.settled()
+        sampling.experiment.abort()
         failed = True
         raise
     finally:
@@ -391,7 +420,7 @@ async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = 
     result = _restored(await _result(hooks, sampling.design_job(), sampling.trace()), saved, restore_error)
     if sampling.hands_off:
         if hooks.on_status is not None:
-            hooks.on_status(experiment.status())
+            hooks.on_status(sampling.experiment.status())
         return result if sampling.restarted in result.message else replace(
             result, message=f"{result.message}; then {sampling.restarted}")
     if result.ok and plan.apply:
@@ -402,7 +431,7 @@ async def tune_link(link: Link, plan: SessionPlan, hooks: SessionHooks | None = 
                                 result.identification, result.design, result.trace)
     await _end_handshake(link, restore_error, result.code, result.ok)
     if hooks.on_status is not None:
-        hooks.on_status(experiment.status())
+        hooks.on_status(sampling.experiment.status())
     return result
 
 
@@ -436,71 +465,126 @@ class _Sampling:
         self.restarted = ""  # how the device was seen to restart
         self._boot: int | None = None  # the device's boot token at the session's first sample
         self._in_man = False  # a sample of this session has read the loop in MAN
+        self._read: collections.deque[tuple[float, float]] = collections.deque()  # (t, PV) read, not stepped yet
+        self._last_t = -math.inf  # the time of the latest sample read, plant seconds
+        self._written = experiment.mv0  # the MV last written to the device (the saved one at the take-over)
+        self._analysis: asyncio.Future[tuple[RelayExperiment, float]] | None = None  # the period's, off the loop
+        self._status = experiment.status()  # the experiment's status after its latest step outside an analysis
+        self._tolerance = experiment.stall_tolerance / plan.speed  # the own lateness it tolerates, wall seconds
 
     async def run(self) -> None:
         """Sample until the experiment ends (or ``hooks.stop`` aborts it); LinkError if the link fails."""
         self._start = self._flags_due = self._beat_sent = time.monotonic()  # the watchdog was armed just before
-        stop, experiment = self.hooks.stop, self.experiment
+        stop = self.hooks.stop
         schedule = deadlines(self.plan.ts / self.plan.speed, stop, FLAGS_PERIOD)
-        async with contextlib.aclosing(schedule):
-            async for due in schedule:
-                if stop is not None and stop.is_set():
-                    experiment.abort()
-                    return
-                if due is None:  # between samples: only the handshake and the heartbeat may be due
-                    await self._handshake(experiment.status())
-                    if experiment.done:
+        try:
+            async with contextlib.aclosing(schedule):
+                async for due in schedule:
+                    if stop is not None and stop.is_set():
+                        await self.settled()
+                        self.experiment.abort()
                         return
-                elif not await self._sample(due) or experiment.done:
-                    return
+                    if due is None:  # between samples: only the handshake and the heartbeat may be due
+                        await self._handshake(self._status)
+                        if self.experiment.done:
+                            return
+                    elif not await self._sample(due) or self.experiment.done:
+                        return
+        finally:
+            await self.settled()
 
     async def _sample(self, due: float) -> bool:
-        """One sample due at ``due``: PV read, the experiment's step, MV written, the period's analysis; False
-        once the experiment has ended."""
-        link, experiment, speed, hooks = self.link, self.experiment, self.plan.speed, self.hooks
+        """One sample due at ``due``: its PV read, then (unless the last period's analysis still runs) the
+        experiment's steps and the MV written; False once the experiment has ended."""
+        link, speed, hooks = self.link, self.plan.speed, self.hooks
         before = time.monotonic()
-        tolerance = experiment.stall_tolerance / speed
-        own = self.overload.sample(due, before, tolerance)
+        own = self.overload.sample(due, before, self._tolerance)
         sample = await link.read_sample()
-        pv = sample.pv
         after = time.monotonic()
         if hooks.on_timing is not None:
-            hooks.on_timing(after - due, own, tolerance)
+            hooks.on_timing(after - due, own, self._tolerance)
         if self.overload.exceeded:
-            experiment.fail(Code.OVERLOADED, self.overload.message(speed))
+            await self._fail(Code.OVERLOADED, self.overload.message(speed))
             return False
         if not await self._still_held(sample):
             return False
         age = link.pv_age
         t = ((0.5 * (before + after) if age is None else after - age) - self._start) * speed
-        if self.t and t <= self.t[-1]:
-            self.overload.io_end = time.monotonic()
-            return True  # the same time-stamped value again: nothing new to act on
-        mv = experiment.step(t, pv)
-        if experiment.done:
-            return False
-        before = time.monotonic()
-        await link.write_mv(mv)
         self.overload.io_end = time.monotonic()
-        # When the MV reached the device: a write the link or a busy machine delayed left the previous MV on the
-        # process meanwhile, and the estimates must integrate the MV as the process held it.
-        experiment.applied((0.5 * (before + self.overload.io_end) - self._start) * speed)
-        self.t.append(t)
-        self.pv.append(pv)
-        self.mv.append(mv)
-        if experiment.analysis_pending:
-            # A period ended: its analysis runs off the event loop, so the other loops of this process and the
-            # handshake keep their time.
-            cpu = await asyncio.to_thread(_analysed, experiment)
-            if hooks.on_analysis is not None:
-                hooks.on_analysis(cpu)
+        if t <= self._last_t:
+            return True  # the same time-stamped value again: nothing new to act on
+        self._last_t = t
+        self._read.append((t, sample.pv))
+        if self._analysis is not None:
+            if not self._analysis.done():
+                return True  # stepped once the analysis is over: the reads keep their schedule meanwhile
+            await self.settled()
+            if self.experiment.done:
+                return False
+        return await self._catch_up()
+
+    async def _catch_up(self) -> bool:
+        """Step the experiment through the samples read and not stepped yet, write the MV it asks for, start the
+        analysis of a period that ended (in a worker thread, not awaited: the next samples are read on time
+        while it runs); False once the experiment has ended.
+
+        The MV reaches the device once the samples read during an analysis are stepped: when one of them changed
+        it, the experiment is told when (``applied``), and from then on of every later one (their MV arrived no
+        sooner), and the delay counts as the session's own lateness."""
+        experiment, speed = self.experiment, self.plan.speed
+        moved = None  # the time of the first sample whose MV has not reached the device yet (plant seconds)
+        while self._read:
+            t, pv = self._read.popleft()
+            mv = experiment.step(t, pv)
             if experiment.done:
                 return False
-        status = experiment.status()
-        if hooks.on_status is not None:
-            hooks.on_status(status)
-        await self._handshake(status)
+            self.t.append(t)
+            self.pv.append(pv)
+            self.mv.append(mv)
+            if moved is None and mv != self._written:
+                moved = t
+            if self._read and not experiment.analysis_pending:
+                if moved is not None:
+                    experiment.applied((time.monotonic() - self._start) * speed)
+                continue
+            before = time.monotonic()
+            await self.link.write_mv(mv)
+            self.overload.io_end = time.monotonic()
+            # When the MV reached the device: a write the link or a busy machine delayed left the previous MV on
+            # the process meanwhile, and the estimates must integrate the MV as the process held it.
+            arrived = (0.5 * (before + self.overload.io_end) - self._start) * speed
+            experiment.applied(arrived)
+            self._written = mv
+            if moved is not None:
+                self.overload.delayed((arrived - moved) / speed, self._tolerance)
+                moved = None
+            if experiment.analysis_pending:
+                # A period ended: its analysis runs off the event loop, so the other loops of this process and
+                # the handshake keep their time, and so do this loop's reads.
+                self._analysis = asyncio.ensure_future(self.hooks.analyse(experiment))
+                break
+        if self._analysis is None:
+            self._status = experiment.status()
+            self._tolerance = experiment.stall_tolerance / speed
+        if self.hooks.on_status is not None:
+            self.hooks.on_status(self._status)
+        await self._handshake(self._status)
         return True
+
+    async def settled(self) -> None:
+        """Wait for the period's analysis in flight, if any: nothing else touches the experiment while a worker
+        thread analyses it (a thread cannot be interrupted; an analysis is bounded: docs/experiment.md)."""
+        if self._analysis is None:
+            return
+        self.experiment, cpu = await asyncio.shield(self._analysis)
+        self._analysis = None
+        if self.hooks.on_analysis is not None:
+            self.hooks.on_analysis(cpu)
+
+    async def _fail(self, code: Code, message: str) -> None:
+        """End the experiment with ``code`` and ``message`` once no analysis runs."""
+        await self.settled()
+        self.experiment.fail(code, message)
 
     async def _handshake(self, status: Status) -> None:
         """TBSY, ite and the heartbeat every :data:`FLAGS_PERIOD` (the heartbeat only to an armed watchdog).
@@ -519,9 +603,8 @@ class _Sampling:
         timeout = self.plan.handback.watchdog
         if time.monotonic() < self._suspect_until and await self._taken_back():
             self.fell_back = True
-            self.experiment.fail(Code.WATCHDOG_FALLBACK, f"{MESSAGES[Code.WATCHDOG_FALLBACK]}: its heartbeat came "
-                                 f"more than {timeout:g} s apart (a slow link); the loop is as the device handed it "
-                                 "back")
+            await self._fail(Code.WATCHDOG_FALLBACK, f"{MESSAGES[Code.WATCHDOG_FALLBACK]}: its heartbeat came "
+                             f"more than {timeout:g} s apart (a slow link); the loop is as the device handed it back")
             return
         self._beats += 1
         sent = time.monotonic()
@@ -537,7 +620,7 @@ class _Sampling:
         changed: a link fault, its registers at their defaults), or the loop left MAN after a sample had read it
         in MAN (the device's watchdog: 22, its own code kept; anyone else: an intervention, 21)."""
         if self._restarted(sample):
-            self.experiment.fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {self.restarted}")
+            await self._fail(Code.LINK_FAULT, f"{MESSAGES[Code.LINK_FAULT]}: {self.restarted}")
             return False
         if sample.mode is Mode.MAN:
             self._in_man = True
@@ -546,13 +629,13 @@ class _Sampling:
             return True  # (the session's MAN may not have reached the device's scan yet)
         if self.plan.handback.watchdog > 0.0 and await fell_back(self.link):
             self.fell_back = True
-            self.experiment.fail(Code.WATCHDOG_FALLBACK, f"{MESSAGES[Code.WATCHDOG_FALLBACK]}: the loop is as the "
-                                 "device handed it back")
+            await self._fail(Code.WATCHDOG_FALLBACK, f"{MESSAGES[Code.WATCHDOG_FALLBACK]}: the loop is as the "
+                             "device handed it back")
             return False
         self.hands_off = True
-        self.experiment.fail(Code.OPERATOR_INTERVENTION, f"{MESSAGES[Code.OPERATOR_INTERVENTION]}: the loop left MAN "
-                             f"during the session ({Mode(sample.mode).name} read), taken by someone else: nothing "
-                             "more was written to it")
+        await self._fail(Code.OPERATOR_INTERVENTION, f"{MESSAGES[Code.OPERATOR_INTERVENTION]}: the loop left MAN "
+                         f"during the session ({Mode(sample.mode).name} read), taken by someone else: nothing more "
+                         "was written to it")
         return False
 
     def _restarted(self, sample: Sample) -> bool:
@@ -598,13 +681,6 @@ class _Sampling:
         """The samples taken."""
         return Trace(np.asarray(self.t, dtype=float), np.asarray(self.pv, dtype=float),
                      np.asarray(self.mv, dtype=float))
-
-
-def _analysed(experiment: RelayExperiment) -> float:
-    """Run the pending analysis of ``experiment`` (in a worker thread); the CPU seconds it took."""
-    start = time.thread_time()
-    experiment.analyse()
-    return time.thread_time() - start
 
 
 async def _result(hooks: SessionHooks, job: DesignJob, trace: Trace) -> TuneResult:

@@ -41,7 +41,7 @@ from autotuner.service.daemon.restore import Pending, Restored, restore_once
 from autotuner.service.daemon.timing import FLUSH_PERIOD, TimingBatch, Timings
 from autotuner.service.daemon.watch import Watch, WatchSink
 from autotuner.service.design_pool import Outcome
-from autotuner.service.link_session import Fenced, SessionHooks, SessionPlan
+from autotuner.service.link_session import Analyse, Fenced, SessionHooks, SessionPlan, analysed_in_thread
 from autotuner.service.session_record import SessionRecord, read_gains
 from autotuner.service.session_runner import SessionOutcome, run_session
 
@@ -174,8 +174,9 @@ class Reach:
 class LocalField:
     """The field of ``configs`` on the running event loop (:class:`Field`)."""
 
-    def __init__(self, configs: list[LoopConfig]) -> None:
+    def __init__(self, configs: list[LoopConfig], analyse: Analyse = analysed_in_thread) -> None:
         self.reaches = {c.id: Reach.of(c) for c in configs}
+        self._analyse = analyse
         self._idle = {c.id: asyncio.Event() for c in configs}
         for idle in self._idle.values():
             idle.set()
@@ -189,7 +190,7 @@ class LocalField:
         self._grants: dict[str, float] | None = None
         self._plants: list[asyncio.Task[None]] = []
         self._sink: FieldSink | None = None
-        self._timings = Timings()
+        self._timings = Timings(elsewhere=analyse is not analysed_in_thread)
         self._flusher: asyncio.Task[None] | None = None
         self.cost = Cost()
 
@@ -264,7 +265,7 @@ class LocalField:
                                  on_handed_back=lambda error: sink.handed_back(loop_id, error),
                                  on_timing=lambda late, own, tolerance: self._timings.add(loop_id, late, own,
                                                                                           tolerance),
-                                 on_analysis=self._timings.analysed, design=sink.design)
+                                 on_analysis=self._timings.analysed, design=sink.design, analyse=self._analyse)
             return await run_session(lambda: self._connect(loop_id), plan, record, hooks)
         finally:
             del self._sessions[loop_id]

@@ -29,13 +29,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import os
 import signal
 import subprocess
 import sys
 from collections.abc import Awaitable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,8 +45,8 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.experiment.relay import Status
 from autotuner.engine.outcome import Code
 from autotuner.engine.simulated_tuning import DesignJob
-from autotuner.service.channel import (Channel, Peer, PeerLost, child_start, cpu_seconds, log_levels, log_record,
-                                       start_child)
+from autotuner.service.channel import (Channel, Peer, PeerLost, child_start, log_levels, log_record, start_child,
+                                       tree_cpu_seconds)
 from autotuner.service.config import LoopConfig
 from autotuner.service.daemon.capacity import Cost
 from autotuner.service.daemon.field import FieldSink, LocalField, nominal_rate
@@ -55,8 +55,9 @@ from autotuner.service.daemon.restore import Pending, Restored
 from autotuner.service.daemon.timing import TimingBatch
 from autotuner.service.daemon.watch import Reading
 from autotuner.service.design_pool import Outcome
-from autotuner.service.link_session import SessionPlan
+from autotuner.service.link_session import SessionPlan, analysed
 from autotuner.service.session_runner import SessionOutcome
+from autotuner.service.worker_pool import WorkerPool
 
 MODULE = "autotuner.service.daemon.sampler"
 # What each side serves of the other's messages.
@@ -64,8 +65,9 @@ SAMPLER_CALLS = frozenset({"start", "check", "run", "write_gains", "read_gains",
 SAMPLER_NOTES = frozenset({"watch", "serve", "grant", "unserve", "abort", "cap"})
 FRONT_CALLS = frozenset({"durable", "design", "edges"})
 FRONT_NOTES = frozenset({"status", "handed_back", "timings", "reading", "link_failed", "link_back"})
-# Threads a sampler analyses its sessions' periods in (one period's analysis is bounded: docs/experiment.md).
-ANALYSIS_THREADS = 2
+# Worker processes a sampler analyses its sessions' periods in (one period's analysis is bounded:
+# docs/experiment.md); in threads they would hold the sampler's GIL, which its event loop needs after every read.
+ANALYSIS_WORKERS = os.cpu_count() or 1
 # How long a sampler whose daemon is gone may take to hand its loops back, wall seconds.
 LOST_HANDBACK = 20.0
 # How long the daemon waits for a sampler to start (imports, plants) and to stop, wall seconds.
@@ -162,9 +164,9 @@ async def serve(fd: int) -> None:
     channel, init = started
     realtime = _raise_priority(init.shard)
     sys.setswitchinterval(SWITCH_INTERVAL)
-    asyncio.get_running_loop().set_default_executor(ThreadPoolExecutor(
-        ANALYSIS_THREADS, thread_name_prefix="analysis", initializer=_analysis_priority if realtime else None))
-    field = LocalField(init.loops)
+    analyses = WorkerPool(ANALYSIS_WORKERS, _ordinary_priority)
+    await analyses.start()
+    field = LocalField(init.loops, functools.partial(analyses.run, analysed))
     sampler = _Sampler(field)
     peer = Peer(channel, sampler, SAMPLER_CALLS, SAMPLER_NOTES)
     field.bind(_ToDaemon(peer))
@@ -177,6 +179,7 @@ async def serve(fd: int) -> None:
         await peer.drain(LOST_HANDBACK + 5.0)
         await field.stop()
     await channel.close()
+    analyses.close()
 
 
 def _raise_priority(shard: int) -> bool:
@@ -200,9 +203,18 @@ def _raise_priority(shard: int) -> bool:
 
 
 def _analysis_priority() -> None:
-    """In an analysis thread of a real-time sampler: a lower real-time priority than the event loop's."""
+    """In an analysis worker of a real-time sampler: a lower real-time priority than the sampler's."""
     with contextlib.suppress(PermissionError, OSError):
         os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(ANALYSIS_RT_PRIORITY))
+
+
+def _ordinary_priority() -> None:
+    """In an analysis worker: an ordinary process's priority (it inherited the sampler's, and must not compete
+    with it)."""
+    with contextlib.suppress(PermissionError, OSError):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(PermissionError, OSError):
+        os.setpriority(os.PRIO_PROCESS, 0, 0)
 
 
 def main(argv: list[str]) -> int:
@@ -375,8 +387,9 @@ class SamplerField:
         return [s.process.pid for s in self._shards if s.process is not None and s.process.poll() is None]
 
     def cpu_seconds(self) -> dict[int, float]:
-        """CPU seconds (user + system) each running sampler process has used, by its number."""
-        running = {s.number: cpu_seconds(s.process.pid) for s in self._shards if s.process is not None}
+        """CPU seconds (user + system) each running sampler process and its analysis workers have used, by its
+        number."""
+        running = {s.number: tree_cpu_seconds(s.process.pid) for s in self._shards if s.process is not None}
         return {number: seconds for number, seconds in running.items() if seconds is not None}
 
     def bind(self, sink: FieldSink) -> None:

@@ -79,7 +79,7 @@ class TimingBatch:
     """The timings of the samples since the last batch: ``late`` and ``own`` (wall seconds, see the module), the
     samples late enough by the field's own fault to hurt an experiment (``overloaded``) and per loop the worst
     of them (``worst``, seconds); ``analysis``: the CPU seconds of each period's analysis; ``readings``: the
-    monitor's readings; ``cpu``: the CPU seconds the field's process spent meanwhile; ``cost``: the field's
+    monitor's readings; ``cpu``: the CPU seconds the field's process (and its analyses) spent meanwhile; ``cost``: the field's
     estimate of its CPU seconds per sample (:mod:`~autotuner.service.daemon.capacity`)."""
 
     late: Histogram = field(default_factory=Histogram)
@@ -93,11 +93,13 @@ class TimingBatch:
 
 
 class Timings:
-    """What a field's sessions report, gathered until the next :meth:`take`."""
+    """What a field's sessions report, gathered until the next :meth:`take`; ``elsewhere``: their analyses run
+    in other processes (their CPU seconds are then added to the batch's: they are the field's work)."""
 
-    def __init__(self) -> None:
+    def __init__(self, elsewhere: bool = False) -> None:
         self._batch = TimingBatch()
         self._cpu = time.process_time()
+        self._elsewhere = elsewhere
 
     def add(self, loop_id: str, late: float, own: float, tolerance: float) -> None:
         """A sample of ``loop_id``: ``late`` and ``own`` seconds; ``tolerance``: the own lateness (seconds) past
@@ -121,5 +123,5 @@ class Timings:
         """The batch since the last take, with the process's CPU seconds since."""
         batch, self._batch = self._batch, TimingBatch()
         now = time.process_time()
-        batch.cpu, self._cpu = now - self._cpu, now
+        batch.cpu, self._cpu = now - self._cpu + (batch.analysis.total if self._elsewhere else 0.0), now
         return batch
