@@ -352,3 +352,51 @@ def test_a_loop_taken_out_of_man_mid_session_is_left_as_found():
     assert "left MAN during the session (AUTO read)" in result.message
     assert writes == []
     assert plc.mode is Mode.AUTO and plc.flags == after[1]
+
+
+def test_the_reads_keep_their_schedule_while_a_period_is_analysed():
+    # Each period's analysis waits here until the session has read one more sample: a session that waited
+    # for its analysis before its next read would never finish one (the wait below times out). The samples read
+    # meanwhile are stepped once it is over, their MV written late and the experiment told when it arrived: the
+    # point is as accurate as a plain session's.
+    from autotuner.service.link_session import analysed_in_thread
+
+    async def slowly_analysed() -> tuple:
+        process = parse_process(PLANT)
+        ts = default_sample_time(process) * 100 / SAMPLES_PER_PERIOD
+        plc = SimulatedPlc(process, ts=ts / 5)
+        halt = asyncio.Event()
+        plant = asyncio.create_task(run(plc, SPEED, halt))
+        link = SimLink(plc)
+        reads = [0]
+        read_sample = link.read_sample
+
+        async def counted():
+            sample = await read_sample()
+            reads[0] += 1
+            return sample
+
+        link.read_sample = counted
+        analyses = []
+
+        async def slow(experiment):
+            start = reads[0]
+            await until(lambda: reads[0] >= start + 1, 30.0, "a read while the period is analysed")
+            analyses.append(reads[0] - start)
+            return await analysed_in_thread(experiment)
+
+        plan = SessionPlan(field_config(RelayConfig(amp=5.0, time_limit=500.0)), ts, speed=SPEED)
+        try:
+            result = await asyncio.wait_for(tune_link(link, plan, SessionHooks(analyse=slow)), 120.0)
+        finally:
+            halt.set()
+            await plant
+        return result, plc, analyses
+
+    result, plc, analyses = asyncio.run(slowly_analysed())
+    assert result.ok, result.message
+    assert len(analyses) >= 3 and min(analyses) >= 1
+    point = result.identification.point
+    exact = analytic(point.omega)
+    assert abs(point.value - exact) / abs(exact) < 0.03
+    assert plc.mode is Mode.AUTO
