@@ -169,7 +169,9 @@ def _plants(spec: FailoverSpec, procs: _Processes) -> list[str]:
         count, port = min(UNITS, spec.loops - first), _free_port()
         procs.start(f"plant{first}", ["sim", "--loops", str(count), "--modbus", f"127.0.0.1:{port}", "--speed",
                                       str(spec.speed)])
-        urls += [f"modbus://127.0.0.1:{port}/{k}?timeout=0.5" for k in range(1, count + 1)]
+        # 16 requests in flight on each daemon's connection to a plant (as loadbench's): one at a time, a
+        # daemon's monitor of 150 loops behind one connection waited for a plant busy with 247.
+        urls += [f"modbus://127.0.0.1:{port}/{k}?timeout=0.5&pipeline=16" for k in range(1, count + 1)]
         _wait(lambda name=f"plant{first}": "serving" in procs.log(name), START_WAIT, "a plant")
     return urls
 

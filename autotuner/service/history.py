@@ -59,6 +59,7 @@ from autotuner.engine.control.gains import Gains
 from drivers.link import LoopState, Mode
 
 from autotuner.engine.result import ResultRecord, Trace
+from autotuner.service.schema import create_tables
 from autotuner.service.session_record import TRACE_POINTS
 
 
@@ -221,7 +222,7 @@ class History:
                         shown = "; ".join(" ".join(str(p).split()) for p in problems[:3])
                         raise ValueError(f"history database {file} is damaged ({shown}): "
                                          "restore it from a backup, or move it away to start a new one")
-                _META.create_all(db)
+                create_tables(db, _META)
                 _upgrade(db)
         except sa.exc.DatabaseError as exc:
             reason = mask(str(exc.orig) if exc.orig is not None else str(exc), url)

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import sqlalchemy as sa
 from sqlalchemy.dialects import postgresql
 
+from autotuner.service.schema import create_tables
+
 _META = sa.MetaData()
 _LEASES = sa.Table(
     "leases", _META,
@@ -67,7 +69,8 @@ class Leases:
         self._engine = sa.create_engine(url, pool_size=2, max_overflow=0, pool_pre_ping=True)
         if self._engine.dialect.name != "postgresql":
             raise ValueError(f"leases need PostgreSQL, not {self._engine.dialect.name}")
-        _META.create_all(self._engine)
+        with self._engine.begin() as db:
+            create_tables(db, _META)
 
     def close(self) -> None:
         """Let go of the database connections."""
