@@ -110,11 +110,12 @@ NEAR_RUNS = _X_GRID + 2 * _X_STEPS + 2 * (1 + _X_STEPS) + 2  # (the scan's point
 class LoadFit:
     """The slow part of the data as one model explains it.
 
-    x: ``|F(jω)|/K0`` (0 integrating, < 0 unstable); x_std its standard error.
+    x: ``|F(jω)|/K0`` (0 integrating, < 0 unstable); x_std: its standard error.
     static_gain: ``|F(jω)|/x`` (``inf`` for ``x = 0``: integrating).
     offset: PV at the starting MV without load (PV units).
     step_time, step: a load step at the process input (s, MV units), or None/0.
-    ramp: load ramp from the start (MV units per second); free: PV units of
+    ramp: load ramp from the start (MV units per second).
+    free: PV units of
     the free response at the start.
     residual_std: standard deviation of the averaged residual (PV units).
     score: the information criterion of the chosen model (lower explains the
@@ -184,7 +185,8 @@ def _respond(u: np.ndarray, dt: float, x: float, gain: float, omega: float, lag:
 
 def settled_ratio(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, omega: float, lag: float,
                   ta: float, tb: float, slope: float = 0.0, t0: float = 0.0, u0: float = 0.0) -> float:
-    """``|F|/K0`` from the means over ``[ta, tb]`` (s): the PV's ``dy`` and the MV's as the slow part has seen it.
+    """``|F|/K0`` from the means over [``ta``, ``tb``] (s): the PV's ``dy`` and the MV's as the slow part has seen
+    it.
 
     The PV's mean over a period answers the MV's means of the periods before
     it through the process's slow lag: while the relay's mean is new (the
@@ -312,7 +314,8 @@ class _Responses:
 
 
 def held_mean(s: np.ndarray, u: np.ndarray, u0: float, grid: np.ndarray, dt: float) -> np.ndarray:
-    """Mean over each ``[grid[j], grid[j] + dt)`` (s) of the MV ``u`` held from the times ``s`` (``u0`` before).
+    """Mean over each [``grid[j]``, ``grid[j]`` + ``dt``) (s) of the MV ``u`` held from the times ``s`` (``u0``
+    before): the ``grid`` (s) and ``dt`` (s) of the fit.
 
     Exact for any spacing of ``s``: the MV's integral is piecewise linear
     between its switch times. Held onto the grid instead, a switch between
@@ -367,7 +370,12 @@ class _Model:
 
 
 class LoadFitter:
-    """Fits :class:`LoadFit` to a record: times (s, increasing), PV and the MV held from each sample.
+    """Fits :class:`LoadFit` to a record: times ``t`` (s, increasing), PV ``y`` and the MV ``u`` held from each
+    sample (``u0`` before the first), the relay started at sample ``start``.
+
+    ``omega`` (rad/s), ``gain`` (|F|) and ``lag`` (radians): the latest estimate's point, which fixes the
+    model with each |F|/K0; ``scale``: the PV's scale (|F|·amp), of which the fit resolves a share;
+    ``max_steps``: the most load steps a model may hold.
 
     ``held_from``: when each MV reached the process, if later than its sample
     (s; default the sample times). ``runs`` counts the candidate models run so
