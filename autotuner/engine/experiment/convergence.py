@@ -5,15 +5,19 @@ since the latest disturbance, change of the levels or stall are judged; the
 longer the experiment runs, the more of the latest may be averaged. On a
 quiet, noise-free run the period between the latest falling crossings, which
 overlaps the latest rising one by half, stops it half a period sooner when the
-two agree within ``HALF_TOL`` of the tolerances.
+two agree within ``HALF_TOL`` of the tolerances. When neither has happened by ``max_periods`` or the time
+limit, :func:`unsettled` says why.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
 
+from autotuner.engine.experiment import endings
 from autotuner.engine.experiment.config import RelayConfig
-from autotuner.engine.experiment.estimates import GAP, Estimates, drift, longest_gap, pairs, period_point
+from autotuner.engine.experiment.endings import Ended
+from autotuner.engine.experiment.estimates import GAP, STALL, Estimates, drift, longest_gap, pairs, period_point
+from autotuner.engine.experiment.load_fit import LoadFit
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.stopping import Tolerances, Verdict, judge
 from autotuner.engine.experiment.switching import Switching
@@ -40,6 +44,23 @@ def noisy(loop: Loop, estimates: Estimates) -> bool:
     if not estimates.items:
         return False
     return loop.noise > NOISY * estimates.latest.point.gain * loop.config.amp
+
+
+def unsettled(when: str, loop: Loop, estimates: Estimates, since: float, fit: LoadFit | None,
+              target_deg: float) -> Ended:
+    """The ending of an experiment whose ``estimates`` of the ``loop`` did not settle ``when``: through a followed
+    load ``fit``, for noise a larger amp would average out, or else (``since``, ``target_deg``: as for
+    :func:`at_rising`)."""
+    if fit is not None:
+        return endings.unsettled_through_load(when, fit.step, fit.ramp)
+    usable = estimates.usable(since)[2:]
+    if noisy(loop, estimates) and usable:
+        too_noisy = endings.noise_too_high(when, pairs(usable), tolerances(loop.config), loop.noise,
+                                           loop.config.amp)
+        if too_noisy is not None:
+            return too_noisy
+    latest = estimates.latest.point if estimates.items else None
+    return endings.not_converged(when, estimates.stalls, STALL, latest, loop.config.phase_deg, target_deg)
 
 
 def at_rising(loop: Loop, estimates: Estimates, periods: int, since: float, target_deg: float,

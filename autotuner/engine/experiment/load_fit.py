@@ -659,7 +659,7 @@ class LoadFitter:
         if near.step_time is None or not criterion.worth_a_term(best.rss):
             return best
         k = int(round((near.step_time - self.t[0]) / self.dt))
-        # Within a quarter period of it: as far as two fits that agree may put it (RelayExperiment._agree).
+        # Within a quarter period of it: as far as two fits that agree may put it (LoadFollowing._agree).
         last, spacing = len(self.t) - self.n // 2, max(self.n // 4, 1)
         x: float | None = near.x
         # The step time at the earlier x, x with it, the step time again at that x and x once more: the

@@ -39,8 +39,8 @@ from autotuner.engine.experiment import convergence, endings
 from autotuner.engine.experiment.adaptation import Adaptation
 from autotuner.engine.experiment.config import RelayConfig
 from autotuner.engine.experiment.endings import Ended
-from autotuner.engine.experiment.estimates import (STALL, Estimate, Estimates, drift, lag, longest_gap, mean_x, pairs,
-                                                   period_point, response, wide_x)
+from autotuner.engine.experiment.estimates import (Estimate, Estimates, drift, lag, longest_gap, mean_x, period_point,
+                                                   response, wide_x)
 from autotuner.engine.experiment.identification import Identification, identification
 from autotuner.engine.experiment.levels import Levels, listed
 from autotuner.engine.experiment.load_following import LoadFollowing
@@ -344,17 +344,7 @@ class RelayExperiment:
 
     def _unfinished(self, when: str) -> Ended:
         """The ending of an experiment whose estimates did not settle ``when``."""
-        fit = self._load.fit
-        if fit is not None:
-            return endings.unsettled_through_load(when, fit.step, fit.ramp)
-        usable = self._estimates.usable(self._since())[2:]
-        if convergence.noisy(self._loop, self._estimates) and usable:
-            noisy = endings.noise_too_high(when, pairs(usable), convergence.tolerances(self.config),
-                                           self._loop.noise, self.config.amp)
-            if noisy is not None:
-                return noisy
-        latest = self._estimates.latest.point if self._estimates.items else None
-        return endings.not_converged(when, self._estimates.stalls, STALL, latest, self.config.phase_deg,
+        return convergence.unsettled(when, self._loop, self._estimates, self._since(), self._load.fit,
                                      self._adaptation.target_deg)
 
     def _end(self, ended: Ended) -> None:
