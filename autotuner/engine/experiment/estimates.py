@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
-from autotuner.engine.experiment.load_fit import settled_ratio
+from autotuner.engine.experiment.load_fit import settled_x
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.point import Point
 from autotuner.engine.experiment.record import Samples
@@ -165,9 +165,9 @@ def period_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[f
     dy = sampled_coefficient(raw.t, raw.y - loop.sp, start, tb, 0.0, hann=False).real
     # Compare estimates through |F|/K0, which stays bounded as K0 grows.
     plain = loop.sign * du / dy * abs(value) if dy != 0.0 else 0.0
-    # The MV since the start: the slow lag remembers it (settled_ratio reads what its lag still holds).
+    # The MV since the start: the slow lag remembers it (settled_x reads what its lag still holds).
     history = loop.record.all()
-    return point, settled_ratio(history.s, history.u, loop.sign * dy, plain, point.gain, omega,
+    return point, settled_x(history.s, history.u, loop.sign * dy, plain, point.gain, omega,
                                 lag(value), start, tb, *loop.settling, u0=loop.mv0)
 
 

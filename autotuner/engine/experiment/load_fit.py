@@ -72,9 +72,9 @@ _POINTS_PER_PERIOD = 2.0
 # Averaged residuals within this fraction of the PV oscillation amplitude are
 # the model's own mismatch (harmonics, a process that is not first order).
 _RESOLUTION = 0.01
-# Refinements of x in settled_ratio from the plain ratio of the means (3–4 settle it to 1e-3).
+# Refinements of x in settled_x from the plain ratio of the means (3–4 settle it to 1e-3).
 _SETTLE_ITERATIONS = 4
-# settled_ratio's lag is summed over chunks of at most this many time constants (e^300 stays finite)...
+# settled_x's lag is summed over chunks of at most this many time constants (e^300 stays finite)...
 _CHUNK = 300.0
 # ...over the MV of this many time constants before its window (e^-36 is below a double's rounding).
 _MEMORY = 36.0
@@ -183,7 +183,7 @@ def _respond(u: np.ndarray, dt: float, x: float, gain: float, omega: float, lag:
     return scipy.signal.lfilter(b, a, shifted)
 
 
-def settled_ratio(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, omega: float, lag: float,
+def settled_x(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, omega: float, lag: float,
                   ta: float, tb: float, slope: float = 0.0, t0: float = 0.0, u0: float = 0.0) -> float:
     """``|F|/K0`` from the means over [``ta``, ``tb``] (s): the PV's ``dy`` and the MV's as the slow part has seen
     it.

@@ -52,7 +52,7 @@ class Loop:
         self.noise = float(np.std(residual, ddof=2))
         self.sp = float(np.mean(y))
         # A PV still moving when TUNE came: the lag's free response, which the static ratio takes out
-        # (settled_ratio). Noise alone gives a slope within a few of its standard errors.
+        # (settled_x). Noise alone gives a slope within a few of its standard errors.
         centred = t - float(np.mean(t))
         slope_std = self.noise / math.sqrt(float(centred @ centred)) if np.any(centred) else math.inf
         if abs(slope) > SETTLING_EVIDENCE * slope_std:
