@@ -147,10 +147,10 @@ def period_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[f
                  fitted_x: float | None) -> tuple[Point, float]:
     """The point over the last whole period of ``bounds`` (crossing times, s) and |F|/K0 over the last two.
 
-    ``loop``: the loop under test; ``raw``: the samples from ``bounds[0]`` on; ``detrended``: their PV with its drift removed (for the
-    point); ``fitted_x``: the load fit's |F|/K0 when a load is followed (then the answer). The static
-    ratio takes the means over two periods where there are two (the noise of a mean falls with its
-    length), with the MV's as the slow lag has passed it on.
+    ``loop``: the loop under test; ``raw``: the samples from ``bounds[0]`` on; ``detrended``: their PV with its
+    drift removed (for the point); ``fitted_x``: the load fit's |F|/K0 when a load is followed (then the
+    answer). The static ratio takes the means over two periods where there are two (the noise of a mean falls
+    with its length), with the MV's as the slow lag has passed it on.
     """
     ta, tb = bounds[-2], bounds[-1]
     # One whole period, rectangular: a Hann window over a single period

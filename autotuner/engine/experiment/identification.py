@@ -45,9 +45,9 @@ class Identification:
 
 def identification(loop: Loop, point: Point, x: float, fit: LoadFit | None, periods_discarded: int,
                    hysteresis: float, target_deg: float) -> Identification:
-    """The result for the ``loop`` from the accepted ``point`` and ``x`` = |F|/K0, the followed load ``fit`` (None while quiet),
-    the ``periods_discarded`` before a load step, the relay's ``hysteresis`` (PV units) and the phase
-    ``target_deg`` aimed at (degrees)."""
+    """The result for the ``loop`` from the accepted ``point`` and ``x`` = |F|/K0, the followed load ``fit`` (None
+    while quiet), the ``periods_discarded`` before a load step, the relay's ``hysteresis`` (PV units) and
+    the phase ``target_deg`` aimed at (degrees)."""
     # Within the resolution of the mean MV shift, a vanishing |F|/K0 is an
     # integrator, and so is a slightly negative one (within its estimate's
     # tolerance: an integrator seen through noise); a clearly negative one
