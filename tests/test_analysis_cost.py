@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from autotuner.engine.design.process_data import exact_point
-from autotuner.engine.experiment import load_fit, relay
+from autotuner.engine.experiment import estimates, load_fit, relay
 from autotuner.engine.experiment.load_fit import NEAR_RUNS, SEARCH_RUNS, LoadFitter
 from autotuner.engine.experiment.record import Record
 from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment
+from autotuner.engine.experiment.runaway import Runaway
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.plant.simulation import PlantSim
 
@@ -106,8 +107,8 @@ class _Counts:
         self.scanned = 0
         self.fourier = 0
         self.lagged = 0
-        fit, scan, held, sampled, lagged = (LoadFitter.fit, LoadFitter._scan_step, relay.held_coefficient,
-                                            relay.sampled_coefficient, load_fit._lagged_mean)
+        fit, scan, held, sampled, lagged = (LoadFitter.fit, LoadFitter._scan_step, estimates.held_coefficient,
+                                            estimates.sampled_coefficient, load_fit._lagged_mean)
 
         def counted_fit(fitter: LoadFitter, *args, **kwargs):
             before = fitter.runs
@@ -129,8 +130,8 @@ class _Counts:
 
         monkeypatch.setattr(LoadFitter, "fit", counted_fit)
         monkeypatch.setattr(LoadFitter, "_scan_step", counted_scan)
-        monkeypatch.setattr(relay, "held_coefficient", reads(held, "fourier"))
-        monkeypatch.setattr(relay, "sampled_coefficient", reads(sampled, "fourier"))
+        monkeypatch.setattr(estimates, "held_coefficient", reads(held, "fourier"))
+        monkeypatch.setattr(estimates, "sampled_coefficient", reads(sampled, "fourier"))
         monkeypatch.setattr(load_fit, "_lagged_mean", reads(lagged, "lagged"))
 
     def start(self) -> None:
@@ -154,7 +155,7 @@ def _run(config: RelayConfig, counts: _Counts, noise: float, loads: list[tuple[f
             counts.start()
             experiment.analyse()
             analyses.append((counts.runs[-1], counts.fits, counts.grid, counts.fourier, counts.lagged,
-                             len(experiment._record), counts.scanned))
+                             len(experiment._loop.record), counts.scanned))
         sim.advance(mv)
     return analyses, experiment
 
@@ -164,7 +165,7 @@ def test_a_disturbed_run_of_40_periods_does_bounded_work_in_each_period(monkeypa
     counts = _Counts(monkeypatch)
     config = RelayConfig(amp=1.0, max_periods=40, gain_tol=1e-6, noise_tol=1e-6, static_tol=1e-6)
     analyses, experiment = _run(config, counts, 0.01, [(3.5, 0.2)])
-    assert len(experiment._record) >= 39 * 100 and experiment._fit is not None
+    assert len(experiment._loop.record) >= 39 * 100 and experiment._load.fit is not None
     refits = [a for a in analyses if a[1] > 0]
     assert len(refits) >= 30  # the fit ran in most periods, on records of up to 4 000 samples
     for runs, fits, grid, fourier, *_ in analyses:
@@ -182,7 +183,7 @@ def test_a_quiet_run_of_40_periods_reads_a_bounded_stretch_of_its_record(monkeyp
     counts = _Counts(monkeypatch)
     config = RelayConfig(amp=1.0, max_periods=40, gain_tol=1e-6, noise_tol=1e-6, static_tol=1e-6)
     analyses, experiment = _run(config, counts, 0.005, [])
-    assert len(experiment._record) >= 39 * 100 and experiment._fit is None
+    assert len(experiment._loop.record) >= 39 * 100 and experiment._load.fit is None
     for runs, fits, grid, fourier, lagged, *_ in analyses:
         assert fits <= 3 and runs <= fits * SEARCH_RUNS
         assert fourier <= 4 * 100
@@ -197,7 +198,7 @@ def test_the_runaway_test_reads_a_few_samples_per_step_however_long_the_half_per
     # The long windows' means come from running sums since the switch (checked against the plain mean): a
     # step reads as many samples with 2 000 samples per period as with 100.
     reads, means = [0], [0]
-    pv, y, mean_distance = Record.pv, Record.y, RelayExperiment._mean_distance
+    pv, y, mean_distance = Record.pv, Record.y, Runaway.mean_distance
 
     def counted_pv(record: Record, i: int) -> float:
         reads[0] += 1
@@ -207,16 +208,16 @@ def test_the_runaway_test_reads_a_few_samples_per_step_however_long_the_half_per
         reads[0] += 1000  # every PV: a step that reads them all stands out
         return y.fget(record)
 
-    def checked_mean(experiment: RelayExperiment, i: int, m: int) -> float:
+    def checked_mean(runaway: Runaway, i: int, m: int) -> float:
         means[0] += 1
-        value = mean_distance(experiment, i, m)
-        pvs = y.fget(experiment._record)[i - m + 1:i + 1]
-        assert value == pytest.approx(float(np.mean(pvs - experiment._sp)), rel=1e-9, abs=1e-12)
+        value = mean_distance(runaway, i, m)
+        pvs = y.fget(runaway.loop.record)[i - m + 1:i + 1]
+        assert value == pytest.approx(float(np.mean(pvs - runaway.loop.sp)), rel=1e-9, abs=1e-12)
         return value
 
     monkeypatch.setattr(Record, "pv", counted_pv)
     monkeypatch.setattr(Record, "y", property(counted_y))
-    monkeypatch.setattr(RelayExperiment, "_mean_distance", checked_mean)
+    monkeypatch.setattr(Runaway, "mean_distance", checked_mean)
     process = parse_process("exp(-0.5*s)/(s+1)^2")
     point = exact_point(process, 135.0)
     most = {}
@@ -232,7 +233,7 @@ def test_the_runaway_test_reads_a_few_samples_per_step_however_long_the_half_per
                 most[per_period] = max(most[per_period], reads[0])
             experiment.analyse()
             sim.advance(mv)
-        assert experiment.result is not None and len(experiment._record) > 3 * per_period
+        assert experiment.result is not None and len(experiment._loop.record) > 3 * per_period
     assert means[0] > 1000
     assert most[2000] == most[100] <= 8
 

@@ -153,9 +153,9 @@ def test_the_cases_cover_what_the_experiment_does():
 
 def test_a_changed_constant_moves_the_traces(monkeypatch):
     # The references are no tautology: one tuning constant of the experiment changed by a hair moves them.
-    from autotuner.engine.experiment import relay
+    from autotuner.engine.experiment import adaptation
 
-    monkeypatch.setattr(relay, "_RELAXATION", relay._RELAXATION * 1.001)
+    monkeypatch.setattr(adaptation, "RELAXATION", adaptation.RELAXATION * 1.001)
     moved = [c.name for c in CASES[:6] if run_case(c) != _references()[c.name]]
     assert moved, "no golden trace moved when a constant of the experiment did"
 

@@ -95,7 +95,7 @@ def _uneven_relay_record(process_text: str, periods: float, seed: int = 3):
     return np.array(t), np.array(y), np.array(u), point, period, point.gain / process.static_gain()
 
 
-def test_the_settled_ratio_sees_through_the_start_transient_on_an_uneven_record() -> None:
+def test_the_settled_x_sees_through_the_start_transient_on_an_uneven_record() -> None:
     # The second period from rest: the PV's mean still rises towards K0 × the MV's, so the plain ratio
     # of the means is far off; through the model's lag the ratio is the true |F|/K0.
     t, y, u, point, period, x_true = _uneven_relay_record("exp(-s)/(4*s+1)", 3.0)
@@ -103,7 +103,7 @@ def test_the_settled_ratio_sees_through_the_start_transient_on_an_uneven_record(
     du = held_coefficient(t, u, ta, tb, 0.0, hann=False).real
     dy = sampled_coefficient(t, y, ta, tb, 0.0, hann=False).real
     plain = point.gain * du / dy
-    settled = load_fit.settled_ratio(t, u, dy, plain, point.gain, point.omega, math.radians(135.0), ta, tb)
+    settled = load_fit.settled_x(t, u, dy, plain, point.gain, point.omega, math.radians(135.0), ta, tb)
     assert abs(plain - x_true) > 0.1 * x_true
     assert settled == pytest.approx(x_true, rel=0.005)
 

@@ -77,6 +77,6 @@ def test_an_unstable_processs_static_ratio_must_settle_over_three_estimates() ->
     assert judge(converging, target, tol, 3, noisy=False) is None
     settled = [*converging, (point, true_x * 1.004), (point, true_x * 1.001), (point, true_x)]
     verdict = judge(settled, target, tol, 3, noisy=False)
-    assert verdict is not None and verdict.inverse_gain == pytest.approx(true_x, rel=0.005)
+    assert verdict is not None and verdict.x == pytest.approx(true_x, rel=0.005)
     # A stable process's ratio at the same size keeps the two-estimate rule (the plain bench's periods).
     assert judge([(p, -x) for p, x in converging], target, tol, 3, noisy=False) is not None

@@ -92,5 +92,8 @@ WARNINGS: frozenset[Code] = frozenset({Code.DERIVATIVE_LIMITED, Code.DERIVATIVE_
 
 
 def is_failure(code: Code) -> bool:
-    """True when the outcome carries no usable gains (``te`` true)."""
+    """True when the outcome carries no usable gains (``te`` true).
+
+    ``code``: the outcome.
+    """
     return code is not Code.OK and code not in WARNINGS

@@ -69,7 +69,10 @@ class TuneResult:
 
     @classmethod
     def failed(cls, code: Code, message: str, controller: str) -> "TuneResult":
-        """A tuning that ended before anything was identified (no point, no gains, no samples)."""
+        """A tuning that ended before anything was identified (no point, no gains, no samples).
+
+        ``code``, ``message``: how it ended; ``controller``: the controller type asked for.
+        """
         return cls(code, message, controller, None, None, Trace(np.zeros(0), np.zeros(0), np.zeros(0)))
 
     @property
@@ -96,7 +99,10 @@ class PointRecord:
 
     @classmethod
     def of(cls, point: Point) -> "PointRecord":
-        """The record of an identified point."""
+        """The record of an identified point.
+
+        ``point``: the point.
+        """
         return cls(float(point.omega), float(point.gain), float(point.phase_deg))
 
     def point(self) -> Point:
@@ -118,7 +124,10 @@ class GainsRecord:
 
     @classmethod
     def of(cls, gains: Gains) -> "GainsRecord":
-        """The record of gains (``pti`` null without integral action)."""
+        """The record of gains (``pti`` null without integral action).
+
+        ``gains``: the gains.
+        """
         return cls(**gains.as_json())
 
     def gains(self) -> Gains:
@@ -141,7 +150,10 @@ class DesignRecord:
 
     @classmethod
     def of(cls, des: Design) -> "DesignRecord":
-        """The record of a design."""
+        """The record of a design.
+
+        ``des``: the design.
+        """
         return cls(str(des.model), float(des.model_ms), float(des.ms_target), float(des.noise_gain),
                    tuple(des.notes))
 
@@ -186,7 +198,10 @@ class ResultRecord:
 
     @classmethod
     def of(cls, result: TuneResult) -> "ResultRecord":
-        """The record of a tuning's result."""
+        """The record of a tuning's result.
+
+        ``result``: the result.
+        """
         ident, des, t = result.identification, result.design, result.trace.t
         return cls(
             tbsy=False, te=not result.ok, ite=int(result.code), message=result.message,
@@ -214,7 +229,10 @@ class ResultRecord:
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "ResultRecord":
         """The record of a result's JSON (keys added since a row was stored are null). Raises ValueError
-        naming what is missing or wrong."""
+        naming what is missing or wrong.
+
+        ``d``: the JSON object.
+        """
         try:
             point, gains, design, experiment = d["point"], d["gains"], d.get("design"), d["experiment"]
             return cls(

@@ -32,7 +32,10 @@ LIMIT_SAMPLES = 20000
 
 
 def phase_frequency(process: Process, phase_deg: float) -> float | None:
-    """Lowest frequency (rad/s) where the process lags by ``phase_deg`` degrees, or None if it never does."""
+    """Lowest frequency (rad/s) where the process lags by ``phase_deg`` degrees, or None if it never does.
+
+    ``process``: the process.
+    """
     point = exact_point(process, phase_deg)
     return None if point is None else point.omega
 
@@ -43,6 +46,8 @@ def default_sample_time(process: Process, phase_deg: float = 135.0) -> float:
     A process that never reaches that lag gets 1/100 of its slowest time constant or dead time;
     one without either (``K/s``, ``K/s²``: integrators only, whose phase says nothing about time)
     1/100 of the period where its gain is 1, the natural scale of a relay loop around it.
+
+    ``process``: the process.
     """
     w = phase_frequency(process, phase_deg)
     if w is not None:
@@ -58,7 +63,10 @@ def default_sample_time(process: Process, phase_deg: float = 135.0) -> float:
 
 def default_time_limit(process: Process, phase_deg: float, ts: float) -> float:
     """Longest simulated experiment, s: ``LIMIT_PERIODS`` expected periods at ``phase_deg``, else
-    ``LIMIT_SAMPLES`` samples of ``ts`` seconds."""
+    ``LIMIT_SAMPLES`` samples of ``ts`` seconds.
+
+    ``process``: the process.
+    """
     w = phase_frequency(process, phase_deg)
     return LIMIT_PERIODS * 2.0 * math.pi / w if w is not None else LIMIT_SAMPLES * ts
 
@@ -120,7 +128,8 @@ def run_experiment(
     status_every: int = 50,
     times: CallTimes | None = None,
 ) -> tuple[RelayExperiment, Trace]:
-    """Drive the experiment against the simulation until it ends; the MV starts at the plant's ``mv0``.
+    """Drive the experiment with ``config`` against the simulation ``sim`` until it ends; the MV starts at the
+    plant's ``mv0``.
 
     ``on_status`` gets the status every ``status_every`` samples (and at the end); ``times``, when
     given, records how long each step and each period's analysis took.
@@ -162,7 +171,10 @@ class DesignJob:
 
     @classmethod
     def of(cls, experiment: RelayExperiment, controller: str, ms: float) -> "DesignJob":
-        """The job of an ended ``experiment``."""
+        """The job of an ended ``experiment``.
+
+        ``controller``: ``"PI"`` or ``"PID"``; ``ms``: the maximum sensitivity designed for.
+        """
         return cls(experiment.result, experiment.code or Code.OK, experiment.message, controller, ms,
                    experiment.config.amp)
 
@@ -196,7 +208,8 @@ class DesignJob:
 
 
 def result_of(experiment: RelayExperiment, trace: Trace, controller: str, ms: float) -> TuneResult:
-    """The outcome of an ended experiment, with ``controller`` designed for ``ms`` on success (:class:`DesignJob`)."""
+    """The outcome of an ended ``experiment`` and its ``trace``, with ``controller`` designed for ``ms`` on success
+    (:class:`DesignJob`)."""
     return DesignJob.of(experiment, controller, ms).result(trace)
 
 
@@ -212,6 +225,8 @@ def tune(
 
     ``on_status`` gets the experiment's status every 50 samples; ``times`` records each call's time
     (:func:`run_experiment`).
+
+    ``config``: the experiment's settings.
     """
     experiment, trace = run_experiment(sim, config, on_status, times=times)
     return result_of(experiment, trace, controller, ms)

@@ -267,7 +267,7 @@ class ManualControlUnit(_Validated):
 class SatOutput:
     """SAT outputs of one sample.
 
-    y: limited signal. hl / ll: the input was above the high / below the low
+    y: limited signal. hl, ll: the input was above the high / below the low
     effective limit (y is held at that limit). hi, lo: the effective limits
     used at this sample (after rate limiting).
     """
@@ -379,7 +379,11 @@ class SwitchUnit:
         or3: bool = False,
         or4: bool = False,
     ) -> float:
-        """Return uo if any OR input is set, else uc."""
+        """Return uo if any OR input is set, else uc.
+
+        ``t``: the sample's time (s, finite); ``uc``: the controller's own output; ``uo``: the other one;
+        ``or1``, ``or2``, ``or3``, ``or4``: the OR inputs that select ``uo``.
+        """
         finite("t", t)
         uc = finite("uc", uc)
         uo = finite("uo", uo)
@@ -397,7 +401,7 @@ class SeluOutput:
     """SELU outputs of one sample.
 
     y: the selected input. isel: its number (1–4). track[i]: controller i+1
-    is not selected and must track. tv[i]: the value to feed to controller
+    is not selected and must track (``track``: the four of them). tv[i]: the value to feed to controller
     i+1's tracking input — ``y`` for the non-selected ones, None for the
     selected one (it tracks its own limited output), which is exactly what
     :meth:`autotuner.engine.control.pid.PidUnit.step` takes as ``tv``.
@@ -450,7 +454,11 @@ class SelectorUnit(_Validated):
         self._ready = True
 
     def select(self, *, isel: int | None = None, sl1: bool = False, sl2: bool = False) -> int:
-        """Selected input number 1..4 from the selection inputs."""
+        """Selected input number 1..4 from the selection inputs.
+
+        ``isel``: the selected input's number 1..4 (without ``binary``); ``sl1``, ``sl2``: the two selection bits
+        (with ``binary``).
+        """
         sl1 = _flag("sl1", sl1)
         sl2 = _flag("sl2", sl2)
         if self.binary:
@@ -479,7 +487,11 @@ class SelectorUnit(_Validated):
         sl1: bool = False,
         sl2: bool = False,
     ) -> SeluOutput:
-        """Select one of u1..u4 and tell the others to track it."""
+        """Select one of u1..u4 and tell the others to track it.
+
+        ``t``: the sample's time (s, finite); ``u1``, ``u2``, ``u3``, ``u4``: the inputs (``u3``, ``u4`` may be None when unused);
+        ``isel``, ``sl1``, ``sl2``: the selection, as for :meth:`select`.
+        """
         finite("t", t)
         n = self.select(isel=isel, sl1=sl1, sl2=sl2)
         inputs = (u1, u2, u3, u4)

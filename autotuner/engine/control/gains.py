@@ -155,7 +155,10 @@ class Gains:
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "Gains":
-        """Inverse of :meth:`as_json`; ``pti`` null or missing means no integral."""
+        """Inverse of :meth:`as_json`; ``pti`` null or missing means no integral.
+
+        ``d``: the JSON object (as :meth:`as_json` writes it).
+        """
         if "pk" not in d:
             raise ValueError("gains JSON needs 'pk'")
         pti = d.get("pti")
@@ -220,6 +223,8 @@ def to_series(g: Gains) -> SeriesGains:
 
     Of the two series controllers with the same transfer function the one with
     Ti' ≥ Td' is returned. Raises :class:`FormError` when Ti < 4·Td.
+
+    ``g``: the standard-form gains.
     """
     if not g.has_integral:
         # K(1 + Td s) is already a series PD controller.
@@ -244,6 +249,8 @@ def from_series(s: SeriesGains, nd: float = 10.0, b: float = 1.0, c: float = 0.0
     """Series → standard: K = K'(Ti'+Td')/Ti', Ti = Ti'+Td', Td = Ti'Td'/(Ti'+Td').
 
     nd, b, c are passed through to the standard gains.
+
+    ``s``: the series gains; ``nd``: the derivative filter's N; ``b``, ``c``: the set-point weights of P and D.
     """
     if not math.isfinite(s.ti):
         # Limits of the formulas as Ti' → ∞.
@@ -253,18 +260,27 @@ def from_series(s: SeriesGains, nd: float = 10.0, b: float = 1.0, c: float = 0.0
 
 
 def to_parallel(g: Gains) -> ParallelGains:
-    """Standard → parallel: K'' = K, Ki'' = K/Ti, Kd'' = K·Td (N, b, c unchanged)."""
+    """Standard → parallel: K'' = K, Ki'' = K/Ti, Kd'' = K·Td (N, b, c unchanged).
+
+    ``g``: the standard-form gains.
+    """
     return ParallelGains(kp=g.k, ki=g.ki, kd=g.kd)
 
 
 def from_parallel(p: ParallelGains, nd: float = 10.0, b: float = 1.0, c: float = 0.0) -> Gains:
-    """Parallel → standard: K = K'', Ti = K''/Ki'' (∞ if Ki'' = 0), Td = Kd''/K''."""
+    """Parallel → standard: K = K'', Ti = K''/Ki'' (∞ if Ki'' = 0), Td = Kd''/K''.
+
+    ``p``: the parallel gains; ``nd``: the derivative filter's N; ``b``, ``c``: the set-point weights of P and D.
+    """
     ti = math.inf if p.ki == 0.0 else p.kp / p.ki
     return Gains(k=p.kp, ti=ti, td=p.kd / p.kp, nd=nd, b=b, c=c)
 
 
 def json_number(x: float) -> float | None:
-    """A JSON number; None (null) for an infinite value."""
+    """A JSON number; None (null) for an infinite value.
+
+    ``x``: the value.
+    """
     return None if math.isinf(x) else float(x)
 
 
@@ -273,6 +289,8 @@ def forms_json(gains: Gains) -> dict[str, Any]:
 
     ``series`` is null with ``series_reason`` saying why when the series form does not exist (Ti < 4·Td);
     an infinite series ti (no integral action) is null.
+
+    ``gains``: the standard-form gains.
     """
     p = to_parallel(gains)
     out: dict[str, Any] = {"parallel": {"kp": p.kp, "ki": p.ki, "kd": p.kd}}

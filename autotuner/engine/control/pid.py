@@ -230,11 +230,10 @@ class PidUnit:
         limited output). man: manual mode; mv = hv limited, and the state
         follows so that returning to automatic is bumpless. The first call
         after construction or :meth:`reset` only initialises the time base.
+
+        ``hv``: the MV to hold in manual (``man``), MV units (None: the previous output).
         """
-        t = finite("t", t)
-        sp = finite("sp", sp)
-        pv = finite("pv", pv)
-        dv = finite("dv", dv)
+        t, sp, pv, dv = finite("t", t), finite("sp", sp), finite("pv", pv), finite("dv", dv)
         if tv is not None:
             tv = finite("tv", tv)
         if man:
@@ -243,27 +242,9 @@ class PidUnit:
             hv = finite("hv", hv)
 
         first = self._t_prev is None
-        h = 0.0
-        if not first:
-            h = t - self._t_prev
-            if h <= 0.0:
-                raise ValueError(
-                    f"t must increase from sample to sample; got t = {t} after {self._t_prev}"
-                )
-
         e = sp - pv
         x = self.gains.c * sp - pv
-        g = self.gains
-        integral = self._integral
-
-        if not first:
-            tf = g.td / g.nd
-            self._dfilt = (tf * self._dfilt + (x - self._x_prev)) / (tf + h)
-            if self.has_i:
-                tt = self.tt_effective
-                integral += (1.0 - math.exp(-h / tt)) * self._track_err
-                integral += self._sign() * g.ki * h * 0.5 * (e + self._e_prev)
-                integral = self._bounded(integral)
+        integral = self._integral if first else self._advance(t, e, x)
 
         rest = self._static_terms(sp, pv) + dv
         v = rest + integral
@@ -287,6 +268,23 @@ class PidUnit:
             hl=raw > self.hilim, ll=raw < self.lolim, _t_prev=t, _e_prev=e, _x_prev=x, _last=(sp, pv))
         return mv
 
+    def _advance(self, t: float, e: float, x: float) -> float:
+        """Advance the derivative filter and the integral from the previous sample to ``t`` (s) with the error
+        ``e`` and the weighted error ``x`` (PV units); the integral now (MV units)."""
+        h = t - self._t_prev
+        if h <= 0.0:
+            raise ValueError(f"t must increase from sample to sample; got t = {t} after {self._t_prev}")
+        g = self.gains
+        tf = g.td / g.nd
+        self._dfilt = (tf * self._dfilt + (x - self._x_prev)) / (tf + h)
+        integral = self._integral
+        if self.has_i:
+            tt = self.tt_effective
+            integral += (1.0 - math.exp(-h / tt)) * self._track_err
+            integral += self._sign() * g.ki * h * 0.5 * (e + self._e_prev)
+            integral = self._bounded(integral)
+        return integral
+
     def reset(self, mv: float, sp: float, pv: float, *, dv: float = 0.0) -> None:
         """Initialise the state so that the next output equals ``mv``.
 
@@ -294,6 +292,9 @@ class PidUnit:
         is cleared. The next :meth:`step` starts a new time base (no
         integration over the gap), and with the same sp, pv, dv it returns
         exactly the limited ``mv``.
+
+        ``sp``, ``pv``, ``dv``: the set point, the PV (PV units) and the feed-forward (MV units) the next step
+        starts from.
         """
         mv = finite("mv", mv)
         sp = finite("sp", sp)

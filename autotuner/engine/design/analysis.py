@@ -63,7 +63,10 @@ CLIP = 10.0
 def model_of(result: ResultRecord) -> Process:
     """The model the design used: the result's ``design.model`` (an expression, stored since the design key
     exists); for a result stored before that, the model fitted again through its point and static gain (null
-    static gain: integrating). The result must have a point."""
+    static gain: integrating). The result must have a point.
+
+    ``result``: the session's result record.
+    """
     if result.design is not None:
         return parse_process(result.design.model)
     static_gain = math.inf if result.static_gain is None else result.static_gain
@@ -72,7 +75,10 @@ def model_of(result: ResultRecord) -> Process:
 
 def model_json(model: Process) -> dict[str, Any]:
     """``kind`` (FOPDT or IPDT), ``k`` (PV/MV; IPDT: PV/MV per second), ``t`` (s; 0: none), ``l`` (dead time, s)
-    and ``text``, the transfer function in the expression grammar of ``autotuner sim``."""
+    and ``text``, the transfer function in the expression grammar of ``autotuner sim``.
+
+    ``model``: an FOPDT or IPDT process.
+    """
     dead = f"*exp(-{model.delay:.4g}*s)" if model.delay > 0.0 else ""
     if model.is_integrating:
         k = model.num[-1]
@@ -84,14 +90,20 @@ def model_json(model: Process) -> dict[str, Any]:
 
 
 def loop_check(model: Process, gains: Gains, omega: float) -> tuple[bool, float | None]:
-    """(stable, Ms) of ``C·F`` on the model, Ms None when unstable; ``omega`` (rad/s) centres the grid."""
+    """(stable, Ms) of ``C·F`` on the model, Ms None when unstable; ``omega`` (rad/s) centres the grid.
+
+    ``model``: the process model; ``gains``: the controller.
+    """
     check = check_gains(model, gains, log_grid(omega))
     return check.stable, (check.ms if check.stable and math.isfinite(check.ms) else None)
 
 
 def nyquist(model: Process, gains: Gains, omega: float) -> dict[str, list[float]]:
     """``L(jω) = C(jω)F(jω)`` on :data:`NYQUIST_POINTS` log-spaced frequencies (rad/s) around ``omega``, plus
-    ``omega`` itself; the window keeps ``NYQUIST_TAIL ≤ |L| ≤ NYQUIST_RADIUS`` (and always ω/3 … 3ω)."""
+    ``omega`` itself; the window keeps ``NYQUIST_TAIL ≤ |L| ≤ NYQUIST_RADIUS`` (and always ω/3 … 3ω).
+
+    ``model``: the process model; ``gains``: the controller.
+    """
     dense = log_grid(omega, 1e-3, 1e3, 4000)
     size = np.abs(controller_response(gains, dense) * model.freqresp(dense))
     big = np.nonzero(~(size <= NYQUIST_RADIUS))[0]  # NaN (ω = 0 of an integrator) counts as big
@@ -111,6 +123,8 @@ def step_response(model: Process, gains: Gains, step: str, ts: float, samples: i
 
     As :func:`~autotuner.engine.design.closed_loop.closed_loop_step` ("setpoint" or "load"),
     with a diverging loop's last values repeated to ``samples`` points.
+
+    ``model``: the process model; ``gains``: the controller; ``step``: ``"setpoint"`` or ``"load"``.
     """
     pv, mv = closed_loop_step(model, gains, step, ts, samples)
     pad = samples - len(pv)
@@ -118,7 +132,10 @@ def step_response(model: Process, gains: Gains, step: str, ts: float, samples: i
 
 
 def settling_time(pv: np.ndarray, ts: float) -> float:
-    """Seconds after which ``pv`` stays within :data:`SETTLE_BAND` of its peak from its last value."""
+    """Seconds after which ``pv`` stays within :data:`SETTLE_BAND` of its peak from its last value.
+
+    ``ts``: the sample time (s).
+    """
     band = SETTLE_BAND * float(np.max(np.abs(pv)))
     out = np.nonzero(np.abs(pv - pv[-1]) > band)[0]
     return 0.0 if len(out) == 0 else float(out[-1] + 1) * ts
@@ -130,6 +147,9 @@ def responses(model: Process, gains: list[Gains], stable: list[bool], omega: flo
     The horizon lets every stable loop settle (see :data:`MIN_PERIODS`);
     ``stable[i]`` False clips that loop's PV and MV (:data:`CLIP`). Each
     element: ``{"setpoint": {"t", "pv", "mv"}, "load": {"t", "pv", "mv"}}``.
+
+    ``model``: the process model; ``stable``: whether each of ``gains`` is stable on it; ``omega``: the point's
+    frequency (rad/s), which sets the time axis.
     """
     period = 2.0 * math.pi / omega
     search_ts = period / SEARCH_SAMPLES
@@ -153,7 +173,10 @@ def responses(model: Process, gains: list[Gains], stable: list[bool], omega: flo
 
 
 def usable_gains(data: dict[str, Any] | GainsRecord | None) -> Gains | None:
-    """Gains from their JSON (``pk, pti, ...``) or record, or None if absent or not a valid controller."""
+    """Gains from their JSON (``pk, pti, ...``) or record, or None if absent or not a valid controller.
+
+    ``data``: the JSON object, the record or None.
+    """
     if not data:
         return None
     try:
@@ -169,6 +192,8 @@ def analyse(result: ResultRecord, ms_target: float, gains_before: dict[str, Any]
     ``gains_before`` (JSON, may be None) are the controller's gains before the
     session. The body of ``GET /sessions/{sid}/analysis`` without ``session``
     and ``loop``.
+
+    ``ms_target``: the Ms the design aimed at (the circle drawn).
     """
     point = result.point.point()
     model = model_of(result)

@@ -31,7 +31,10 @@ DIVERGED = 1e6
 
 
 def reference_period(process: Process) -> float:
-    """Period ``2π/ω135`` (s) of the 135° point; for a plant that never lags 135°, 2π·slowest time scale."""
+    """Period ``2π/ω135`` (s) of the 135° point; for a plant that never lags 135°, 2π·slowest time scale.
+
+    ``process``: the process.
+    """
     point = exact_point(process, 135.0)
     if point is not None:
         return 2.0 * math.pi / point.omega
@@ -52,7 +55,8 @@ def controller_response(gains: Gains, w: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Margins:
-    """Robustness of a loop: ``ms`` (inf if unstable), gain margin (factor), phase margin (degrees)."""
+    """Robustness of a loop: ``stable``, ``ms`` (inf if unstable), ``gain_margin`` (factor), ``phase_margin_deg``
+    (degrees)."""
 
     stable: bool
     ms: float
@@ -71,6 +75,8 @@ def margins(process: Process, gains: Gains, w_ref: float) -> Margins:
     Gain margin: the smallest ``1/|L|`` where the Nyquist curve crosses the
     negative real axis inside the unit circle (inf if it never does).
     Phase margin: the smallest ``180° + arg L`` where ``|L| = 1`` (inf if never).
+
+    ``process``: the process; ``gains``: the controller.
     """
     w = log_grid(w_ref, 1e-5, 1e3, 6000)
     loop = controller_response(gains, w) * process.freqresp(w)
@@ -91,6 +97,9 @@ def closed_loop_step(process: Process, gains: Gains, step: str, ts: float,
     (P, PI, PD, PID) and applies ``b`` and ``c``. PV at sample k is taken just
     before the MV of sample k is applied. The arrays are cut short after the
     first error beyond :data:`DIVERGED` if the loop diverges.
+
+    ``process``: the process; ``gains``: the controller; ``step``: ``"setpoint"`` or ``"load"``; ``samples``: how
+    many.
     """
     sim = PlantSim(process, ts, loads=[(0.0, 1.0)] if step == "load" else ())
     pid = PidUnit(gains, kind=gains.controller_type)
@@ -112,6 +121,9 @@ def integrated_error(process: Process, gains: Gains, step: str, period: float,
 
     inf when the loop diverges or, for a controller without integral action,
     when a load step leaves an offset.
+
+    ``process``: the process; ``gains``: the controller; ``step``: ``"setpoint"`` or ``"load"``; ``period``: the
+    time scale (s); ``samples_per_period``: the simulation's resolution.
     """
     ts = period / samples_per_period
     samples = int(round(horizon_periods * samples_per_period))

@@ -51,6 +51,7 @@ class ParallelPid:
     kd: float
 
     def freqresp(self, w: np.ndarray) -> np.ndarray:
+        """``C(jw)`` of the controller at the frequencies ``w`` (rad/s)."""
         s = 1j * w
         return self.kp + self.ki / s + self.kd * s
 
@@ -60,7 +61,12 @@ class ParallelPid:
 
 @dataclass(frozen=True)
 class TwoController:
-    """The design: set-point controller, load controller, set-point filter (coefficients, highest power first)."""
+    """The design: set-point controller, load controller, set-point filter (coefficients, highest power first).
+
+    setpoint, load: the two PIDs; filter_num, filter_den: the set-point filter; lam: the closed-loop time constant λ
+    (s); q: the order of its filter; ms: the process loop's Ms (inf if unstable); omegas: the frequencies (rad/s)
+    the design was checked between.
+    """
 
     setpoint: ParallelPid
     load: ParallelPid
@@ -73,7 +79,10 @@ class TwoController:
 
 
 def unstable_poles(process: Process) -> np.ndarray:
-    """The poles ``h_i`` (1/s) of a model ``K·e^{−θs}/∏(s/h_i − 1)``; raises SynthesisError otherwise."""
+    """The poles ``h_i`` (1/s) of a model ``K·e^{−θs}/∏(s/h_i − 1)``; raises SynthesisError otherwise.
+
+    ``process``: the model.
+    """
     poles = process.poles
     if len(process.num) != 1:
         raise SynthesisError("direct synthesis needs a model K·e^(−θs)/∏(s/h − 1) without zeros")
@@ -122,7 +131,10 @@ def _loop_ms(model: Process, pid: ParallelPid, p: int, w: np.ndarray) -> float:
 
 
 def synthesise(model: Process, lam: float) -> TwoController:
-    """Both PIDs and the filter for one ``λ`` (s); ``ms`` is that of the process loop (inf if unstable)."""
+    """Both PIDs and the filter for one ``λ`` (s); ``ms`` is that of the process loop (inf if unstable).
+
+    ``model``: the unstable process; ``lam``: the closed-loop time constant λ (s).
+    """
     h = unstable_poles(model)
     p = len(h)
     omegas = (W0 / (lam + model.delay), W1 / (lam + model.delay))
@@ -144,6 +156,8 @@ def design_unstable(model: Process, ms_target: float = 3.0) -> TwoController:
     ``λ`` runs over ``LAMBDA_GRID`` times θ (or the fastest unstable time
     constant ``1/h`` without dead time). Raises SynthesisError if no ``λ`` gives a
     stable loop within the target.
+
+    ``model``: the unstable process (:func:`unstable_poles`).
     """
     h = unstable_poles(model)
     scale = model.delay if model.delay > 0 else 1.0 / float(np.max(h))

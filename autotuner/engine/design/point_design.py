@@ -51,7 +51,8 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.outcome import Code
 from autotuner.engine.plant.process import Process
 # A static gain INTEGRATING_RATIO times |F(jω*)| or more is designed as an integrator.
-from autotuner.engine.experiment.relay import INTEGRATING_RATIO, Point
+from autotuner.engine.experiment.identification import INTEGRATING_RATIO
+from autotuner.engine.experiment.point import Point
 from autotuner.engine.design import unstable_design
 from autotuner.engine.design.robustness import (MigoResult, Plant, check_loop, log_grid, max_sensitivity, migo,
                                                 pid_frequency_response)
@@ -106,6 +107,8 @@ def fit_model(point: Point, static_gain: float) -> Process:
     """Three-parameter model through ``point`` with the given static gain (``inf``: integrating).
 
     Raises ValueError if the point does not lag by 90°–180° or the data are not finite.
+
+    ``static_gain``: F(0), PV per MV unit.
     """
     w, r = point.omega, point.gain
     lag = -math.radians(point.phase_deg)
@@ -135,6 +138,8 @@ def fit_lag_bound(point: Point, static_gain: float) -> Process | None:
     ``a + b = x·sin φ`` and ``a·b = 1 + x·|cos φ|``; when they are not real the
     equal-lag model with the dead time that completes the phase is the bound.
     For an integrating process it is ``Kv/(s(Ts + 1))`` with ``atan(ωT) = φ − 90°``.
+
+    ``point``: the identified point; ``static_gain``: F(0), PV per MV unit.
     """
     w, r = point.omega, point.gain
     lag = -math.radians(point.phase_deg)
@@ -161,6 +166,8 @@ def fit_resonant(point: Point, static_gain: float, delay: float) -> Process | No
     ``K0/F = x·e^{jψ} = 1 − u² + j2ζu`` (``u = ω*/ωn``) gives ``u² = 1 − x·cos ψ``
     and ``ζ = x·sin ψ/(2u)``; None when no such model exists (``u² ≤ 0`` or ``ψ``
     outside (0, π)).
+
+    ``point``: the identified point; ``static_gain``: F(0), PV per MV unit.
     """
     w, r = point.omega, point.gain
     psi = -math.radians(point.phase_deg) - w * delay
@@ -183,6 +190,8 @@ def model_family(point: Point, static_gain: float, static_gain_std: float = math
     ``2σ`` lower and higher join the family, so a static gain the experiment got wrong within its
     own error cannot cost the robustness. A static gain within :data:`DEAD_TIME_RATIO` of
     ``|F(jω*)|`` adds the dead-time model.
+
+    ``point``: the identified point; ``static_gain``: F(0), PV per MV unit; ``static_gain_std``: its standard error.
     """
     model = fit_model(point, static_gain)
     bound = fit_lag_bound(point, static_gain)
@@ -210,7 +219,10 @@ def _plant(model: Process, margin: float = 1.0) -> Plant:
 
 
 def noise_gain(gains: Gains) -> float:
-    """MV noise per PV noise (MV units per PV unit): the high-frequency gain ``k`` or ``k(1 + N)`` with derivative."""
+    """MV noise per PV noise (MV units per PV unit): the high-frequency gain ``k`` or ``k(1 + N)`` with derivative.
+
+    ``gains``: the controller.
+    """
     return abs(gains.k) * (1.0 + gains.nd if gains.td > 0.0 else 1.0)
 
 
@@ -220,6 +232,9 @@ def setpoint_weight(model: Process, k: float, ti: float, td: float, nd: float, w
     When even ``b = 0`` peaks above 1 (high integral gain on a lag-dominant
     process: the integral path alone overshoots), 0 is returned, which gives
     the lowest peak available from ``b``.
+
+    ``model``: the process model; ``k``, ``ti``, ``td``, ``nd``: the standard-form gains (``ti``, ``td`` in s);
+    ``w``: the frequency grid (rad/s).
     """
     f = model.freqresp(w)
     loop = pid_frequency_response(w, k, ti, td, nd) * f
@@ -254,15 +269,14 @@ def _stable_gains(family: list[tuple[Process, float]], omega: float, controller:
 
 def design(point: Point, static_gain: float, controller: str = "PI", ms: float = 1.4, nd: float = DEFAULT_ND,
            noise_std: float = 0.0, amp: float | None = None, static_gain_std: float = math.inf) -> Design:
-    """Robust PI or PID gains (standard form) from the identified point and static gain.
+    """Robust ``controller`` gains (``"PI"`` or ``"PID"``, standard form, derivative filter ``nd``) from the
+    identified ``point`` and ``static_gain`` (F(0), PV per MV unit; inf: integrating; negative: unstable).
 
-    ``ms`` is the required maximum sensitivity (1.2–2.0 is the usual range).
-    ``noise_std`` (PV units) is the measured noise and ``amp`` (MV units) the
-    relay amplitude: with both, a PID keeps its MV noise within
-    ``MV_NOISE_BUDGET·amp``. ``static_gain_std`` (same unit as the static
-    gain; inf: unknown) widens the model family (:func:`model_family`). Raises :class:`Refusal` (with an outcome code) for
-    an unstable process no PI/PID of this kind stabilises robustly, ValueError
-    for data no design applies to.
+    ``ms`` is the required maximum sensitivity (1.2–2.0 is the usual range). ``noise_std`` (PV units) is the
+    measured noise and ``amp`` (MV units) the relay amplitude: with both, a PID keeps its MV noise within
+    ``MV_NOISE_BUDGET·amp``. ``static_gain_std`` (same unit as the static gain; inf: unknown) widens the model
+    family (:func:`model_family`). Raises :class:`Refusal` (with an outcome code) for an unstable process no
+    PI/PID of this kind stabilises robustly, ValueError for data no design applies to.
     """
     if controller not in ("PI", "PID"):
         raise ValueError(f"controller must be PI or PID, got {controller!r}")

@@ -133,6 +133,8 @@ def from_plant(process: Process) -> ProcessData:
     """Data of a plant: exact static gain, step-response tangent and least-squares FOPDT.
 
     Unstable plants get neither (no step response to read).
+
+    ``process``: the process.
     """
     if process.is_unstable:
         return ProcessData("plant", process, process.static_gain(), None, None)
@@ -146,6 +148,8 @@ def from_point(point: Point, static_gain: float | None) -> ProcessData:
     """Data of a measured point; with the static gain, the FOPDT (or IPDT) model through it.
 
     Raises DataError when the model cannot be fitted (see :func:`autotuner.engine.design.point_design.fit_model`).
+
+    ``point``: the measured point; ``static_gain``: F(0), PV per MV unit (None: unknown).
     """
     if static_gain is None:
         return ProcessData("point", None, None, None, None, point)
@@ -173,6 +177,8 @@ def exact_point(process: Process, lag_deg: float) -> Point | None:
 
     The unwrapped phase is bracketed on a log grid from 1e-6 to 1e6 rad/s and
     the crossing solved to rounding accuracy with Brent's method.
+
+    ``process``: the process.
     """
     w = np.logspace(-6, 6, 12001)
     lag = -np.unwrap(np.angle(process.freqresp(w)))
@@ -197,6 +203,8 @@ def least_lag_point(process: Process) -> Point | None:
 
     Its lag falls from 180° at ω = 0 to a least value and rises after it, so
     it may never lag as little as a requested phase (``exact_point`` None).
+
+    ``process``: the process.
     """
     w = np.logspace(-6, 6, 12001)
     lag = -np.unwrap(np.angle(process.freqresp(w)))
@@ -216,7 +224,10 @@ def _time_scale(process: Process) -> float:
 
 
 def step_response(process: Process, horizon: float, samples: int = STEP_SAMPLES) -> tuple[np.ndarray, np.ndarray]:
-    """Times (s) and exact unit-step response over ``[0, horizon]`` on ``samples`` intervals."""
+    """Times (s) and exact unit-step response over ``[0, horizon]`` on ``samples`` intervals.
+
+    ``process``: the process; ``horizon``: s.
+    """
     dt = horizon / samples
     y = simulate_open_loop(process, np.ones(samples), dt)
     return dt * np.arange(samples + 1), y
@@ -238,6 +249,8 @@ def step_tangent(process: Process) -> Tangent:
     whole horizon finds the steepest interval, a fine one up to just past it
     refines it. For an integrating process the slope keeps rising and the
     tangent is the final asymptote.
+
+    ``process``: the process.
     """
     gain = process.static_gain()
     if gain == 0.0:
@@ -265,6 +278,8 @@ def fit_fopdt(process: Process, tangent: Tangent) -> Fopdt:
 
     ``T`` and ``L`` minimise the squared error over the simulated response on
     the horizon, starting from the tangent (``L = D``, ``T = t63 − D``).
+
+    ``process``: the process; ``tangent``: its step tangent (the starting guess).
     """
     gain = process.static_gain()
     horizon = process.delay + HORIZON_SCALES * _time_scale(process)

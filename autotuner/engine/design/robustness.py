@@ -27,7 +27,10 @@ FreqResp = Callable[[np.ndarray], np.ndarray]
 
 
 def log_grid(w_ref: float, below: float = 1e-4, above: float = 1e2, n: int = 3000) -> np.ndarray:
-    """Logarithmic grid of angular frequencies (rad/s) from ``below·w_ref`` to ``above·w_ref``."""
+    """Logarithmic grid of angular frequencies (rad/s) from ``below·w_ref`` to ``above·w_ref``.
+
+    ``n``: how many frequencies.
+    """
     return np.logspace(math.log10(below * w_ref), math.log10(above * w_ref), n)
 
 
@@ -44,7 +47,10 @@ def pid_frequency_response(w: np.ndarray, k: float, ti: float, td: float = 0.0, 
 
 
 def max_sensitivity(loop: np.ndarray) -> float:
-    """``Ms = max |1/(1 + L)|`` over the sampled open loop ``L`` (inf if it passes through −1)."""
+    """``Ms = max |1/(1 + L)|`` over the sampled open loop ``L`` (inf if it passes through −1).
+
+    ``loop``: L(jω) on a frequency grid.
+    """
     d = np.min(np.abs(1.0 + loop))
     return math.inf if d == 0.0 else float(1.0 / d)
 
@@ -59,6 +65,8 @@ def closed_loop_stable(loop: np.ndarray, w: np.ndarray, integrators: int = 0, rh
     the contour is indented to the right of the origin, which contributes
     ``−integrators·π`` of phase, and the negative frequencies mirror the
     positive ones.
+
+    ``loop``: L(jω) on ``w``.
     """
     if not np.all(np.isfinite(loop)):
         return False
@@ -83,7 +91,11 @@ def check_loop(
     integrators: int = 0,
     rhp_poles: int = 0,
 ) -> LoopCheck:
-    """Maximum sensitivity and stability of ``C·F`` on the grid ``w`` (rad/s)."""
+    """Maximum sensitivity and stability of ``C·F`` on the grid ``w`` (rad/s).
+
+    ``freqresp``: F(jω) as a function of ω (rad/s); ``controller``: C(jω) likewise; ``integrators``, ``rhp_poles``:
+    the open loop's poles at 0 and in the right half plane.
+    """
     loop = controller(w) * freqresp(w)
     stable = closed_loop_stable(loop, w, integrators, rhp_poles)
     return LoopCheck(ms=max_sensitivity(loop) if stable else math.inf, stable=stable)
@@ -109,6 +121,9 @@ class Plant:
 
     ``margin`` multiplies the required Ms for this plant: a plant that only
     bounds the uncertainty (not the best guess) may be held to a looser limit.
+
+    ``freqresp``: F(jω) as a function of ω (rad/s); ``integrators``: its poles at 0; ``rhp_poles``: its poles in the
+    right half plane.
     """
 
     freqresp: FreqResp
@@ -171,6 +186,9 @@ def migo(
     from degenerating into a needle-like derivative gain. Designing for
     several plants at once makes the controller robust to the spread between
     them.
+
+    ``plants``: the plants the controller must hold; ``nd``: the derivative filter's N; ``w``: the frequency grid
+    (rad/s; None: :func:`log_grid` around ``w_ref``).
     """
     if w is None:
         w = log_grid(w_ref)

@@ -58,7 +58,10 @@ class Options:
 
 @dataclass(frozen=True)
 class RuleResult:
-    """Result of a rule: standard-form gains and JSON-ready extras (native forms, data used)."""
+    """Result of a rule: standard-form gains and JSON-ready extras (native forms, data used).
+
+    rule: the rule's name; controller: the controller type; gains: standard form; extra: the JSON-ready extras.
+    """
 
     rule: str
     controller: str
@@ -129,7 +132,10 @@ def _table(controller: str, p: tuple, pi: tuple, pid: tuple) -> Gains:
 
 
 def zn_step(data: ProcessData, controller: str, options: Options) -> RuleResult:
-    """Ziegler–Nichols step response (methods.md §4.1): a = R·D; K = 1/a, 0.9/a, 1.2/a; Ti = 3D, 2D; Td = D/2."""
+    """Ziegler–Nichols step response (methods.md §4.1): a = R·D; K = 1/a, 0.9/a, 1.2/a; Ti = 3D, 2D; Td = D/2.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
+    """
     tan = _tangent(data, "zn-step")
     a, d = tan.a, tan.d
     gains = _table(controller, (1.0 / a,), (0.9 / a, 3.0 * d), (1.2 / a, 2.0 * d, 0.5 * d))
@@ -155,6 +161,8 @@ def kappa_tau(data: ProcessData, controller: str, options: Options) -> RuleResul
     ``τ = D/(D + T)`` (0 for an integrating process). Ti and Td use the rows
     normalised by D for τ ≤ 0.5 and by T above, where each fit is the better
     conditioned one.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
     """
     tan = _tangent(data, "kappa-tau")
     lag = None if tan.t63 is None else tan.t63 - tan.d
@@ -176,14 +184,20 @@ def _ultimate(data: ProcessData, rule: str) -> tuple[float, float]:
 
 
 def zn_frequency(data: ProcessData, controller: str, options: Options) -> RuleResult:
-    """Ziegler–Nichols frequency response (methods.md §4.3): 0.5Kc; 0.45Kc, T180/1.2; 0.6Kc, T180/2, T180/8."""
+    """Ziegler–Nichols frequency response (methods.md §4.3): 0.5Kc; 0.45Kc, T180/1.2; 0.6Kc, T180/2, T180/8.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
+    """
     kc, tu = _ultimate(data, "zn-frequency")
     gains = _table(controller, (0.5 * kc,), (0.45 * kc, tu / 1.2), (0.6 * kc, tu / 2.0, tu / 8.0))
     return RuleResult("zn-frequency", controller, gains, {"data": {"Kc": kc, "T180": tu}})
 
 
 def astrom_hagglund(data: ProcessData, controller: str, options: Options) -> RuleResult:
-    """Relay rule with a prescribed Nyquist point (methods.md §4.4); PI is the same K, Ti without Td."""
+    """Relay rule with a prescribed Nyquist point (methods.md §4.4); PI is the same K, Ti without Td.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
+    """
     if not (0.0 < options.rb < 1.0 and 0.0 < options.phib_deg < 90.0):
         raise RuleError(f"astrom-hagglund needs 0 < r_b < 1 and 0° < φ_b < 90°, got r_b = {options.rb:g}, "
                         f"φ_b = {options.phib_deg:g}°")
@@ -196,7 +210,10 @@ def astrom_hagglund(data: ProcessData, controller: str, options: Options) -> Rul
 
 
 def chr_regulation(data: ProcessData, controller: str, options: Options) -> RuleResult:
-    """Chien–Hrones–Reswick, load disturbance, 20 % overshoot (methods.md §4.5)."""
+    """Chien–Hrones–Reswick, load disturbance, 20 % overshoot (methods.md §4.5).
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
+    """
     m = _fopdt(data, "chr-regulation")
     g = m.t / (m.k * m.l)
     gains = _table(controller, (0.7 * g,), (0.7 * g, 2.3 * m.l), (1.2 * g, 2.0 * m.l, 0.42 * m.l))
@@ -204,7 +221,10 @@ def chr_regulation(data: ProcessData, controller: str, options: Options) -> Rule
 
 
 def chr_servo(data: ProcessData, controller: str, options: Options) -> RuleResult:
-    """Chien–Hrones–Reswick, set point, 20 % overshoot (methods.md §4.5)."""
+    """Chien–Hrones–Reswick, set point, 20 % overshoot (methods.md §4.5).
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
+    """
     m = _fopdt(data, "chr-servo")
     g = m.t / (m.k * m.l)
     gains = _table(controller, (0.7 * g,), (0.6 * g, m.t), (0.95 * g, 1.36 * m.t, 0.47 * m.l))
@@ -212,7 +232,10 @@ def chr_servo(data: ProcessData, controller: str, options: Options) -> RuleResul
 
 
 def cohen_coon(data: ProcessData, controller: str, options: Options) -> RuleResult:
-    """Cohen–Coon, quarter decay ratio (methods.md §4.6)."""
+    """Cohen–Coon, quarter decay ratio (methods.md §4.6).
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
+    """
     m = _fopdt(data, "cohen-coon")
     r, g = m.l / m.t, m.t / (m.k * m.l)
     gains = _table(
@@ -229,6 +252,8 @@ def takahashi(data: ProcessData, controller: str, options: Options) -> RuleResul
 
     Native form: velocity form ``Δu(k) = K Δe + Ki e + Kd Δ²e`` with sample
     time ``ts``; the standard form has ``Ti = K·ts/Ki``, ``Td = Kd·ts/K``.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
     """
     if options.ts is None or not (math.isfinite(options.ts) and options.ts > 0.0):
         raise RuleError("takahashi is a discrete rule: give the sample time --ts (s, > 0)")
@@ -252,6 +277,8 @@ def amigo(data: ProcessData, controller: str, options: Options) -> RuleResult:
     Integrating process ``Kv·e^{−Ls}/s``: PI ``K = 0.35/(Kv L)``, ``Ti = 13.4 L``;
     PID ``K = 0.45/(Kv L)``, ``Ti = 8 L``, ``Td = 0.5 L``. Set-point weight
     ``b = 0`` for ``τ ≤ 0.5``, 1 above.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
     """
     tan = _tangent(data, "amigo")
     l = tan.d
@@ -286,6 +313,8 @@ def itae_integral(data: ProcessData, controller: str, options: Options) -> RuleR
     ``θ0 = (π/2 − atan Ω)/Ω``, ``Ω = ωT``: the FOPDT ``k·e^{−θ0 T s}/(Ts + 1)``
     through the 90° point. The gains are the ITAE-optimal set-point settings
     of ``ITAE_SETPOINT`` at ``θ/T = θ0``.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
     """
     _model_needed(data, "itae-integral")
     _stable(data, "itae-integral")
@@ -335,6 +364,8 @@ def itae_optimal(data: ProcessData, controller: str, options: Options) -> RuleRe
     quadratic penalty (``ITAE·(1 + PENALTY·(Ms − ms)²)``, so the optimum may
     exceed the limit by about 1 %). The simulation runs at ``T135/OPT_SAMPLES``
     over ``OPT_PERIODS·T135``.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
     """
     _model_needed(data, "itae-optimal")
     _stable(data, "itae-optimal")
@@ -369,6 +400,8 @@ def direct_synthesis_unstable(data: ProcessData, controller: str, options: Optio
     ``gains`` is the load controller C2 (the one in feedback with the
     process) in standard form; ``two_controller`` holds both parallel PIDs
     and the set-point filter.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
     """
     if not data.unstable:
         raise RuleError("direct-synthesis-unstable is for unstable processes K·e^(−θs)/∏(s/h − 1); "
@@ -389,7 +422,10 @@ def direct_synthesis_unstable(data: ProcessData, controller: str, options: Optio
 
 
 def robust(data: ProcessData, controller: str, options: Options) -> RuleResult:
-    """The project's robust one-point rule (docs/design-rule.md) from the 135° point and the static gain."""
+    """The project's robust one-point rule (docs/design-rule.md) from the 135° point and the static gain.
+
+    ``data``: the process data; ``controller``: the controller type; ``options``: the rules' options.
+    """
     _stable(data, "robust")
     if data.static_gain is None:
         raise RuleError("robust needs the static gain: give --static-gain with --point")
@@ -412,7 +448,11 @@ def _fopdt_json(m: Fopdt) -> dict[str, float]:
 
 @dataclass(frozen=True)
 class Rule:
-    """A registered rule: name, the controller types it defines, one line on when to use it, its source."""
+    """A registered rule: name, the controller types it defines, one line on when to use it, its source.
+
+    name: its name (``--rule``); controllers: the controller types it defines; when: one line on when to use it;
+    source: where it comes from; func: the rule itself.
+    """
 
     name: str
     controllers: tuple[str, ...]
@@ -453,12 +493,19 @@ RULES: dict[str, Rule] = {r.name: r for r in (
 
 
 def default_controller(rule: Rule) -> str:
-    """PI where the rule defines it, else its first controller type."""
+    """PI where the rule defines it, else its first controller type.
+
+    ``rule``: the rule.
+    """
     return "PI" if "PI" in rule.controllers else rule.controllers[0]
 
 
 def tune(name: str, data: ProcessData, controller: str | None = None, options: Options = Options()) -> RuleResult:
-    """Run the rule ``name``; RuleError for an unknown rule or a controller type it does not define."""
+    """Run the rule ``name``; RuleError for an unknown rule or a controller type it does not define.
+
+    ``data``: the process data; ``controller``: ``"P"``, ``"PI"`` or ``"PID"`` (None: :func:`default_controller`);
+    ``options``: the rules' options.
+    """
     rule = RULES.get(name)
     if rule is None:
         raise RuleError(f"unknown rule {name!r}; the rules are: {', '.join(RULES)}")

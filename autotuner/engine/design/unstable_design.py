@@ -59,7 +59,7 @@ _PHASE_SLACK = 0.05
 
 
 class Refusal(ValueError):
-    """No PI/PID design for this process; ``code`` says why (an outcome code)."""
+    """No PI/PID design for this process; ``code`` says why (an outcome code), ``message`` what was found."""
 
     def __init__(self, code: Code, message: str) -> None:
         super().__init__(message)
@@ -71,6 +71,8 @@ def fit_unstable(omega: float, gain: float, lag: float, static_gain: float) -> P
 
     Raises :class:`Refusal` (``NOT_STABILISABLE``) when no such model fits: a
     gain at ω as large as ``|F(0)|``, or more phase lead than the pole gives.
+
+    ``omega``: the point's frequency.
     """
     k = -static_gain
     if not k > gain:
@@ -89,12 +91,18 @@ def fit_unstable(omega: float, gain: float, lag: float, static_gain: float) -> P
 
 
 def unstable_time_constant(model: Process) -> float:
-    """``T`` (s) of ``K·e^{−Ds}/(Ts − 1)``: the inverse of the unstable pole."""
+    """``T`` (s) of ``K·e^{−Ds}/(Ts − 1)``: the inverse of the unstable pole.
+
+    ``model``: the process.
+    """
     return 1.0 / float(np.max(model.poles.real))
 
 
 def check_dead_time(model: Process, controller: str) -> float:
-    """Normalised dead time ``D/T`` of the model; raises :class:`Refusal` beyond the controller's limit."""
+    """Normalised dead time ``D/T`` of the model; raises :class:`Refusal` beyond the controller's limit.
+
+    ``model``: the unstable process; ``controller``: ``"PI"`` or ``"PID"``.
+    """
     ratio = model.delay / unstable_time_constant(model)
     limit = PI_DEAD_TIME_RATIO if controller == "PI" else PID_DEAD_TIME_RATIO
     if ratio > limit + _RATIO_TOL:
@@ -125,6 +133,9 @@ def design_gains(model: Process, omega: float, controller: str, ms: float, nd: f
 
     Raises :class:`Refusal` (``NOT_STABILISABLE``) when no target up to
     :data:`MS_CAP` admits a stabilising controller with integral action.
+
+    ``model``: the unstable process; ``omega``: the point's frequency (rad/s); ``controller``: ``"PI"`` or
+    ``"PID"``; ``nd``: the derivative filter's N.
     """
     plant = Plant(model.freqresp, integrators=model.integrator_count, rhp_poles=model.rhp_pole_count)
     # The grid must reach where the dead time turns the loop round (ωD ≈ π) even for a short dead time:

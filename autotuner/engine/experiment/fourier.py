@@ -45,7 +45,8 @@ def _normalise(integral: complex, omega: float, width: float, hann: bool) -> com
 
 
 def held_coefficient(t: np.ndarray, u: np.ndarray, ta: float, tb: float, omega: float, hann: bool = True) -> complex:
-    """Coefficient at ``omega`` (rad/s) over ``[ta, tb]`` of the held signal ``u``.
+    """Coefficient at ``omega`` (rad/s) over [``ta``, ``tb``] (s) of the held signal ``u``, Hann-windowed if
+    ``hann``.
 
     ``u[i]`` holds over ``[t[i], t[i+1])`` (the last value until ``tb``); ``t``
     in seconds, increasing, with ``t[0] ≤ ta < tb``.
@@ -62,7 +63,8 @@ def held_coefficient(t: np.ndarray, u: np.ndarray, ta: float, tb: float, omega: 
 
 
 def sampled_coefficient(t: np.ndarray, y: np.ndarray, ta: float, tb: float, omega: float, hann: bool = True) -> complex:
-    """Coefficient at ``omega`` (rad/s) over ``[ta, tb]`` of the continuous signal sampled as ``y`` at ``t``."""
+    """Coefficient at ``omega`` (rad/s) over [``ta``, ``tb``] (s) of the continuous signal sampled as ``y`` at
+    ``t``, Hann-windowed if ``hann``."""
     width = tb - ta
     # The samples inside the window and the one on each side of it (the interpolation at its ends).
     first = max(int(np.searchsorted(t, ta, side="right")) - 1, 0)

@@ -72,9 +72,9 @@ _POINTS_PER_PERIOD = 2.0
 # Averaged residuals within this fraction of the PV oscillation amplitude are
 # the model's own mismatch (harmonics, a process that is not first order).
 _RESOLUTION = 0.01
-# Refinements of x in settled_ratio from the plain ratio of the means (3–4 settle it to 1e-3).
+# Refinements of x in settled_x from the plain ratio of the means (3–4 settle it to 1e-3).
 _SETTLE_ITERATIONS = 4
-# settled_ratio's lag is summed over chunks of at most this many time constants (e^300 stays finite)...
+# settled_x's lag is summed over chunks of at most this many time constants (e^300 stays finite)...
 _CHUNK = 300.0
 # ...over the MV of this many time constants before its window (e^-36 is below a double's rounding).
 _MEMORY = 36.0
@@ -110,11 +110,12 @@ NEAR_RUNS = _X_GRID + 2 * _X_STEPS + 2 * (1 + _X_STEPS) + 2  # (the scan's point
 class LoadFit:
     """The slow part of the data as one model explains it.
 
-    x: ``|F(jω)|/K0`` (0 integrating, < 0 unstable); x_std its standard error.
+    x: ``|F(jω)|/K0`` (0 integrating, < 0 unstable); x_std: its standard error.
     static_gain: ``|F(jω)|/x`` (``inf`` for ``x = 0``: integrating).
     offset: PV at the starting MV without load (PV units).
     step_time, step: a load step at the process input (s, MV units), or None/0.
-    ramp: load ramp from the start (MV units per second); free: PV units of
+    ramp: load ramp from the start (MV units per second).
+    free: PV units of
     the free response at the start.
     residual_std: standard deviation of the averaged residual (PV units).
     score: the information criterion of the chosen model (lower explains the
@@ -182,9 +183,10 @@ def _respond(u: np.ndarray, dt: float, x: float, gain: float, omega: float, lag:
     return scipy.signal.lfilter(b, a, shifted)
 
 
-def settled_ratio(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, omega: float, lag: float,
+def settled_x(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, omega: float, lag: float,
                   ta: float, tb: float, slope: float = 0.0, t0: float = 0.0, u0: float = 0.0) -> float:
-    """``|F|/K0`` from the means over ``[ta, tb]`` (s): the PV's ``dy`` and the MV's as the slow part has seen it.
+    """``|F|/K0`` from the means over [``ta``, ``tb``] (s): the PV's ``dy`` and the MV's as the slow part has seen
+    it.
 
     The PV's mean over a period answers the MV's means of the periods before
     it through the process's slow lag: while the relay's mean is new (the
@@ -312,7 +314,8 @@ class _Responses:
 
 
 def held_mean(s: np.ndarray, u: np.ndarray, u0: float, grid: np.ndarray, dt: float) -> np.ndarray:
-    """Mean over each ``[grid[j], grid[j] + dt)`` (s) of the MV ``u`` held from the times ``s`` (``u0`` before).
+    """Mean over each [``grid[j]``, ``grid[j]`` + ``dt``) (s) of the MV ``u`` held from the times ``s`` (``u0``
+    before): the ``grid`` (s) and ``dt`` (s) of the fit.
 
     Exact for any spacing of ``s``: the MV's integral is piecewise linear
     between its switch times. Held onto the grid instead, a switch between
@@ -367,7 +370,12 @@ class _Model:
 
 
 class LoadFitter:
-    """Fits :class:`LoadFit` to a record: times (s, increasing), PV and the MV held from each sample.
+    """Fits :class:`LoadFit` to a record: times ``t`` (s, increasing), PV ``y`` and the MV ``u`` held from each
+    sample (``u0`` before the first), the relay started at sample ``start``.
+
+    ``omega`` (rad/s), ``gain`` (|F|) and ``lag`` (radians): the latest estimate's point, which fixes the
+    model with each |F|/K0; ``scale``: the PV's scale (|F|·amp), of which the fit resolves a share;
+    ``max_steps``: the most load steps a model may hold.
 
     ``held_from``: when each MV reached the process, if later than its sample
     (s; default the sample times). ``runs`` counts the candidate models run so
@@ -526,34 +534,6 @@ class LoadFitter:
         sums = np.einsum("ij,ij->j", rb[:, None] - rs * coef, rb[:, None] - rs * coef)
         return np.where(finite & np.isfinite(sums), sums, math.inf)
 
-    def _best_x(self, steps: tuple[int, ...], ramp: bool, free: bool, lo: float, hi: float,
-                best: int | None = None) -> tuple[float, float]:
-        """The x in [lo, hi] of the least residual (a coarse scan, then a search near its best point;
-        ``best``: the scan's best point when known already)."""
-        grid = np.linspace(lo, hi, _X_GRID)
-        i = int(np.argmin([self._rss(float(x), steps, ramp, free) for x in grid])) if best is None else best
-        x = _minimize(lambda v: self._rss(v, steps, ramp, free), float(grid[max(i - 1, 0)]),
-                      float(grid[min(i + 1, len(grid) - 1)]))
-        return x, self._rss(x, steps, ramp, free)
-
-    def _near_x(self, steps: tuple[int, ...], ramp: bool, x0: float, lo: float, hi: float) -> float | None:
-        """The x of the least residual near ``x0``, found as the full search finds it but from the scan's
-        points next to ``x0`` only; None when it lies at the edge of their cells (the least is beyond).
-
-        The residual can have shallow minima a few thousandths apart (where the dead time crosses a
-        sample); searched from the full search's cells, a refit settles in the minimum the full search
-        would, instead of one near wherever the earlier fit had stopped.
-        """
-        grid = np.linspace(lo, hi, _X_GRID)
-        nearest = int(np.argmin(np.abs(grid - x0)))
-        i = min(range(max(nearest - 1, 0), min(nearest + 2, len(grid))),
-                key=lambda j: self._rss(float(grid[j]), steps, ramp))
-        a, b = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
-        x = _minimize(lambda v: self._rss(v, steps, ramp), a, b)
-        if (a > lo and x - a < _X_TOL) or (b < hi and b - x < _X_TOL):
-            return None
-        return x
-
     # -- model selection ----------------------------------------------------
 
     # (An unstable candidate's residual can overflow: see _responses. Set once here for the search's many calls.)
@@ -563,7 +543,7 @@ class LoadFitter:
 
         ``unstable`` searches x in (−1, 0] (an open-loop unstable process), otherwise in [0, 1).
         ``near``: an earlier fit of this record's start (a refit as the record grows). Its terms are
-        kept and x and the step time are searched near its own (:meth:`_refit_near`), unless the
+        kept and x and the step time are searched near its own (:meth:`_Search.near`), unless the
         record has moved away from it — x beyond the search, or a residual grown beyond ``_MISFIT``
         times its own (a second load): then the full search runs, as without ``near``.
         """
@@ -572,99 +552,14 @@ class LoadFitter:
         # Residuals below this are the model's own imperfection, not a disturbance to explain.
         criterion = _Criterion(points, points * (_RESOLUTION * self.scale) ** 2)
         if near is not None:
-            model = self._refit_near(near, lo, hi, criterion)
+            model = _Search(self, lo, hi, criterion).near(near)
             if model is not None:
                 fit = self._result(model, points)
                 mismatch = _RESOLUTION * self.scale * math.sqrt(len(_ends(self.n, len(self.t))) /
                                                                  max(len(self.t) - self.n, 1))
                 if fit.residual_std <= _MISFIT * near.residual_std + mismatch:
                     return fit
-        return self._result(self._search(lo, hi, criterion), points)
-
-    def _scored(self, x: float, steps: tuple[int, ...], ramp: bool, criterion: _Criterion) -> _Model:
-        """The model ``x`` with these terms, its residual and criterion."""
-        rss = self._rss(x, steps, ramp)
-        return _Model(rss, criterion.score(rss, 1 + len(steps) + ramp), x, steps, ramp)
-
-    def _search(self, lo: float, hi: float, criterion: _Criterion) -> _Model:
-        """The full search: x over [lo, hi] without and with a ramp, then load steps at any time.
-
-        A term is searched only where it could pay for itself (:meth:`_Criterion.worth_a_term`): a
-        quiet record's search ends after the first scan of x, with the answer the whole search gives.
-        """
-        best = self._without_steps(lo, hi, criterion)
-        # Load steps: scan their time with the current x, then refine x.
-        for _ in range(self.max_steps):
-            first = self.start + self.n // 4
-            last = len(self.t) - self.n // 2
-            if last <= first or not criterion.worth_a_term(best.rss):
-                break
-            steps, ramp = best.steps, best.ramp
-            # Index 0: a load acting from the start (the PV was not at rest).
-            spacing = max(self.n // _STEP_GRID, 1, -(-(last - first) // _STEPS_MAX))
-            ks = np.array([0, *range(first, last, spacing)])
-            # Step time and x together on a coarse grid: the best step time
-            # for a wrong x can be far from the right one.
-            scans = [self._scan_step(float(xg), steps, ramp, False, ks) for xg in np.linspace(lo, hi, _X_GRID)]
-            cell = int(np.argmin([float(np.min(sums)) for sums in scans]))
-            trial = int(ks[int(np.argmin(scans[cell]))])
-            # Then x near the scan's best (its grid point is the best with this step already), and the step
-            # to the sample, so that its time does not hop between grid points from fit to fit.
-            xg = self._best_x(steps + (trial,), ramp, False, lo, hi, best=cell)[0]
-            trial = self._step_near(xg, steps, ramp, trial, last, spacing)
-            model = self._scored(self._best_x(steps + (trial,), ramp, False, lo, hi, best=cell)[0], steps + (trial,),
-                                 ramp, criterion)
-            if model.score >= best.score:
-                break
-            best = model
-        return best
-
-    def _without_steps(self, lo: float, hi: float, criterion: _Criterion) -> _Model:
-        """The best model without load steps: x over [lo, hi] without and with a ramp (the ramp only where
-        it could pay for itself)."""
-        # The free response of the lag (a PV still settling at the start) is
-        # left out of the search: over a few periods it is nearly a ramp or an
-        # offset, and with a long lag it is ill-conditioned against both.
-        best = self._scored(self._best_x((), False, False, lo, hi)[0], (), False, criterion)
-        if not criterion.worth_a_term(best.rss):
-            return best
-        ramp = self._scored(self._best_x((), True, False, lo, hi)[0], (), True, criterion)
-        return ramp if ramp.score < best.score else best
-
-    def _step_near(self, x: float, steps: tuple[int, ...], ramp: bool, k: int, last: int, spacing: int) -> int:
-        """The sample within ``spacing`` of ``k`` (and before ``last``) where a load step fits best."""
-        near = np.arange(max(k - spacing, 0), min(k + spacing + 1, last))
-        if not len(near):
-            return k
-        return int(near[int(np.argmin(self._scan_step(x, steps, ramp, False, near)))])
-
-    def _refit_near(self, near: LoadFit, lo: float, hi: float, criterion: _Criterion) -> _Model | None:
-        """The full search's model, with the step's time and x searched near ``near``'s instead of over a
-        coarse scan of both: the step time within a quarter period of ``near``'s, x from the scan's
-        points next to ``near``'s (:meth:`_near_x`). The ramp is chosen as the full search chooses it
-        (without the step: a ramp can mimic a settling PV once the step explains the rest), the step kept
-        where it pays for itself. None when ``near``'s x is outside [lo, hi] or uncertain (``_NEAR_STD``),
-        or the best x lies beyond the search."""
-        if not (lo <= near.x <= hi and near.x_std <= _NEAR_STD):
-            return None
-        best = self._without_steps(lo, hi, criterion)
-        if near.step_time is None or not criterion.worth_a_term(best.rss):
-            return best
-        k = int(round((near.step_time - self.t[0]) / self.dt))
-        # Within a quarter period of it: as far as two fits that agree may put it (RelayExperiment._agree).
-        last, spacing = len(self.t) - self.n // 2, max(self.n // 4, 1)
-        x: float | None = near.x
-        # The step time at the earlier x, x with it, the step time again at that x and x once more: the
-        # full search's refinement after its scan. (A load from the start stays there: the full search
-        # puts no step between it and the relay's start.)
-        for _ in range(2):
-            if k:
-                k = self._step_near(x, (), best.ramp, k, last, spacing)
-            x = self._near_x((k,), best.ramp, x, lo, hi)
-            if x is None:
-                return None
-        model = self._scored(x, (k,), best.ramp, criterion)
-        return model if model.score < best.score else best
+        return self._result(_Search(self, lo, hi, criterion).full(), points)
 
     def _result(self, model: _Model, points: float) -> LoadFit:
         """The fit of ``model``: its coefficients, the standard error of x from the residual's curvature."""
@@ -686,3 +581,127 @@ class LoadFitter:
         static = math.inf if x_used == 0.0 else self.gain / x_used
         return LoadFit(x_used, x_std, static, float(coef[0]), step_time, step, ramp_rate, free_size, residual_std,
                        model.score)
+
+
+class _Search:
+    """One search of a fitter's record for the model that explains it best: x over [``lo``, ``hi``] and the
+    load terms that pay for themselves by the information ``criterion`` (``fitter``: whose candidate models'
+    residuals it compares)."""
+
+    def __init__(self, fitter: LoadFitter, lo: float, hi: float, criterion: _Criterion) -> None:
+        self.fitter = fitter
+        self.lo, self.hi = lo, hi
+        self.criterion = criterion
+
+    def full(self) -> _Model:
+        """The full search: x over [lo, hi] without and with a ramp, then load steps at any time.
+
+        A term is searched only where it could pay for itself (:meth:`_Criterion.worth_a_term`): a
+        quiet record's search ends after the first scan of x, with the answer the whole search gives.
+        """
+        best = self._without_steps()
+        # Load steps: scan their time with the current x, then refine x.
+        for _ in range(self.fitter.max_steps):
+            first = self.fitter.start + self.fitter.n // 4
+            last = len(self.fitter.t) - self.fitter.n // 2
+            if last <= first or not self.criterion.worth_a_term(best.rss):
+                break
+            steps, ramp = best.steps, best.ramp
+            # Index 0: a load acting from the start (the PV was not at rest).
+            spacing = max(self.fitter.n // _STEP_GRID, 1, -(-(last - first) // _STEPS_MAX))
+            ks = np.array([0, *range(first, last, spacing)])
+            # Step time and x together on a coarse grid: the best step time
+            # for a wrong x can be far from the right one.
+            scans = [self.fitter._scan_step(float(xg), steps, ramp, False, ks)
+                     for xg in np.linspace(self.lo, self.hi, _X_GRID)]
+            cell = int(np.argmin([float(np.min(sums)) for sums in scans]))
+            trial = int(ks[int(np.argmin(scans[cell]))])
+            # Then x near the scan's best (its grid point is the best with this step already), and the step
+            # to the sample, so that its time does not hop between grid points from fit to fit.
+            xg = self._best_x(steps + (trial,), ramp, False, best=cell)[0]
+            trial = self._step_near(xg, steps, ramp, trial, last, spacing)
+            model = self._scored(self._best_x(steps + (trial,), ramp, False, best=cell)[0], steps + (trial,), ramp)
+            if model.score >= best.score:
+                break
+            best = model
+        return best
+
+    def near(self, near: LoadFit) -> _Model | None:
+        """The full search's model, with the step's time and x searched near ``near``'s instead of over a
+        coarse scan of both: the step time within a quarter period of ``near``'s, x from the scan's
+        points next to ``near``'s (:meth:`_near_x`). The ramp is chosen as the full search chooses it
+        (without the step: a ramp can mimic a settling PV once the step explains the rest), the step kept
+        where it pays for itself. None when ``near``'s x is outside [lo, hi] or uncertain (``_NEAR_STD``), or
+        the best x lies beyond the search."""
+        if not (self.lo <= near.x <= self.hi and near.x_std <= _NEAR_STD):
+            return None
+        best = self._without_steps()
+        if near.step_time is None or not self.criterion.worth_a_term(best.rss):
+            return best
+        k = int(round((near.step_time - self.fitter.t[0]) / self.fitter.dt))
+        # Within a quarter period of it: as far as two fits that agree may put it (LoadFollowing._agree).
+        last, spacing = len(self.fitter.t) - self.fitter.n // 2, max(self.fitter.n // 4, 1)
+        x: float | None = near.x
+        # The step time at the earlier x, x with it, the step time again at that x and x once more: the
+        # full search's refinement after its scan. (A load from the start stays there: the full search
+        # puts no step between it and the relay's start.)
+        for _ in range(2):
+            if k:
+                k = self._step_near(x, (), best.ramp, k, last, spacing)
+            x = self._near_x((k,), best.ramp, x)
+            if x is None:
+                return None
+        model = self._scored(x, (k,), best.ramp)
+        return model if model.score < best.score else best
+
+    def _without_steps(self) -> _Model:
+        """The best model without load steps: x over [lo, hi] without and with a ramp (the ramp only where it
+        could pay for itself)."""
+        # The free response of the lag (a PV still settling at the start) is
+        # left out of the search: over a few periods it is nearly a ramp or an
+        # offset, and with a long lag it is ill-conditioned against both.
+        best = self._scored(self._best_x((), False, False)[0], (), False)
+        if not self.criterion.worth_a_term(best.rss):
+            return best
+        ramp = self._scored(self._best_x((), True, False)[0], (), True)
+        return ramp if ramp.score < best.score else best
+
+    def _scored(self, x: float, steps: tuple[int, ...], ramp: bool) -> _Model:
+        """The model ``x`` with these terms, its residual and criterion."""
+        rss = self.fitter._rss(x, steps, ramp)
+        return _Model(rss, self.criterion.score(rss, 1 + len(steps) + ramp), x, steps, ramp)
+
+    def _best_x(self, steps: tuple[int, ...], ramp: bool, free: bool,
+                best: int | None = None) -> tuple[float, float]:
+        """The x in [lo, hi] of the least residual (a coarse scan, then a search near its best point;
+        ``best``: the scan's best point when known already)."""
+        grid = np.linspace(self.lo, self.hi, _X_GRID)
+        i = int(np.argmin([self.fitter._rss(float(x), steps, ramp, free) for x in grid])) if best is None else best
+        x = _minimize(lambda v: self.fitter._rss(v, steps, ramp, free), float(grid[max(i - 1, 0)]),
+                      float(grid[min(i + 1, len(grid) - 1)]))
+        return x, self.fitter._rss(x, steps, ramp, free)
+
+    def _near_x(self, steps: tuple[int, ...], ramp: bool, x0: float) -> float | None:
+        """The x of the least residual near ``x0``, found as the full search finds it but from the scan's
+        points next to ``x0`` only; None when it lies at the edge of their cells (the least is beyond).
+
+        The residual can have shallow minima a few thousandths apart (where the dead time crosses a
+        sample); searched from the full search's cells, a refit settles in the minimum the full search
+        would, instead of one near wherever the earlier fit had stopped.
+        """
+        grid = np.linspace(self.lo, self.hi, _X_GRID)
+        nearest = int(np.argmin(np.abs(grid - x0)))
+        i = min(range(max(nearest - 1, 0), min(nearest + 2, len(grid))),
+                key=lambda j: self.fitter._rss(float(grid[j]), steps, ramp))
+        a, b = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
+        x = _minimize(lambda v: self.fitter._rss(v, steps, ramp), a, b)
+        if (a > self.lo and x - a < _X_TOL) or (b < self.hi and b - x < _X_TOL):
+            return None
+        return x
+
+    def _step_near(self, x: float, steps: tuple[int, ...], ramp: bool, k: int, last: int, spacing: int) -> int:
+        """The sample within ``spacing`` of ``k`` (and before ``last``) where a load step fits best."""
+        near = np.arange(max(k - spacing, 0), min(k + spacing + 1, last))
+        if not len(near):
+            return k
+        return int(near[int(np.argmin(self.fitter._scan_step(x, steps, ramp, False, near)))])

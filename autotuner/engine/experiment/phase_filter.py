@@ -23,7 +23,8 @@ MAX_LEAD = math.radians(35.0)
 
 @dataclass
 class PhaseFilter:
-    """First-order lag (``tau > 0``, ``lead = False``), lead (``lead = True``) or nothing (``tau = 0``)."""
+    """First-order lag (``tau`` > 0 s, ``lead`` False), lead (``lead`` True) or nothing (``tau`` = 0); ``state``:
+    the lag's output, PV units."""
 
     tau: float = 0.0
     lead: bool = False

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class Point:
-    """One point of the process frequency response: ``F(j·omega)``, omega in rad/s."""
+    """One point of the process frequency response: ``value`` = ``F(j·omega)``, ``omega`` in rad/s."""
 
     omega: float
     value: complex

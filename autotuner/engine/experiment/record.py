@@ -28,7 +28,8 @@ class Samples:
 
 class Record:
     """Samples of an experiment: time (s), PV, and the MV held from each sample with the time it reached
-    the process (s, the sample's time unless a late write said otherwise)."""
+    the process (s, the sample's time unless a late write said otherwise); room for ``capacity`` samples at
+    first."""
 
     def __init__(self, capacity: int = 256) -> None:
         self._columns = np.empty((4, capacity))  # t, y, u, s
@@ -44,7 +45,7 @@ class Record:
         return self._held
 
     def add(self, t: float, pv: float) -> None:
-        """A new sample: time ``t`` (s) and its PV."""
+        """A new sample: time ``t`` (s) and its PV, ``pv``."""
         if self._samples == self._columns.shape[1]:
             grown = np.empty((4, 2 * self._samples))
             grown[:, : self._samples] = self._columns
@@ -54,7 +55,7 @@ class Record:
         self._samples += 1
 
     def hold(self, mv: float) -> None:
-        """The MV held from the latest sample on, reaching the process at the sample's time."""
+        """The MV ``mv`` held from the latest sample on, reaching the process at the sample's time."""
         self._columns[2, self._held] = mv
         self._columns[3, self._held] = self._columns[0, self._held]
         self._held += 1

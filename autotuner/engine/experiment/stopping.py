@@ -67,35 +67,36 @@ class Tolerances:
 
 @dataclass(frozen=True)
 class Verdict:
-    """An accepted mean point and |F|/K0, from the latest ``count`` estimates."""
+    """An accepted mean ``point`` and ``x`` = |F|/K0, from the latest ``count`` estimates."""
 
     point: Point
-    inverse_gain: float
+    x: float
     count: int
 
 
-def static_bound(tol: Tolerances, inverse: float) -> float:
-    """The settled rule's bound on the spread of |F|/K0 near ``inverse``: ``static_tol`` relative to it (K0 to
+def static_bound(tol: Tolerances, x: float) -> float:
+    """The settled rule's bound on the spread of |F|/K0 near ``x`` with the tolerances ``tol``: ``static_tol``
+    relative to it (K0 to
     about ``static_tol``) from ``X_FLOOR`` up; below, where the design hardly depends on K0 (its model tends to
     an integrator's), ``static_tol`` of ``X_FLOOR``."""
-    return tol.static_tol * max(abs(inverse), X_FLOOR)
+    return tol.static_tol * max(abs(x), X_FLOOR)
 
 
-def slow_memory(inverse: float) -> float:
-    """The time constant of the first-order model with ``inverse`` = |F|/K0 at the point, in periods
+def slow_memory(x: float) -> float:
+    """The time constant of the first-order model with ``x`` = |F|/K0 at the point, in periods
     (methods.md §6: T = sqrt(1/x² − 1)/ω); inf for an integrator, 0 for a dead time."""
-    x = min(abs(inverse), 1.0)
-    return math.inf if x == 0.0 else math.sqrt(1.0 / (x * x) - 1.0) / (2.0 * math.pi)
+    size = min(abs(x), 1.0)
+    return math.inf if size == 0.0 else math.sqrt(1.0 / (size * size) - 1.0) / (2.0 * math.pi)
 
 
 def _stats(recent: list[tuple[Point, float]]) -> tuple[Point, float, float, float]:
     """(mean point, mean |F|/K0, relative spread of F, spread of |F|/K0), spreads as standard deviations."""
     k = len(recent)
     mean = Point(sum(p.omega for p, _ in recent) / k, sum(p.value for p, _ in recent) / k)
-    inverse = sum(i for _, i in recent) / k
+    x = sum(i for _, i in recent) / k
     spread = math.sqrt(sum(abs(p.value - mean.value) ** 2 for p, _ in recent) / k) / mean.gain
-    inverse_spread = math.sqrt(sum((i - inverse) ** 2 for _, i in recent) / k)
-    return mean, inverse, spread, inverse_spread
+    x_spread = math.sqrt(sum((i - x) ** 2 for _, i in recent) / k)
+    return mean, x, spread, x_spread
 
 
 def _curve_spread(recent: list[tuple[Point, float]]) -> float:
@@ -111,11 +112,11 @@ def _curve_spread(recent: list[tuple[Point, float]]) -> float:
     w = [p.omega for p, _ in recent]
     mw = sum(w) / k
     mf = sum(p.value for p, _ in recent) / k
-    sww = sum((x - mw) ** 2 for x in w)
+    sww = sum((omega - mw) ** 2 for omega in w)
     if sww == 0.0:
         return math.inf
-    slope = sum((x - mw) * (p.value - mf) for x, (p, _) in zip(w, recent)) / sww
-    residual = sum(abs(p.value - mf - slope * (x - mw)) ** 2 for x, (p, _) in zip(w, recent))
+    slope = sum((omega - mw) * (p.value - mf) for omega, (p, _) in zip(w, recent)) / sww
+    residual = sum(abs(p.value - mf - slope * (omega - mw)) ** 2 for omega, (p, _) in zip(w, recent))
     return math.sqrt(residual / (k - 2)) / abs(mf)
 
 
@@ -132,32 +133,33 @@ def _settled(estimates: list[tuple[Point, float]]) -> tuple[Point, float]:
     point = p2
     if ((p2.value - p1.value) * (p1.value - p0.value).conjugate()).real < 0.0:
         point = Point(0.5 * (p1.omega + p2.omega), 0.5 * (p1.value + p2.value))
-    inverse = 0.5 * (i1 + i2) if (i2 - i1) * (i1 - i0) < 0.0 else i2
-    return point, inverse
+    x = 0.5 * (i1 + i2) if (i2 - i1) * (i1 - i0) < 0.0 else i2
+    return point, x
 
 
 def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances, longest: int,
-          noisy: bool, inverse_std: float | None = None) -> Verdict | None:
-    """The accepted mean of the latest estimates, or None to go on.
+          noisy: bool, x_std: float | None = None) -> Verdict | None:
+    """The accepted mean of the latest ``estimates`` ((point, x) pairs), or None to go on.
 
+    ``target_deg``: the lag aimed at, degrees; ``tol``: the tolerances.
     ``longest`` bounds how many of the latest are averaged; ``noisy`` enables
-    the averaged rule; ``inverse_std`` (from a load fit) replaces the spread
+    the averaged rule; ``x_std`` (from a load fit) replaces the spread
     of |F|/K0 by the fit's own standard error.
     """
     for k in range(2, min(len(estimates), longest) + 1):
         recent = estimates[-k:]
-        mean, inverse, spread, inverse_spread = _stats(recent)
+        mean, x, spread, x_spread = _stats(recent)
         phase_ok = min(abs(-p.phase_deg - target_deg) for p in (mean, recent[-1][0])) <= tol.phase_tol_deg
         if not phase_ok:
             continue
-        if inverse_std is not None:
+        if x_std is not None:
             # One static_tol of the fit's standard error is accepted (a quiet
             # run gets about half of that from the scatter of its means).
-            static_ok = inverse_std <= tol.static_tol
+            static_ok = x_std <= tol.static_tol
         else:
-            static_ok = inverse_spread / math.sqrt(k) <= 0.5 * tol.static_tol
+            static_ok = x_spread / math.sqrt(k) <= 0.5 * tol.static_tol
         if not noisy:
-            if inverse_std is None and (inverse < -tol.static_tol or 1.0 < slow_memory(inverse) <= SLOW_MEMORY_MAX):
+            if x_std is None and (x < -tol.static_tol or 1.0 < slow_memory(x) <= SLOW_MEMORY_MAX):
                 # A slow mode remembers the relay's means of earlier periods: its |F|/K0 estimates converge
                 # more slowly than the point's, and two can agree by chance (100·e^{−20s}/(300s+1):
                 # 0.0805, 0.0803, then 0.0768; true 0.0771): three must agree, each within the bound.
@@ -166,26 +168,27 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
                 # −0.91, −0.965 (true −1), and two of them agreed within static_tol.
                 last = estimates[-max(k, STATIC_MIN):]
                 static_ok = static_ok and len(last) >= STATIC_MIN and _stats(last)[3] <= 0.5 * static_bound(
-                    tol, inverse)
+                    tol, x)
             if spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
-                point, inverse = _settled(estimates)
-                return Verdict(point, inverse, k)
+                point, x = _settled(estimates)
+                return Verdict(point, x, k)
             # Scattered along the curve: their mean is the point, at the mean ω, if it lags as asked.
             if (k >= CURVE_MIN and static_ok and abs(-mean.phase_deg - target_deg) <= tol.phase_tol_deg
                     and _curve_spread(recent) / math.sqrt(k) <= 0.5 * tol.gain_tol):
-                return Verdict(mean, inverse, k)
+                return Verdict(mean, x, k)
         elif k >= NOISY_MIN:
-            static_ok = static_ok or (inverse_std is None and inverse_spread / math.sqrt(k) <= tol.static_tol)
+            static_ok = static_ok or (x_std is None and x_spread / math.sqrt(k) <= tol.static_tol)
             if spread / math.sqrt(k) <= tol.noise_tol and static_ok:
-                return Verdict(mean, inverse, k)
+                return Verdict(mean, x, k)
     return None
 
 
 def amp_factor(estimates: list[tuple[Point, float]], tol: Tolerances) -> float:
-    """How many times larger amp would let the averaged rule pass on all of ``estimates`` (≥ 1)."""
+    """How many times larger amp would let the averaged rule pass on all of ``estimates`` ((point, x) pairs)
+    with the tolerances ``tol`` (≥ 1)."""
     k = len(estimates)
     if k < NOISY_MIN:
         return math.inf
-    _, _, spread, inverse_spread = _stats(estimates)
-    need = max(spread / math.sqrt(k) / tol.noise_tol, inverse_spread / math.sqrt(k) / tol.static_tol)
+    _, _, spread, x_spread = _stats(estimates)
+    need = max(spread / math.sqrt(k) / tol.noise_tol, x_spread / math.sqrt(k) / tol.static_tol)
     return max(need, 1.0)

@@ -49,7 +49,10 @@ def ultimate_period(model: Process | None) -> float | None:
 
 def pv_span(limits: LoopLimits, model: Process | None) -> tuple[float | None, str]:
     """The PV span (PV units) and where it came from: the PV range; else the MV span times the model's static
-    gain; else None (unknown)."""
+    gain; else None (unknown).
+
+    ``limits``: the loop's limits; ``model``: the process model, or None.
+    """
     if limits.pv is not None:
         return limits.pv[1] - limits.pv[0], "the PV range"
     if model is not None and math.isfinite(model.static_gain()) and model.static_gain() != 0.0:
@@ -58,5 +61,8 @@ def pv_span(limits: LoopLimits, model: Process | None) -> tuple[float | None, st
 
 
 def process_sign(model: Process | None) -> int:
-    """+1 when more MV makes more PV (the model's sign; +1 without a model), −1 otherwise."""
+    """+1 when more MV makes more PV (the model's sign; +1 without a model), −1 otherwise.
+
+    ``model``: the process model, or None.
+    """
     return -1 if model is not None and model.static_gain() < 0.0 else 1  # ±inf for an integrating model

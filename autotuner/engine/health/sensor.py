@@ -9,6 +9,8 @@ def frozen_share(pv: np.ndarray) -> float:
     """The longest run of samples over which the PV did not change at all, as a share of the record, 0–1.
 
     A live sensor never reads the very same number for long: its noise and quantisation move it.
+
+    ``pv``: the PV record.
     """
     if len(pv) < 2:
         return 0.0

@@ -56,7 +56,10 @@ class Stiction:
 
 
 def ccf_zero_lag(u: np.ndarray, y: np.ndarray, half_period: int) -> float | None:
-    """Horch's ρ0 = |r_uy(0)| / max over |τ| ≤ ``half_period`` samples of |r_uy(τ)| (None: flat signals)."""
+    """Horch's ρ0 = |r_uy(0)| / max over |τ| ≤ ``half_period`` samples of |r_uy(τ)| (None: flat signals).
+
+    ``u``: the controller output; ``y``: the PV (samples of one record).
+    """
     u, y = u - u.mean(), y - y.mean()
     if not (np.any(u) and np.any(y)) or half_period < 1:
         return None

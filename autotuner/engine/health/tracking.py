@@ -24,7 +24,11 @@ LONG_SAMPLES = 100  # a response never settled over this many samples (at least)
 @dataclass(frozen=True)
 class Tracking:
     """The set-point steps of a record: how many were analysed, their mean overshoot (%) and settling time (s;
-    None: one or more never settled, or no step), and how many never settled."""
+    None: one or more never settled, or no step), and how many never settled.
+
+    steps: set-point steps analysed; overshoot: their mean, %; settling_time: their mean, s; unsettled: how many
+    never settled.
+    """
 
     steps: int
     overshoot: float | None

@@ -48,5 +48,8 @@ def harris_index(e: np.ndarray, delay_samples: int) -> float | None:
 
 def delay_samples(model_delay: float | None, ts: float) -> int:
     """The dead time in samples for the Harris index: ⌊L/ts⌋ + 1 (the zero-order hold's sample), or 1 without
-    a model."""
+    a model.
+
+    ``model_delay``: the model's dead time L, s (None: no model); ``ts``: the sample time, s.
+    """
     return 1 if model_delay is None else int(math.floor(model_delay / ts + 1e-9)) + 1

@@ -70,7 +70,10 @@ def is_stiction(ind: Indices, integrating: bool | None) -> bool:
     """The valve sticks. Around an integrating process (the model says so): the PV's half-cycles are
     triangular (the shape test). Otherwise: MV and PV do not correlate evenly (Horch: the loop's own
     oscillation through aggressive gains correlates evenly) and the PV is no sine (an external sinusoid, the
-    other cause of an uneven correlation, is)."""
+    other cause of an uneven correlation, is).
+
+    ``ind``: the indices; ``integrating``: the model is integrating (None: no model).
+    """
     shape, horch = ind.shape_index, ind.ccf_zero_lag
     if shape is None:
         return False
@@ -102,7 +105,10 @@ def _oscillation_reason(ind: Indices, ctx: Context, stiction: bool) -> str:
 
 
 def flags(ind: Indices, osc: Oscillation | None, ctx: Context) -> list[Flag]:
-    """The flags the indices raise (``osc``: the error's oscillation, None when never in automatic)."""
+    """The flags the indices raise (``osc``: the error's oscillation, None when never in automatic).
+
+    ``ind``: the indices; ``ctx``: what the record says of the loop.
+    """
     out: list[Flag] = []
     if ind.utilization < MANUAL:
         out.append(Flag("manual", _grade(1.0 - ind.utilization, 0.25, 0.5),
@@ -189,7 +195,10 @@ def _tracking(ind: Indices, ctx: Context) -> list[Flag]:
 def recommendation(found: list[Flag], utilization: float) -> str:
     """The one thing to do first: a frozen sensor makes every other index meaningless; a loop mostly in manual
     must run in automatic to be judged; a sticking valve needs the valve, never new gains; then retuning for
-    oscillation, sluggishness or poor tracking; a saturated valve; a noisy sensor; any manual time."""
+    oscillation, sluggishness or poor tracking; a saturated valve; a noisy sensor; any manual time.
+
+    ``found``: the flags raised; ``utilization``: the share of the record in automatic, 0–1.
+    """
     names = {f.name for f in found}
     if "frozen_pv" in names:
         return "check_sensor"

@@ -36,6 +36,8 @@ class ExpressionError(ValueError):
 
     ``position`` is the 0-based character index of the offending ``token``
     in ``text``; the message shows both and a caret line under the input.
+
+    ``reason``: what is wrong; ``detail``: more of it ("": nothing).
     """
 
     def __init__(self, reason: str, text: str, position: int, token: str,
@@ -298,6 +300,8 @@ def parse_process(text: str) -> Process:
     Raises ExpressionError (a ValueError) with the position and token of the
     problem for syntax errors, unknown names, invalid exponents or dead
     times, division by zero and improper results.
+
+    ``text``: the expression.
     """
     value = _Parser(text).parse()
     stripped = text.strip()

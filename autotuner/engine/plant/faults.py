@@ -26,8 +26,10 @@ class Faults:
     stiction_s, stiction_j: Choudhury's valve stiction, deadband plus stickband S and slip jump J, % of the MV
     span. deadband: a valve deadband (backlash), % of the MV span; it adds to S (Choudhury's S is deadband plus
     stickband). load_std, load_tau: a stochastic load at the process input, first-order filtered white noise of
-    standard deviation ``load_std`` MV units and time constant ``load_tau`` plant seconds. sine_amplitude,
-    sine_period: an external sinusoidal disturbance at the process input, MV units and plant seconds.
+    standard deviation ``load_std`` MV units and time constant ``load_tau`` plant seconds.
+    sine_amplitude, sine_period: an external sinusoidal disturbance at the process input, MV units and plant
+    seconds. step_size, step_interval: random load steps at the process input, of ±0.5–1 × ``step_size`` MV
+    units at exponentially distributed intervals of mean ``step_interval`` plant seconds.
     frozen_at: the PV sensor freezes at this plant time (seconds from the start) and reads the same value from
     then on (None: never).
     """
@@ -70,6 +72,8 @@ class FaultyLoop:
     """The faults of one loop applied between its controller and ``sim``, sample by sample.
 
     ``span``: the MV span (MV units) the valve's % refer to; ``seed``: of the stochastic load's noise.
+
+    ``faults``: what is wrong.
     """
 
     def __init__(self, faults: Faults, sim: PlantSim, span: float, seed: int | None) -> None:

@@ -109,7 +109,10 @@ class Process:
     @classmethod
     def from_tf(cls, num: Sequence[float], den: Sequence[float], delay: float = 0.0,
                 text: str = "") -> Process:
-        """Build from coefficient sequences (highest power first) and a dead time in s."""
+        """Build from coefficient sequences (highest power first) and a dead time in s.
+
+        ``num``, ``den``: the coefficients; ``delay``: s; ``text``: the expression it came from.
+        """
         return cls(tuple(float(c) for c in num), tuple(float(c) for c in den), delay, text)
 
     @property
@@ -163,6 +166,8 @@ class Process:
         """Complex F(jω) for ω in rad/s (array or scalar), including exp(-jωL).
 
         At ω = 0 an integrating process gives an infinite value.
+
+        ``omega``: rad/s.
         """
         s = 1j * np.asarray(omega, dtype=float)
         with np.errstate(divide="ignore", invalid="ignore"):

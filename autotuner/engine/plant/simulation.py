@@ -87,6 +87,10 @@ class PlantSim:
     rounded up to the sample grid). ``measure()`` adds seeded white noise of
     standard deviation ``noise_std`` (a fresh draw on every call) and then
     rounds to a multiple of ``quantum`` if it is > 0.
+
+    ``process``: the process F; ``pv0``, ``mv0``: the operating point; ``seed``: of the noise (None: fresh);
+    ``mv_limits``: the MV's (low, high), MV units, where ``advance`` clips it; ``drift``: a load ramp at the process
+    input, MV units per s.
     """
 
     def __init__(self, process: Process, ts: float, *, pv0: float = 0.0, mv0: float = 0.0,
@@ -157,6 +161,8 @@ class PlantSim:
         """Hold mv over [t, t+ts) and advance t by ts; returns the MV applied after clipping.
 
         Raises ValueError for a non-finite mv.
+
+        ``mv``: MV units.
         """
         if not math.isfinite(mv):
             raise ValueError(f"manipulated variable must be finite, got {mv}")
@@ -176,6 +182,8 @@ def simulate_open_loop(process: Process, u: np.ndarray, ts: float) -> np.ndarray
 
     Returns y with len(u) + 1 samples: y[k] is the output at t = k*ts just
     before u[k] is applied (y[0] = 0: the process starts at rest).
+
+    ``process``: the process; ``u``: the MV sequence (deviations); ``ts``: s.
     """
     sim = PlantSim(process, ts)
     y = np.empty(len(u) + 1)

@@ -1,0 +1,115 @@
+"""Convergence: which estimates the stopping rule (stopping.py) judges, and when.
+
+At each rising switch, from ``MIN_PERIODS`` whole periods on, the estimates
+since the latest disturbance, change of the levels or stall are judged; the
+longer the experiment runs, the more of the latest may be averaged. On a
+quiet, noise-free run the period between the latest falling crossings, which
+overlaps the latest rising one by half, stops it half a period sooner when the
+two agree within ``HALF_TOL`` of the tolerances. When neither has happened by ``max_periods`` or the time
+limit, :func:`unsettled` says why.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from autotuner.engine.experiment import endings
+from autotuner.engine.experiment.config import RelayConfig
+from autotuner.engine.experiment.endings import Ended
+from autotuner.engine.experiment.estimates import GAP, STALL, Estimates, drift, longest_gap, pairs, period_point
+from autotuner.engine.experiment.load_fit import LoadFit
+from autotuner.engine.experiment.loop import Loop
+from autotuner.engine.experiment.stopping import Tolerances, Verdict, judge
+from autotuner.engine.experiment.switching import Switching
+
+# Minimum number of whole periods before convergence is judged: one for the
+# start-up transient and the first filter correction, one per estimate.
+MIN_PERIODS = 3
+# Noise (σ) above this fraction of |F|·amp makes single estimates scatter beyond gain_tol.
+NOISY = 0.002
+# The share of gain_tol and static_tol within which a period between falling crossings must agree with the
+# latest rising one: a transient decaying by ρ per period leaves the latest estimate off by ρ/(1 − ρ) × the
+# difference of disjoint windows, but by √ρ/(1 − √ρ) × that of windows half a period apart — 2.4–2.9 times
+# more for ρ = 0.5–0.3.
+HALF_TOL = 1.0 / 3.0
+
+
+def tolerances(config: RelayConfig) -> Tolerances:
+    """The stopping rule's tolerances from the experiment's ``config``."""
+    return Tolerances(config.phase_tol_deg, config.gain_tol, config.static_tol, config.noise_tol)
+
+
+def noisy(loop: Loop, estimates: Estimates) -> bool:
+    """True when the measured noise of ``loop`` is large enough to scatter the ``estimates`` beyond gain_tol."""
+    if not estimates.items:
+        return False
+    return loop.noise > NOISY * estimates.latest.point.gain * loop.config.amp
+
+
+def unsettled(when: str, loop: Loop, estimates: Estimates, since: float, fit: LoadFit | None,
+              target_deg: float) -> Ended:
+    """The ending of an experiment whose ``estimates`` of the ``loop`` did not settle ``when``: through a followed
+    load ``fit``, for noise a larger amp would average out, or else (``since``, ``target_deg``: as for
+    :func:`at_rising`)."""
+    if fit is not None:
+        return endings.unsettled_through_load(when, fit.step, fit.ramp)
+    usable = estimates.usable(since)[2:]
+    if noisy(loop, estimates) and usable:
+        too_noisy = endings.noise_too_high(when, pairs(usable), tolerances(loop.config), loop.noise,
+                                           loop.config.amp)
+        if too_noisy is not None:
+            return too_noisy
+    latest = estimates.latest.point if estimates.items else None
+    return endings.not_converged(when, estimates.stalls, STALL, latest, loop.config.phase_deg, target_deg)
+
+
+def at_rising(loop: Loop, estimates: Estimates, periods: int, since: float, target_deg: float,
+              x_std: float | None) -> Verdict | None:
+    """The verdict on the ``estimates`` of the ``loop`` after ``periods`` whole periods, or None to go on.
+
+    ``since``: estimates whose period starts earlier are left out (s); ``target_deg``: the lag aimed at,
+    degrees; ``x_std``: a followed load fit's standard error of |F|/K0 (None while quiet).
+    """
+    if periods < MIN_PERIODS or len(estimates) < 2:
+        return None
+    usable = estimates.usable(since)
+    if len(usable) < 2:
+        return None
+    # Estimates scatter with noise and sampling jitter; the longer the
+    # experiment runs, the more of the latest may be averaged (stopping.py).
+    scattered = noisy(loop, estimates)
+    # With noise, all estimates since the last disturbance may be averaged but the first
+    # (the period right after the filter's first correction).
+    longest = len(usable) - 1 if scattered else 2 + (periods - MIN_PERIODS) // 2
+    return judge(pairs(usable), target_deg, tolerances(loop.config), longest, scattered, x_std)
+
+
+def at_falling(loop: Loop, switching: Switching, estimates: Estimates, since: float,
+               target_deg: float) -> Verdict | None:
+    """At a falling switch of a quiet, noise-free run: the verdict when the period ending here agrees with the
+    latest ``estimates``, else None. ``loop``, ``switching``: the loop under test and the relay's crossings;
+    ``since``, ``target_deg``: as for :func:`at_rising`.
+
+    The period between two falling crossings overlaps the latest rising
+    one by half; when the two agree the cycle has settled, half a period
+    before the next rising crossing would say so. (With noise the
+    overlapping windows are not independent estimates: only the rising
+    ones are averaged.)
+    """
+    periods, falls, crossings = switching.periods, switching.falls, switching.crossings
+    if periods < MIN_PERIODS or len(falls) < 3 or noisy(loop, estimates):
+        return None
+    usable = estimates.usable(since)
+    if falls[-2] < since or not usable:
+        return None
+    raw = loop.record.since(min(falls[-3], crossings[-2]))
+    # A sampling gap (a stalled link) in the overlap biases both windows alike, so they agree: only the
+    # disjoint rising windows may judge such a record.
+    if longest_gap(raw.t, crossings[-2], raw.t[-1]) > GAP * loop.dt:
+        return None
+    detrended = raw.y - drift(raw.t, raw.y, falls[-3:])
+    candidates = [*pairs(usable), period_point(loop, raw, detrended, falls[-3:], None)]
+    longest = 2 + (periods - MIN_PERIODS) // 2
+    c = loop.config
+    tol = replace(tolerances(c), gain_tol=c.gain_tol * HALF_TOL, static_tol=c.static_tol * HALF_TOL)
+    return judge(candidates, target_deg, tol, longest, False)

@@ -1,0 +1,218 @@
+"""Load following: the record searched for load steps and drift, estimated through and followed by the relay.
+
+While the estimates have not settled, every few periods (and before a quiet
+result is accepted) the slow part of the record is fitted (load_fit.py). A
+disturbance is acted on when two fits a period apart agree on it: its
+|F|/K0 replaces the simple means, estimates whose windows reach back before
+a load step are left out, and the relay's centre follows the load within
+±amp (levels.py). Once disturbed, every period refits near the accepted fit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from autotuner.engine.experiment import endings
+from autotuner.engine.experiment.estimates import Estimates, lag
+from autotuner.engine.experiment.levels import Levels
+from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
+from autotuner.engine.experiment.loop import Loop
+from autotuner.engine.experiment.switching import Switching
+
+# The record is searched for a disturbance from this many periods on (earlier,
+# the filter's first corrections move the estimates anyway).
+CHECK_FROM = 5
+# While not converged, the record is searched for a disturbance every this many periods.
+CHECK_EVERY = 2
+# A fitted load (MV units, per amp) or free response (per |F|·amp) below this is no disturbance.
+LOAD_FRACTION = 0.08
+# The relay's centre moves only for a change of the fitted load above this fraction of amp.
+SHIFT_STEP = 0.03
+# A jump of |F|/K0 between consecutive estimates above this starts the search for a disturbance.
+JUMP = 0.05
+# A fit whose |F|/K0 is this uncertain describes no disturbance reliably enough to act on.
+X_STD_MAX = 0.1
+
+
+@dataclass
+class _Fits:
+    """The load fits of one record (its length) and estimate (their count): the fitter, the answers by
+    question (unstable, near)."""
+
+    record: tuple[int, int]
+    fitter: LoadFitter | None
+    answers: dict[tuple[bool, LoadFit | None], LoadFit | None] = field(default_factory=dict)
+
+
+class LoadFollowing:
+    """The accepted load fit (None while quiet), the candidate awaiting confirmation, and what they discard.
+
+    ``loop``, ``switching``, ``levels``, ``estimates``: the loop under test, the relay's crossings, its levels
+    (which the fitted load moves) and the estimates (which the fits start from).
+    """
+
+    def __init__(self, loop: Loop, switching: Switching, levels: Levels, estimates: Estimates) -> None:
+        self.loop = loop
+        self.switching = switching
+        self.levels = levels
+        self.estimates = estimates
+        self.fit: LoadFit | None = None
+        self.candidate: LoadFit | None = None
+        self.discard_before = -math.inf  # estimates whose period starts before this (s) precede a load step
+        self._fits = _Fits((0, 0), None)
+
+    def due(self) -> bool:
+        """True when a quiet run's period should look for a disturbance (again, or on a jump of |F|/K0)."""
+        periods = self.switching.periods
+        items = self.estimates.items
+        jump = abs(items[-1].x - items[-2].x) if len(items) >= 2 else 0.0
+        # During the filter's first corrections the estimates move anyway:
+        # only a large jump counts as a sign of a disturbance then.
+        early = periods >= 3 and jump > 3.0 * JUMP
+        again = self.candidate is not None
+        return again or early or periods >= CHECK_FROM and (jump > JUMP or (periods - CHECK_FROM) % CHECK_EVERY == 0)
+
+    def look(self, unstable: bool) -> bool:
+        """Fit the slow part of the record (``unstable``: with an unstable model); True (and the disturbed mode
+        on once two fits agree) if it needed a disturbance."""
+        if not self.loop.config.follow_loads:
+            return False
+        fit = self.load_fit(unstable)
+        if fit is None:
+            return False
+        if not self._significant(fit):
+            self.candidate = None
+            return False
+        # A disturbance is acted on when two fits a period apart agree on it:
+        # a single odd period (a stalled link holding the MV for seconds) fits
+        # as a load step too, but not the same one twice.
+        previous, self.candidate = self.candidate, fit
+        if previous is None or not self._agree(previous, fit):
+            return True  # look again next period before accepting anything
+        self._accept(fit)
+        return True
+
+    def refit(self, unstable: bool) -> None:
+        """Refit the record with this period, near the accepted fit (LoadFitter.fit's ``near``; ``unstable``:
+        with an unstable model)."""
+        fit = self.load_fit(unstable, near=self.fit)
+        if fit is None:
+            return
+        assert self.fit is not None
+        if not self._agree(self.fit, fit):
+            # Keep following what was accepted until two new fits agree on something else.
+            previous, self.candidate = self.candidate, fit
+            if previous is None or not self._agree(previous, fit):
+                return
+        self.candidate = fit
+        if fit.step_time is not None and (self.fit is None or self.fit.step_time != fit.step_time):
+            self.discard_before = max(self.discard_before, fit.step_time)
+        self.fit = fit
+        self._follow()
+
+    def load_fit(self, unstable: bool, near: LoadFit | None = None) -> LoadFit | None:
+        """The load fit of the record (``unstable``: with an unstable model; ``near``: see LoadFitter.fit), or
+        None when there is none to make.
+
+        Made once per record, estimate and question: a quiet period's analysis may ask twice (before it
+        accepts a result and when it looks for a disturbance), with the same answer.
+        """
+        record = (self.loop.record.held, len(self.estimates))
+        if self._fits.record != record:
+            self._fits = _Fits(record, self._fitter())
+        fits, question = self._fits, (unstable, near)
+        if question not in fits.answers:
+            fits.answers[question] = None if fits.fitter is None else fits.fitter.fit(unstable, near)
+        return fits.answers[question]
+
+    def _fitter(self) -> LoadFitter | None:
+        """The load fitter of the whole record with the latest estimate's point (None before one, or resonant)."""
+        if not self.estimates.items or len(self.switching.crossings) < 4:
+            return None
+        if self._resonant():
+            return None
+        loop = self.loop
+        point = self.estimates.latest.point
+        record = loop.record.all()
+        n = len(record.u)
+        scale = point.gain * loop.config.amp
+        return LoadFitter(record.t[:n], loop.sign * (record.y[:n] - loop.sp), record.u, loop.mv0,
+                          self.switching.start, point.omega, point.gain, lag(point.value), scale, held_from=record.s)
+
+    def _resonant(self) -> bool:
+        """True when |F(jω)| reads above the static gain: a resonance, which no first-order model describes.
+
+        The fit would invent loads there. But a load step against the relay's
+        bias makes a plain lag's ratio |F|/K0 read above 1 too (−0.1 × amp on
+        ``exp(-s)/(2*s+1)``: 0.37, then 1.4): there an earlier estimate of about
+        the same |F| (within 10 %) read below 1, or a ratio a third away — one
+        that cancels the bias runs away (1.1, 1.8, 2.9, 5.9 on
+        ``exp(-s)/(0.05*s+1)^2`` at −0.2 × amp). A resonance builds |F| up with
+        its ratio (0.49 at 0.13 … 1.68 at 1.68 on ``exp(-0.1*s)/(s^2+0.4*s+1)``).
+        """
+        latest = self.estimates.latest
+        x = latest.x
+        if x <= 1.0:
+            return False
+        gain = latest.point.gain
+        return not any((e.x < 1.0 or abs(e.x - x) > x / 3.0) and abs(e.point.gain - gain) <= 0.1 * gain
+                       for e in self.estimates.items[1:-1])
+
+    def _agree(self, a: LoadFit, b: LoadFit) -> bool:
+        """Two fits describe the same disturbance (step time within a quarter period, sizes within a third)."""
+        if a.x_std > X_STD_MAX or b.x_std > X_STD_MAX:
+            return False
+        period = self.switching.period()
+        if (a.step_time is None) != (b.step_time is None):
+            return False
+        if a.step_time is not None:
+            assert b.step_time is not None
+            if abs(a.step_time - b.step_time) > 0.25 * period or abs(a.step - b.step) > abs(b.step) / 3.0:
+                return False
+        # Ramps agree within a third, or when they differ by less than a load worth
+        # following over the whole record (the information criterion keeps a negligible
+        # ramp in one fit and not the next).
+        difference = abs(a.ramp - b.ramp)
+        negligible = difference * self.loop.elapsed() < LOAD_FRACTION * self.loop.config.amp
+        return negligible or difference <= max(abs(a.ramp), abs(b.ramp)) / 3.0
+
+    def _significant(self, fit: LoadFit) -> bool:
+        """A fitted disturbance worth estimating through: larger than a fraction of amp (or of the PV scale)."""
+        amp = self.loop.config.amp
+        step = fit.step_time is not None and abs(fit.step) >= LOAD_FRACTION * amp
+        ramp = abs(fit.ramp) * self.loop.elapsed() >= 2.0 * LOAD_FRACTION * amp
+        free = abs(fit.free) >= LOAD_FRACTION * self.estimates.latest.point.gain * amp
+        return step or ramp or free
+
+    def _accept(self, fit: LoadFit) -> None:
+        self.fit = fit
+        if fit.step_time is not None:
+            self.discard_before = max(self.discard_before, fit.step_time)
+            if abs(fit.step) >= 2.0 * LOAD_FRACTION * self.loop.config.amp:
+                self.levels.flip_once()
+        self._follow()
+
+    def _follow(self) -> None:
+        """Shift the relay's centre to cancel the fitted load at the process input (within ±amp)."""
+        fit, levels, loop = self.fit, self.levels, self.loop
+        assert fit is not None
+        time = loop.record.time
+        t = time(-1)
+        period = self.switching.period() if len(self.switching.rising) >= 2 else 0.0
+        then = t + 0.5 * period
+        load = fit.load_at(then, time(0))
+        amp = loop.config.amp
+        # The ramp part is followed continuously from now on; the centre takes the rest.
+        applied = levels.centre_at(then)
+        if abs(load) > amp:
+            raise endings.load_too_large(load, amp)
+        center = loop.mv0 - loop.sign * load
+        rate = loop.sign * fit.ramp
+        if abs(center - applied) > SHIFT_STEP * amp or levels.changed_at == -math.inf:
+            # Each step of the levels starts a transient: estimates are taken after it.
+            levels.follow(center, rate, then)
+            levels.changed_at = t
+        elif abs(rate - levels.follow_rate) * period > 0.2 * SHIFT_STEP * amp:
+            # A better drift rate: keep the level continuous where it is now.
+            levels.follow(applied, rate, then)

@@ -1,0 +1,70 @@
+"""The loop under test as every part of the experiment sees it, and the noise stage that measures it.
+
+Before the relay starts, the MV is held for ``noise_samples`` samples: the
+PV's mean is the relay's set point, the scatter about a fitted line is the
+measurement noise, and a slope well beyond its standard error is a PV still
+settling when TUNE came (a load step just before, a set point change).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from autotuner.engine.experiment.config import RelayConfig
+from autotuner.engine.experiment.record import Record
+
+# A PV slope over the noise stage beyond this many of its standard errors is a PV still settling at TUNE.
+SETTLING_EVIDENCE = 5.0
+
+
+@dataclass
+class Loop:
+    """The settings, the starting MV, the loop's sign and the record; the rest the noise stage measures.
+
+    config: the experiment's settings.
+    mv0: the MV at the start, MV units.
+    record: the samples.
+    sign: −1 for a reverse-acting loop, else 1.
+    sp: the relay's set point (the PV's mean over the noise stage), PV units.
+    noise: standard deviation of the measurement noise, PV units.
+    dt: the mean sample interval over the noise stage, s.
+    settling: (the PV's slope at the start, sign-corrected PV units per s; its time, s), (0, 0) when
+        the PV was steady.
+    """
+
+    config: RelayConfig
+    mv0: float
+    record: Record
+    sign: float = 1.0
+    sp: float = 0.0
+    noise: float = 0.0
+    dt: float = 0.0
+    settling: tuple[float, float] = (0.0, 0.0)
+
+    def measure_noise(self) -> None:
+        """The noise stage's figures from the record so far (at least ``noise_samples`` samples)."""
+        t, y = self.record.t, self.record.y
+        slope, offset = np.polyfit(t - t[0], y, 1)
+        residual = y - (offset + slope * (t - t[0]))
+        self.noise = float(np.std(residual, ddof=2))
+        self.sp = float(np.mean(y))
+        # A PV still moving when TUNE came: the lag's free response, which the static ratio takes out
+        # (settled_x). Noise alone gives a slope within a few of its standard errors.
+        centred = t - float(np.mean(t))
+        slope_std = self.noise / math.sqrt(float(centred @ centred)) if np.any(centred) else math.inf
+        if abs(slope) > SETTLING_EVIDENCE * slope_std:
+            self.settling = (self.sign * float(slope), float(np.mean(t)))
+        self.dt = float(t[-1] - t[0]) / (len(t) - 1)
+
+    def elapsed(self) -> float:
+        """Seconds from the first sample to the latest (0 before any)."""
+        record = self.record
+        return record.time(-1) - record.time(0) if len(record) else 0.0
+
+    def mean_interval(self) -> float | None:
+        """The mean time between the samples so far (s); None before two."""
+        samples = len(self.record)
+        return (self.record.time(-1) - self.record.time(0)) / (samples - 1) if samples >= 2 else None
