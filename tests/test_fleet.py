@@ -76,6 +76,13 @@ class Plant:
         return {"mode": "AUTO" if mode.registers[0] == 1 else "MAN", "hv": DEFAULT_MAP.decode("hv", hv.registers),
                 "ite": DEFAULT_MAP.decode("ite", ite.registers), "tbsy": coils.bits[2], "te": coils.bits[3]}
 
+    def epoch(self, k: int) -> int:
+        """The newest lease epoch written to loop k's device (its ``epoch`` register), read now."""
+        reg = DEFAULT_MAP["epoch"]
+        r = self.client.read_holding_registers(reg.address, count=reg.size, device_id=k)
+        assert not r.isError(), r
+        return int(DEFAULT_MAP.decode("epoch", r.registers))
+
     def close(self) -> None:
         self.client.close()
         self.proc.kill()
@@ -97,12 +104,14 @@ def plant(tmp_path) -> Iterator[Plant]:
         p.close()
 
 
-def fleet_config(tmp: Path, name: str, database: str, plant: Plant) -> Path:
+def fleet_config(tmp: Path, name: str, database: str, plant: Plant, lease: float = LEASE,
+                 renew: float | None = None) -> Path:
     loops = [{"id": f"L{k}", "link": plant.url(k), "ts": 0.3, "speed": 10, "monitor_period": 0.5,
               "tuning": {"amp": 5.0}} for k in range(1, LOOPS + 1)]
     path = tmp / f"{name}.yaml"
+    timing = {"lease": lease} if renew is None else {"lease": lease, "renew": renew}
     path.write_text(json.dumps({
-        "history": database, "loops": loops, "fleet": {"name": name, "lease": LEASE},
+        "history": database, "loops": loops, "fleet": {"name": name, **timing},
         "handback": {"watchdog": 0.0, "shutdown": 8.0},
         "tokens": [{"name": "root", "role": "admin", "sha256": token_hash(ADMIN)}]}))
     return path
@@ -217,6 +226,57 @@ def test_a_daemon_frozen_past_its_lease_writes_nothing_once_it_runs_again(tmp_pa
         b.wait_until(lambda: f"loop {loop_id}: its lease (epoch" in b.log() and "ended after this daemon lost the "
                      "loop's lease" in b.log(), WAIT, "the frozen daemon to say it lost the loop")
         assert owned(a, "a") | owned(a, "b") == {f"L{k}" for k in range(1, LOOPS + 1)}  # every loop owned again
+
+
+def test_a_daemon_whose_lease_went_to_another_is_fenced_by_the_device_before_it_knows(tmp_path, database, plant):
+    """The device-side fence: b tunes a loop; the database gives its lease to a while b's own clock still holds it
+    (here the test makes b's lease and heartbeat look expired in the database — as a database whose clock jumped
+    would — and b renews only every 10 s). a takes the loop over and writes its epoch to the device before its
+    first write; b's next relay level is refused by the device, and b writes nothing more to the loop."""
+    with Daemon(fleet_config(tmp_path, "a", database, plant, lease=20.0, renew=1.0), TOKEN) as a, \
+            Daemon(fleet_config(tmp_path, "b", database, plant, lease=20.0, renew=10.0), TOKEN) as b:
+        seen = wait_for(lambda: split(a, b), WAIT, "the loops split 3/3")
+        loop_id = next(loop for loop, owner in seen["loops"].items() if owner["name"] == "b")
+        k, old = int(loop_id[1:]), seen["loops"][loop_id]["epoch"]
+        httpx.post(f"{b.base}/loops/{loop_id}/tune", headers=b.headers, json={}, timeout=10)
+        wait_for(lambda: (r := plant.read(k))["mode"] == "MAN" and abs(r["hv"] - SAVED_MV) > 2.0, WAIT,
+                 "the relay to hold the loop")
+        assert plant.epoch(k) == old  # b's epoch went to the device with its first write
+        engine = sa.create_engine(database)
+
+        def taken() -> bool:
+            with engine.begin() as db:
+                db.execute(sa.text("UPDATE daemons SET seen_at = now() - interval '1 hour' WHERE name = 'b'"))
+                db.execute(sa.text("UPDATE leases SET expires_at = now() - interval '1 second' "
+                                   "WHERE loop = :l AND owner = 'b'"), {"l": loop_id})
+            owner = fleet(a)["loops"][loop_id]
+            return owner is not None and owner["name"] == "a"
+
+        try:
+            wait_for(taken, WAIT, "a to take the loop over")
+        finally:
+            engine.dispose()
+        new = fleet(a)["loops"][loop_id]["epoch"]
+        assert new == old + 1
+        wait_for(lambda: plant.epoch(k) == new, WAIT, "the new owner's epoch on the device")
+        b.wait_until(lambda: f"loop {loop_id}: its device refused this daemon's write under lease epoch {old}" in
+                     b.log(), WAIT, "b to be fenced by the device")
+        assert f"lease epoch {new}, newer than this daemon's epoch {old}" in b.log()
+        wait_for(lambda: "refused the writes of" in plant.log.read_text(), WAIT, "the plant to log the refusal")
+        assert f"unit {k}: refused the writes of" in plant.log.read_text()
+        assert f"its lease epoch {old} is older than the unit's {new}" in plant.log.read_text()
+        wait_for(lambda: plant.read(k)["mode"] == "AUTO", WAIT, "a to restore the loop")
+        restored = plant.read(k)
+        readings = []
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end:
+            readings.append(plant.read(k))
+            time.sleep(0.05)
+        for now in readings:  # nothing of b's session comes through: no MAN, no TBSY, no relay level
+            assert now["mode"] == "AUTO" and not now["tbsy"] and now["ite"] == restored["ite"], now
+        assert plant.epoch(k) == new
+        b.wait_until(lambda: "ended after this daemon lost the loop's lease" in b.log(), WAIT,
+                     "b to end its session without a record")
 
 
 def test_a_drained_daemon_hands_its_idle_loops_to_the_others(tmp_path, database, plant):
