@@ -334,7 +334,10 @@ class ModbusLink:
         epoch = self._epoch_due(connection) if write else None
         if epoch is not None:
             reg = self.map["epoch"]
-            fence = write_pdu(reg.table, reg.address, reg.encode(epoch))
+            try:
+                fence = write_pdu(reg.table, reg.address, reg.encode(epoch))
+            except ValueError as exc:  # (a map's epoch register too narrow for it)
+                raise LinkError(f"{self.name}: cannot write epoch {epoch} to {reg.describe()}: {exc}") from None
             self.requests += 1
             answer_values(fence, await device.request(self.unit, fence, self.timeout, connection))
             self._epoch_sent = (connection, epoch)
