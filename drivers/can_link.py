@@ -52,6 +52,10 @@ CMD_GAINS = ("AT_CmdGains1", "AT_CmdGains2", "AT_CmdGains3")
 CMD_APPLY, REQUEST = "AT_CmdGainsApply", "AT_Request"
 #: Optional frames of the hand-back watchdog (a DBC without them: the device has no watchdog).
 CMD_WATCHDOG, HEARTBEAT = "AT_CmdWatchdog", "AT_Heartbeat"
+#: The signal of a fleet's lease epoch (optional): in the command frames that move the loop, and the heartbeat. A
+#: frame carries no sender: the node fences by content, ignoring a frame whose epoch is older than the newest seen.
+EPOCH = "Epoch"
+EPOCH_FRAMES = (CMD_MV, CMD_MODE, CMD_APPLY)
 WATCHDOG_SIGNALS: dict[str, tuple[str, ...]] = {CMD_WATCHDOG: ("WdMV", "WdTime", "WdMode"), HEARTBEAT: ("Counter",)}
 
 #: Every message name a DBC must define, with the signals each must carry.
@@ -220,6 +224,10 @@ class CanLink:
         self.bus_kwargs = bus_kwargs
         self._shared: can_bus.SharedBus | None = None  # the bus, shared with the process's other links on it
         self._bus: can.BusABC | None = None  # its python-can bus while the link is open
+        # The frames with an Epoch signal (each sent with the link's epoch, 0 if none).
+        self._epoch_frames = frozenset(m.name for m in self.db.messages if any(g.name == EPOCH for g in m.signals))
+        #: The lease epoch the frames carry (a fleet's daemon sets it; None: none, sent as 0).
+        self.epoch: int | None = None
         self._ids = {m.frame_id: m for m in self.db.messages
                      if m.name in (PROCESS, STATUS, SETPOINT, *GAINS)}
         self.frame_ids = frozenset(self._ids)
@@ -350,10 +358,17 @@ class CanLink:
 
     # ------------------------------------------------------------------- send
 
+    @property
+    def carries_epoch(self) -> bool:
+        """Whether the DBC's frames that move the loop (AT_CmdMV, AT_CmdMode, AT_CmdGainsApply) carry an Epoch."""
+        return all(name in self._epoch_frames for name in EPOCH_FRAMES)
+
     async def _send(self, *frames: tuple[str, dict[str, Any]]) -> None:
         self._check()
+        epoch = {EPOCH: self.epoch or 0}
         try:
-            messages = [encode(self.db, name, values) for name, values in frames]
+            messages = [encode(self.db, name, {**values, **epoch} if name in self._epoch_frames else values)
+                        for name, values in frames]
         except ValueError as exc:
             raise LinkError(str(exc)) from exc
         bus = self._bus

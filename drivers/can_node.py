@@ -31,8 +31,8 @@ from autotuner.engine.checks import finite
 from autotuner.engine.control.gains import Gains
 
 from .can_bus import RX_POLL, open_bus
-from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, CMD_WATCHDOG, GAINS, HEARTBEAT,
-                       PROCESS, REQUEST, SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire,
+from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, CMD_WATCHDOG, EPOCH, GAINS,
+                       HEARTBEAT, PROCESS, REQUEST, SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire,
                        has_watchdog, load_dbc)
 from .link import LinkError, Mode, Watchdog
 from .simplc import SimulatedPlc
@@ -55,8 +55,10 @@ class CanPlcNode:
         self.silent = False
         #: Fault injection: received commands are ignored while True.
         self.deaf = False
-        #: Frames sent, commands applied, rejected (undecodable or invalid values), ignored (while deaf).
-        self.stats = {"sent": 0, "applied": 0, "rejected": 0, "ignored": 0, "send_errors": 0}
+        #: Frames sent, commands applied, rejected (undecodable or invalid values), ignored (while deaf), fenced
+        #: (their Epoch older than the newest seen).
+        self.stats = {"sent": 0, "applied": 0, "rejected": 0, "ignored": 0, "send_errors": 0, "fenced": 0}
+        self._fenced_epochs: set[int] = set()  # the older epochs whose frames were ignored (each logged once)
         self._counter = 0
         self._staged: dict[str, dict[str, Any]] = {}
         names = (CMD_MV, CMD_MODE, CMD_SP, CMD_FLAGS, *CMD_GAINS, CMD_APPLY, REQUEST)
@@ -148,12 +150,33 @@ class CanPlcNode:
             return
         try:
             values = spec.decode(bytes(msg.data), decode_choices=False, scaling=True)
+            if self._superseded(spec.name, values):
+                return
             self._apply(spec.name, values)
         except Exception as exc:  # noqa: BLE001 - a bad command frame never stops the node
             self.stats["rejected"] += 1
             log.warning("CAN node: rejected %s: %s", spec.name, exc)
             return
         self.stats["applied"] += 1
+
+    def _superseded(self, name: str, v: dict[str, Any]) -> bool:
+        """The fence of a fleet (docs/fleet.md): a frame whose Epoch (0: none, not fenced) is older than the newest
+        the node has seen is ignored (an apply drops the staged gains too), counted in ``plc.fenced`` and logged once
+        per epoch; a newer one becomes the newest."""
+        epoch = int(v.get(EPOCH, 0))
+        plc = self.plc
+        if epoch >= plc.epoch or epoch == 0:
+            plc.epoch = max(plc.epoch, epoch)
+            return False
+        plc.fenced += 1
+        self.stats["fenced"] += 1
+        if name == CMD_APPLY:
+            self._staged = {}
+        if epoch not in self._fenced_epochs:
+            self._fenced_epochs.add(epoch)
+            log.warning("CAN node: ignored %s of lease epoch %d, older than the newest seen, %d (another tuner took "
+                        "the loop over); %d frame(s) ignored so far", name, epoch, plc.epoch, plc.fenced)
+        return True
 
     def _apply(self, name: str, v: dict[str, Any]) -> None:
         plc = self.plc

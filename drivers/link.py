@@ -20,6 +20,13 @@ class LinkError(Exception):
     """The loop cannot be read or written right now; the message says why."""
 
 
+class Fenced(LinkError):
+    """The writer no longer holds the loop's lease: nothing more may be written to it (its new owner restores it).
+
+    Raised before a write by a daemon whose lease has run out on its own clock, and by a link whose device refused a
+    write because it was written a newer lease epoch than the link's (docs/fleet.md)."""
+
+
 class BadValue(LinkError):
     """The device answered, but the value is not data: NaN, infinity, or (a time-stamped transport) stale."""
 
@@ -106,6 +113,15 @@ class Link(Protocol):
 
     @property
     def pv_age(self) -> float | None: ...
+
+    #: The lease epoch the link's writes carry to the device (a daemon of a fleet sets it before each write; None:
+    #: no fleet, no epoch written). A device that was written a newer epoch refuses the writes: :class:`Fenced`.
+    epoch: int | None
+
+    @property
+    def carries_epoch(self) -> bool:
+        """Whether the device has a place for the epoch (a Modbus map's ``epoch``, a DBC's ``Epoch`` signals): without
+        one, nothing fences the writes of a superseded daemon on the device's side."""
 
     def health(self) -> dict[str, Any]:
         """Transport, device, whether it is connected, and the transport's counters (never raises)."""

@@ -41,6 +41,8 @@ class Device(Protocol):
 
     #: The ``pipeline`` each holder asked for → how many holders asked for it.
     holders: Counter[int]
+    #: Connections made so far: the number of the connection up now (a link's epoch is written per connection).
+    connects: int
 
     @property
     def connected(self) -> bool:
@@ -53,9 +55,10 @@ class Device(Protocol):
     async def connect(self, timeout: float) -> None:
         """Connect unless connected, within ``timeout`` seconds; :class:`Unreachable` if it cannot."""
 
-    async def request(self, unit: int, pdu: bytes, timeout: float) -> bytes:
+    async def request(self, unit: int, pdu: bytes, timeout: float, connection: int | None = None) -> bytes:
         """Send ``pdu`` to ``unit`` (connected first: :meth:`connect`) and return the answer's PDU, within
-        ``timeout`` seconds from the call; :class:`Unanswered` if there is none to use."""
+        ``timeout`` seconds from the call; :class:`Unanswered` if there is none to use. ``connection``: send it on
+        that connection (:attr:`connects`) only — :class:`Unanswered` if it is not up any more."""
 
     def health(self) -> dict[str, Any]:
         """Counters of the connection (never raises)."""

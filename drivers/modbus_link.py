@@ -25,10 +25,19 @@ Requests per call: signals of the same table whose addresses are adjacent
 request, so with :data:`~drivers.modbus_map.DEFAULT_MAP` ``read_pv`` and
 ``read_sample`` are one request each, ``read_state`` two, ``write_gains``
 one, ``read_flags`` and ``write_flags`` two each.
+
+A daemon of a fleet sets :attr:`ModbusLink.epoch`, its lease's epoch: the
+link then writes it to the map's ``epoch`` register before its first write
+on each connection (and again when the epoch changes), as a request of its
+own on the very connection the write goes on, and with every heartbeat,
+pipelined with it. A write the device refuses while the device holds a
+newer epoch than the link's raises :class:`~drivers.link.Fenced`
+(docs/fleet.md).
 """
 
 from __future__ import annotations
 
+import asyncio
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -39,7 +48,7 @@ from pymodbus.constants import ExcCodes
 
 from autotuner.engine.control.gains import Gains
 
-from .link import BadValue, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog
+from .link import BadValue, Fenced, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog
 from .modbus_device import Device, Endpoint, Unanswered, Unreachable, hold, let_go
 from .modbus_map import (
     COIL,
@@ -157,6 +166,8 @@ class ModbusLink:
         self._device: Device | None = None  # held from open (or the first call) until close
         self._read_plans: dict[tuple[str, ...], tuple[_Request, ...]] = {}
         self._write_plans: dict[tuple[str, ...], tuple[_Write, ...]] = {}
+        self.epoch: int | None = None  # the lease epoch the writes carry (a fleet's daemon sets it; None: none)
+        self._epoch_sent: tuple[int, int] | None = None  # (the device's connection number, the epoch) written last
         self.requests = 0  # requests sent (for tests and statistics)
         self.failures = 0  # calls that failed (no answer after every attempt, exception response)
         self.last_error = ""
@@ -285,6 +296,7 @@ class ModbusLink:
 
     def _let_go(self) -> None:
         device, self._device = self._device, None
+        self._epoch_sent = None  # (a device opened again counts its connections afresh)
         if device is not None:
             let_go(self.endpoint, device, self.pipeline)
 
@@ -300,16 +312,61 @@ class ModbusLink:
         return {"transport": "modbus", "device": self.name, "connected": device is not None and device.connected,
                 "requests": self.requests, "failures": self.failures, "last_error": self.last_error, **shared}
 
-    async def _exchange(self, what: str, pdu: bytes) -> list[int]:
-        """One request with retries and reconnection: the values of its answer (none for a write), or LinkError."""
+    @property
+    def carries_epoch(self) -> bool:
+        """Whether the map has an ``epoch`` register (the device-side fence of a fleet)."""
+        return "epoch" in self.map
+
+    def _epoch_due(self, connection: int) -> int | None:
+        """The epoch to write on connection number ``connection`` before a write: the link's, unless written on it
+        already (None: nothing to write — no epoch, no register, or written)."""
+        epoch = self.epoch
+        if epoch is None or not self.carries_epoch or self._epoch_sent == (connection, epoch):
+            return None
+        return epoch
+
+    async def _send(self, device: Device, pdu: bytes, write: bool) -> list[int]:
+        """One attempt of a request on the device's connection, connected first; a write preceded, on the same
+        connection, by the link's epoch where it is due (:meth:`_epoch_due`)."""
+        if not device.connected:
+            await device.connect(self.timeout)
+        connection = device.connects
+        epoch = self._epoch_due(connection) if write else None
+        if epoch is not None:
+            reg = self.map["epoch"]
+            try:
+                fence = write_pdu(reg.table, reg.address, reg.encode(epoch))
+            except ValueError as exc:  # (a map's epoch register too narrow for it)
+                raise LinkError(f"{self.name}: cannot write epoch {epoch} to {reg.describe()}: {exc}") from None
+            self.requests += 1
+            answer_values(fence, await device.request(self.unit, fence, self.timeout, connection))
+            self._epoch_sent = (connection, epoch)
+        self.requests += 1
+        return answer_values(pdu, await device.request(self.unit, pdu, self.timeout, connection))
+
+    async def _refusal(self, text: str, write: bool) -> LinkError:
+        """The error of a request the device refused (``text`` says how): :class:`Fenced` if it is a write and the
+        device holds a newer epoch than the link's (read now), else a LinkError."""
+        epoch = self.epoch
+        if not write or epoch is None or not self.carries_epoch:
+            return LinkError(text)
+        try:
+            newest = int((await self._read(("epoch",)))["epoch"])
+        except LinkError:
+            return LinkError(text)
+        if newest <= epoch:
+            return LinkError(text)
+        return Fenced(f"{text}: the device was written lease epoch {newest}, newer than this daemon's epoch "
+                      f"{epoch} (another daemon took the loop over): nothing more is written to it")
+
+    async def _exchange(self, what: str, pdu: bytes, write: bool = False) -> list[int]:
+        """One request with retries and reconnection: the values of its answer (none for a ``write``), or LinkError
+        (:class:`Fenced`: a write refused by a device that holds a newer epoch)."""
         device = self._hold()
         last = ""
         for _ in range(1 + self.retries):
             try:
-                if not device.connected:
-                    await device.connect(self.timeout)
-                self.requests += 1
-                return answer_values(pdu, await device.request(self.unit, pdu, self.timeout))
+                return await self._send(device, pdu, write)
             except (Unreachable, Unanswered) as exc:
                 last = f"{self.name}: {what}: {exc}"
             except BadAnswer as exc:
@@ -318,7 +375,7 @@ class ModbusLink:
                 text = (f"{self.name}: {what}: unit {self.unit} answered Modbus exception {exc.code} "
                         f"({_exc_name(exc.code)})")
                 self._failed(text)
-                raise LinkError(text) from None
+                raise await self._refusal(text, write) from None
         attempts = 1 + self.retries
         self._failed(last)
         raise LinkError(f"{last} (gave up after {attempts} attempt{'s' if attempts > 1 else ''})")
@@ -386,7 +443,7 @@ class ModbusLink:
                 raise LinkError(f"{self.name}: cannot write {s} to {reg.describe()}: {exc}") from None
         for request in self._write_plan(tuple(values)):
             words = [w for n in request.signals for w in raw[n]]
-            await self._exchange(request.where, write_pdu(request.table, request.start, words))
+            await self._exchange(request.where, write_pdu(request.table, request.start, words), write=True)
 
     # -- the Link protocol ------------------------------------------------------
 
@@ -469,6 +526,12 @@ class ModbusLink:
         await self._write({"wd_time": float(watchdog.timeout)})
 
     async def write_heartbeat(self, counter: int) -> None:
-        """``heartbeat`` = ``counter`` mod 65536 (nothing if the map has none)."""
-        if "heartbeat" in self.map:
-            await self._write({"heartbeat": float(counter % 65536)})
+        """``heartbeat`` = ``counter`` mod 65536 (nothing if the map has none), and the link's epoch with it, the two
+        writes pipelined (when the link has an epoch and the map a register for it)."""
+        if "heartbeat" not in self.map:
+            return
+        beat = self._write({"heartbeat": float(counter % 65536)})
+        if self.epoch is None or not self.carries_epoch:
+            await beat
+            return
+        await asyncio.gather(beat, self._write({"epoch": float(self.epoch)}))

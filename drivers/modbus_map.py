@@ -19,6 +19,7 @@ mode      0 = MAN, 1 = AUTO (:class:`drivers.link.Mode`)        read/write
 sp_in     a read-only copy of sp, next to pv and mv (optional)  read
 mode_in   a read-only copy of mode, next to pv and mv (opt.)    read
 boot      a token the device draws anew at every start (opt.)   read
+epoch     lease epoch of the fleet daemon writing (opt.)        read/write
 k .. c    PID gains, standard form (:class:`autotuner.engine.control.gains`)   read/write
 tune      TUNE: the operator asks for a tuning                  read
 tbrk      TBRK: the operator breaks the tuning                  read
@@ -101,11 +102,14 @@ WATCHDOG_SIGNALS = ("heartbeat", "wd_time", "wd_mv", "wd_mode")
 COPY_SIGNALS = ("sp_in", "mode_in")
 # A token the device draws anew at every start (optional): a session that reads it change knows the device
 # restarted with its registers at their defaults, and writes nothing more to it.
-SIGNALS = ("pv", "mv", "hv", "sp", "mode", *COPY_SIGNALS, "boot", *GAIN_SIGNALS, *FLAG_SIGNALS, *WATCHDOG_SIGNALS)
+# The lease epoch a daemon of a fleet writes before its writes and with its heartbeat (optional): the device refuses
+# the writes of a connection whose epoch is older than the newest it was written (docs/fleet.md).
+SIGNALS = ("pv", "mv", "hv", "sp", "mode", *COPY_SIGNALS, "boot", *GAIN_SIGNALS, *FLAG_SIGNALS, *WATCHDOG_SIGNALS,
+           "epoch")
 # What a map must have for the tuner to run an experiment and report on it.
 REQUIRED = frozenset({"pv", "mv", "hv", "sp", "mode", "k", "ti"})
 # What the tuner writes: these must be in a writable table.
-WRITABLE = frozenset({"hv", "mode", *GAIN_SIGNALS, "tbsy", "te", "ite", *WATCHDOG_SIGNALS})
+WRITABLE = frozenset({"hv", "mode", *GAIN_SIGNALS, "tbsy", "te", "ite", *WATCHDOG_SIGNALS, "epoch"})
 # Boolean signals (the handshake bits) and the rest (numbers).
 BOOL_SIGNALS = frozenset({"tune", "tbrk", "tbsy", "te"})
 
@@ -396,6 +400,8 @@ def _default() -> ModbusMap:
             "wd_time": Register(HOLDING, 20, f32),
             "wd_mv": Register(HOLDING, 22, f32),
             "wd_mode": Register(HOLDING, 24, "uint16"),
+            # The fence of a fleet: the lease epoch of the daemon that writes (docs/fleet.md).
+            "epoch": Register(HOLDING, 26, "uint32"),
             # Coils: the handshake bits.
             "tune": Register(COIL, 0, "bool"),
             "tbrk": Register(COIL, 1, "bool"),
@@ -412,5 +418,6 @@ def _default() -> ModbusMap:
 #: registers 4 (float32) and 6 (uint16); SP, manual MV,
 #: gains (k, ti, td, nd, b, c), ite in holding registers 0..17 (two registers
 #: each); mode in holding register 18 (uint16, 0 = MAN, 1 = AUTO); TUNE, TBRK,
-#: TBSY, TE in coils 0..3. ti = 0 means no integral action.
+#: TBSY, TE in coils 0..3. ti = 0 means no integral action. The hand-back watchdog in holding registers 19..24,
+#: the lease epoch of a fleet's daemon (uint32) in holding registers 26..27.
 DEFAULT_MAP: ModbusMap = _default()

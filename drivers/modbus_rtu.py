@@ -124,7 +124,7 @@ class RtuDevice:
         self._client = client
         self.connects += 1
 
-    async def request(self, unit: int, pdu: bytes, timeout: float) -> bytes:
+    async def request(self, unit: int, pdu: bytes, timeout: float, connection: int | None = None) -> bytes:
         message = _REQUESTS.decode(pdu)
         if message is None:
             raise ValueError(f"not a request PDU: {pdu.hex()}")
@@ -132,7 +132,7 @@ class RtuDevice:
         sent = False
         try:
             async with asyncio.timeout(timeout), self._turn:
-                if not self.connected:
+                if not self.connected or connection not in (None, self.connects):
                     raise Unanswered("not connected")
                 sent = True
                 answer = await self._client.execute(False, message)

@@ -19,6 +19,15 @@ in place. The action here
   :class:`~autotuner.engine.control.gains.Gains` rejects are refused with exception 3
   (illegal data value), like a PLC refusing a bad parameter.
 
+The fence of a fleet (docs/fleet.md): each PLC keeps the newest lease
+epoch written to its ``epoch`` register (``plc.epoch``, 0 at its start),
+each client connection the epoch it last wrote to each unit; the writes of a
+connection whose epoch is older than the PLC's are refused (exception 3 for
+an older epoch itself, 4 for any other write) and change nothing, counted in
+``plc.fenced`` and logged once per connection and unit. A connection that
+never wrote an epoch is not fenced. With RTU framing one connection is one
+serial line, which has one master: the rule holds per line.
+
 Addresses outside the map answer exception 2 (illegal data address),
 unmapped coils next to mapped ones included. One server serves one PLC per
 unit id (a pymodbus ``SimDevice`` each, the list handed to one
@@ -53,8 +62,10 @@ stops; its clients are disconnected). NaN PV is the PLC's own fault
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import dataclasses
 import functools
+import logging
 import math
 from collections.abc import Mapping
 from contextlib import suppress
@@ -100,16 +111,26 @@ _UNIT_IDS = range(256)
 # Bytes a connection may have received and not yet decoded: requests pipelined by a client, a few hundred at
 # most (pymodbus's own limit, 264 bytes, is one frame: more is discarded).
 _RECEIVE_BUFFER = 65536
+log = logging.getLogger("drivers.modbus_server")
 
 
 class _PipelinedHandler(ServerRequestHandler):
     """One client connection of the server: every request received is answered, with its own transaction id,
-    however many arrive before the first answer (see the module's docstring)."""
+    however many arrive before the first answer (see the module's docstring). ``epochs``: the lease epoch this
+    connection last wrote to each unit (the fence of a fleet: :meth:`ModbusPlcServer._fenced`)."""
 
     def __init__(self, owner: ModbusTcpServer) -> None:
         super().__init__(owner, owner.trace_packet, owner.trace_pdu, owner.trace_connect)
         self.max_buffer_size = _RECEIVE_BUFFER
         self._serving: set[asyncio.Task[None]] = set()
+        self.epochs: dict[int, int] = {}
+        self.fenced: set[int] = set()  # the units that have refused this connection's writes (logged once each)
+
+    @property
+    def peer(self) -> str:
+        """The client's address, e.g. ``127.0.0.1:40312``."""
+        address = self.transport.get_extra_info("peername") if self.transport else None  # type: ignore[attr-defined]
+        return "a client" if not address else f"{address[0]}:{address[1]}"
 
     def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
         """Decode every complete frame of ``data`` and serve each in a task of its own; the bytes used."""
@@ -132,6 +153,7 @@ class _PipelinedHandler(ServerRequestHandler):
 
     async def _serve(self, pdu: ModbusPDU, addr: tuple | None) -> None:
         """Answer ``pdu`` from the datastore (pymodbus's ``handle_request`` for one request of its own)."""
+        _CLIENT.set(self)  # (this task's own context: the datastore's action knows whose request it serves)
         try:
             response = await pdu.datastore_update(self.server.context, pdu.dev_id)
         except NoSuchIdException:
@@ -148,6 +170,10 @@ class _PipelinedHandler(ServerRequestHandler):
         """Write an answer; unlike pymodbus's ``send``, what was received and not yet decoded is kept."""
         if self.transport:
             self.transport.write(data)  # type: ignore[attr-defined]
+
+
+# The connection whose request is being served (set in each request's task; None outside one).
+_CLIENT: contextvars.ContextVar[_PipelinedHandler | None] = contextvars.ContextVar("modbus_client", default=None)
 
 
 class _PipelinedTcpServer(ModbusTcpServer):
@@ -178,6 +204,8 @@ def _plc_value(plc: SimulatedPlc, signal: str) -> float:
         return float(plc.heartbeat)
     if signal == "boot":
         return float(plc.boot)
+    if signal == "epoch":
+        return float(plc.epoch)
     if signal in _WATCHDOG_FIELDS:
         return float(getattr(plc.watchdog, _WATCHDOG_FIELDS[signal]))
     flag = getattr(plc.flags, signal)
@@ -358,7 +386,7 @@ class ModbusPlcServer:
             return self._fail
         self._refresh(plc, table, start, address, count, registers)
         if writing:
-            return self._apply(plc, table, start, address, registers, list(values))  # type: ignore[arg-type]
+            return self._apply(unit, plc, table, start, address, registers, list(values))  # type: ignore[arg-type]
         return None
 
     def _refresh(self, plc: SimulatedPlc, table: str, start: int, address: int, count: int,
@@ -375,9 +403,9 @@ class ModbusPlcServer:
                 i = reg.address - start
                 registers[i:i + reg.size] = _raw(reg, _plc_value(plc, name))
 
-    def _apply(self, plc: SimulatedPlc, table: str, start: int, address: int, registers: list[int],
+    def _apply(self, unit: int, plc: SimulatedPlc, table: str, start: int, address: int, registers: list[int],
                values: list[int] | list[bool]) -> ExcCodes | None:
-        """Decode what a write changes and apply it to ``plc``."""
+        """Decode what a write to ``unit`` changes and apply it to ``plc``."""
         end = address + len(values)
         written: dict[str, float] = {}
         for name, reg in self._by_table[table]:
@@ -390,10 +418,38 @@ class ModbusPlcServer:
                 for a in range(max(reg.address, address), min(reg.end, end)):
                     words[a - reg.address] = int(values[a - address])
                 written[name] = reg.decode(words)
-        return self._set_plc(plc, written)
+        return self._set_plc(unit, plc, written)
 
-    def _set_plc(self, plc: SimulatedPlc, written: dict[str, float]) -> ExcCodes | None:
-        """Apply the decoded ``written`` signals to ``plc``, or refuse them all (exception 3) if one is invalid."""
+    def _fenced(self, unit: int, plc: SimulatedPlc, written: dict[str, float]) -> ExcCodes | None:
+        """The fence of a fleet (docs/fleet.md): whether the connection writing ``written`` to ``unit`` is refused.
+
+        The PLC keeps the newest lease epoch written to it (``plc.epoch``), each connection the epoch it last wrote
+        to each unit. A write of an epoch older than the PLC's is refused with exception 3 (illegal data value: the
+        value is refused) and leaves the connection fenced; any write from a connection whose epoch is older than
+        the PLC's is refused with exception 4 (server device failure: the device will not do it, and a retry will
+        not help — the writer was superseded). Nothing of a refused write is applied. A connection that never
+        wrote an epoch (an HMI, a tuner outside a fleet) is not fenced. An epoch accepted becomes the PLC's.
+        """
+        client = _CLIENT.get()
+        epochs = {} if client is None else client.epochs
+        if "epoch" in written:
+            epochs[unit] = int(written["epoch"])
+        own = epochs.get(unit)
+        if own is None or own >= plc.epoch:
+            if own is not None:
+                plc.epoch = own
+            return None
+        plc.fenced += 1
+        if client is not None and unit not in client.fenced:
+            client.fenced.add(unit)
+            log.warning("unit %d: refused the writes of %s: its lease epoch %d is older than the unit's %d (another "
+                        "tuner took the loop over); %d write(s) refused so far", unit, client.peer, own, plc.epoch,
+                        plc.fenced)
+        return ExcCodes.ILLEGAL_VALUE if "epoch" in written else ExcCodes.DEVICE_FAILURE
+
+    def _set_plc(self, unit: int, plc: SimulatedPlc, written: dict[str, float]) -> ExcCodes | None:
+        """Apply the decoded ``written`` signals to ``unit``'s ``plc``, or refuse them all: exception 3 if one is
+        invalid, or a fenced writer (:meth:`_fenced`)."""
         if any(not math.isfinite(v) for v in written.values()):
             return ExcCodes.ILLEGAL_VALUE
         for name in ("mode", "wd_mode"):
@@ -410,7 +466,10 @@ class ModbusPlcServer:
                 new_gains = dataclasses.replace(plc.gains, **gains)
             except (TypeError, ValueError):
                 return ExcCodes.ILLEGAL_VALUE
-        # Everything checked: apply.
+        fenced = self._fenced(unit, plc, written)
+        if fenced is not None:
+            return fenced
+        # Everything checked (and the epoch written, if any, taken): apply.
         if "mode" in written:
             plc.mode = Mode(int(written["mode"]))
         if "sp" in written:

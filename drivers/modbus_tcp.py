@@ -167,7 +167,9 @@ class TcpDevice:
 
     # -- requests --------------------------------------------------------------------------
 
-    async def request(self, unit: int, pdu: bytes, timeout: float) -> bytes:
+    async def request(self, unit: int, pdu: bytes, timeout: float, connection: int | None = None) -> bytes:
+        if connection is not None and (self._wire is None or self.connects != connection):
+            raise Unanswered("connection lost")  # (not sent on another: a link's epoch was written on that one)
         if self._wire is None:
             await self.connect(timeout)
         wire = self._wire

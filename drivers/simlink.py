@@ -25,6 +25,11 @@ class SimLink:
     outage: tuple[int, int] | None = None
     calls: int = 0
     pv_age: float | None = None  # the value is read at the moment of the call
+    epoch: int | None = None  # a lease epoch is not written: the PLC is this process's own, no other writes it
+
+    @property
+    def carries_epoch(self) -> bool:
+        return False
 
     def _call(self) -> None:
         self.calls += 1

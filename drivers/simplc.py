@@ -99,6 +99,10 @@ class SimulatedPlc:
     # A new token at every start of the PLC (1..65535), served as ``boot``: a tuner whose session sees it change
     # knows the device restarted with its registers at their defaults (docs/modbus.md).
     boot: int = field(default_factory=lambda: secrets.randbelow(65535) + 1)
+    # The newest lease epoch a fleet's daemon has written (0: none since the start); the servers refuse the writes
+    # of a client whose own epoch is older (docs/fleet.md). ``fenced``: the writes they refused so.
+    epoch: int = 0
+    fenced: int = 0
 
     def __post_init__(self) -> None:
         if self.ts <= 0.0:

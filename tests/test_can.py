@@ -20,7 +20,7 @@ from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config
 from autotuner.service.link_session import HandBack, SessionPlan, tune_link
 from autotuner.engine.simulated_tuning import default_sample_time
-from drivers.can_link import (CMD_SP, REQUIRED, WATCHDOG_SIGNALS, CanLink, default_dbc, gains_from_wire,
+from drivers.can_link import (CMD_SP, EPOCH_FRAMES, REQUIRED, WATCHDOG_SIGNALS, CanLink, default_dbc, gains_from_wire,
                               gains_to_wire, load_dbc, ti_from_wire, ti_to_wire)
 from drivers.can_node import serve_can
 from drivers.link import LinkError, Mode, TuneFlags, Watchdog
@@ -100,7 +100,8 @@ def test_default_dbc_ships_with_the_package_and_has_the_documented_ids():
     assert {m.name: m.frame_id for m in DB.messages} == IDS
     for m in DB.messages:
         assert not m.is_extended_frame and m.frame_id <= 0x7FF
-        assert {s.name for s in m.signals} == set({**REQUIRED, **WATCHDOG_SIGNALS}[m.name])
+        epoch = {"Epoch"} if m.name in (*EPOCH_FRAMES, "AT_Heartbeat") else set()
+        assert {s.name for s in m.signals} == set({**REQUIRED, **WATCHDOG_SIGNALS}[m.name]) | epoch
     load_dbc()  # passes its own check
 
 
@@ -123,11 +124,14 @@ def test_float_pair_frames_are_two_little_endian_float32(name):
     assert math.isnan(nan[a]) and nan[b] == math.inf
 
 
-@pytest.mark.parametrize("name, signal", [("AT_CmdMV", "HV"), ("AT_CmdSP", "SP")])
-def test_single_float_command_frames(name, signal):
+def test_single_float_command_frames():
     raw = struct.pack("<f", 42.5)
-    assert DB.encode_message(name, {signal: 42.5}) == raw
-    assert DB.decode_message(IDS[name], raw) == {signal: 42.5}
+    assert DB.encode_message("AT_CmdSP", {"SP": 42.5}) == raw
+    assert DB.decode_message(IDS["AT_CmdSP"], raw) == {"SP": 42.5}
+    # The manual MV carries the sender's lease epoch, uint32 little-endian in bytes 4-7 (docs/can.md).
+    raw = struct.pack("<fI", 42.5, 70000)
+    assert DB.encode_message("AT_CmdMV", {"HV": 42.5, "Epoch": 70000}) == raw
+    assert DB.decode_message(IDS["AT_CmdMV"], raw) == {"HV": 42.5, "Epoch": 70000}
 
 
 def test_status_frame_layout():
@@ -140,12 +144,13 @@ def test_status_frame_layout():
 
 
 def test_command_bit_frames_layout():
-    assert DB.encode_message("AT_CmdMode", {"Mode": 1}) == b"\x01"
-    assert DB.decode_message(IDS["AT_CmdMode"], b"\x00", decode_choices=False) == {"Mode": 0}
+    assert DB.encode_message("AT_CmdMode", {"Mode": 1, "Epoch": 3}) == b"\x01\0\0\0" + struct.pack("<I", 3)
+    assert DB.decode_message(IDS["AT_CmdMode"], bytes(8), decode_choices=False) == {"Mode": 0, "Epoch": 0}
     raw = bytes([0b10, 0, 0, 0]) + struct.pack("<f", 3.0)
     assert DB.encode_message("AT_CmdFlags", {"TBSY": 0, "TE": 1, "ITE": 3.0}) == raw
     assert DB.decode_message(IDS["AT_CmdFlags"], raw) == {"TBSY": 0, "TE": 1, "ITE": 3.0}
-    assert DB.encode_message("AT_CmdGainsApply", {"Apply": 1}) == b"\x01"
+    assert DB.encode_message("AT_CmdGainsApply", {"Apply": 1, "Epoch": 2**32 - 1}) == b"\x01\0\0\0\xff\xff\xff\xff"
+    assert DB.encode_message("AT_Heartbeat", {"Counter": 0x1234, "Epoch": 5}) == b"\x34\x12\0\0\x05\0\0\0"
     assert DB.encode_message("AT_Request", {"All": 1}) == b"\x01"
 
 
@@ -578,3 +583,28 @@ def test_session_over_can_nan_pv():
     result, plc, (mode, gains) = arun(tune_over_can(nan), limit=120.0)
     assert result.code is Code.LINK_FAULT and "PV is not a number" in result.message, result.message
     assert plc.mode is mode and plc.gains == gains
+
+
+def test_the_node_ignores_command_frames_of_an_older_lease_epoch():
+    """The fence of a fleet on CAN (docs/can.md): a frame names no sender, so the node fences by content — a command
+    whose Epoch is older than the newest it has seen is ignored; Epoch 0 (no fleet) is never fenced."""
+    async def main():
+        async with rig() as (plc, node, link):
+            assert link.carries_epoch
+            link.epoch = 5
+            await link.write_mv(11.0)
+            assert await until(lambda: plc.hv == 11.0) and plc.epoch == 5
+            link.epoch = 6  # another daemon took the loop over
+            await link.write_mode(Mode.MAN)
+            assert await until(lambda: plc.mode is Mode.MAN) and plc.epoch == 6
+            link.epoch = 5  # the one superseded: its MV, mode, gains and heartbeat are ignored
+            await link.write_mv(22.0)
+            await link.write_mode(Mode.AUTO)
+            await link.write_heartbeat(9)
+            await link.write_gains(Gains(k=2.0, ti=3.0))
+            assert await until(lambda: node.stats["fenced"] == 4) and plc.fenced == 4
+            assert plc.hv == 11.0 and plc.mode is Mode.MAN and plc.heartbeat != 9 and plc.gains.k != 2.0
+            link.epoch = None  # a tuner outside a fleet sends Epoch 0: not fenced
+            await link.write_mv(33.0)
+            assert await until(lambda: plc.hv == 33.0) and plc.epoch == 6 and node.stats["fenced"] == 4
+    arun(main())

@@ -76,6 +76,13 @@ class Plant:
         return {"mode": "AUTO" if mode.registers[0] == 1 else "MAN", "hv": DEFAULT_MAP.decode("hv", hv.registers),
                 "ite": DEFAULT_MAP.decode("ite", ite.registers), "tbsy": coils.bits[2], "te": coils.bits[3]}
 
+    def epoch(self, k: int) -> int:
+        """The newest lease epoch written to loop k's device (its ``epoch`` register), read now."""
+        reg = DEFAULT_MAP["epoch"]
+        r = self.client.read_holding_registers(reg.address, count=reg.size, device_id=k)
+        assert not r.isError(), r
+        return int(DEFAULT_MAP.decode("epoch", r.registers))
+
     def close(self) -> None:
         self.client.close()
         self.proc.kill()
@@ -97,12 +104,14 @@ def plant(tmp_path) -> Iterator[Plant]:
         p.close()
 
 
-def fleet_config(tmp: Path, name: str, database: str, plant: Plant) -> Path:
+def fleet_config(tmp: Path, name: str, database: str, plant: Plant, lease: float = LEASE,
+                 renew: float | None = None) -> Path:
     loops = [{"id": f"L{k}", "link": plant.url(k), "ts": 0.3, "speed": 10, "monitor_period": 0.5,
               "tuning": {"amp": 5.0}} for k in range(1, LOOPS + 1)]
     path = tmp / f"{name}.yaml"
+    timing = {"lease": lease} if renew is None else {"lease": lease, "renew": renew}
     path.write_text(json.dumps({
-        "history": database, "loops": loops, "fleet": {"name": name, "lease": LEASE},
+        "history": database, "loops": loops, "fleet": {"name": name, **timing},
         "handback": {"watchdog": 0.0, "shutdown": 8.0},
         "tokens": [{"name": "root", "role": "admin", "sha256": token_hash(ADMIN)}]}))
     return path
@@ -217,6 +226,52 @@ def test_a_daemon_frozen_past_its_lease_writes_nothing_once_it_runs_again(tmp_pa
         b.wait_until(lambda: f"loop {loop_id}: its lease (epoch" in b.log() and "ended after this daemon lost the "
                      "loop's lease" in b.log(), WAIT, "the frozen daemon to say it lost the loop")
         assert owned(a, "a") | owned(a, "b") == {f"L{k}" for k in range(1, LOOPS + 1)}  # every loop owned again
+
+
+def test_a_daemon_superseded_on_the_device_stops_writing_at_once_and_the_next_owner_restores(tmp_path, database,
+                                                                                               plant):
+    """The device-side fence: b tunes a loop, its lease's epoch on the device; a newer epoch reaches the device while
+    b's own clock and the database still say b holds the lease (the test's own client writes it, as the next owner's
+    first write would: a daemon restores within a sample time, faster than b would write again, so a takeover alone
+    seldom meets one of b's writes). b's next relay level is refused by the device: b logs it naming both epochs, writes
+    nothing more, gives the lease up and records nothing; the next owner takes the lease with that epoch, its writes
+    pass the fence, and it restores the loop."""
+    with Daemon(fleet_config(tmp_path, "a", database, plant), TOKEN) as a, \
+            Daemon(fleet_config(tmp_path, "b", database, plant), TOKEN) as b:
+        seen = wait_for(lambda: split(a, b), WAIT, "the loops split 3/3")
+        loop_id = next(loop for loop, owner in seen["loops"].items() if owner["name"] == "b")
+        k, old = int(loop_id[1:]), seen["loops"][loop_id]["epoch"]
+        httpx.post(f"{b.base}/loops/{loop_id}/tune", headers=b.headers, json={}, timeout=10)
+        wait_for(lambda: (r := plant.read(k))["mode"] == "MAN" and abs(r["hv"] - SAVED_MV) > 2.0, WAIT,
+                 "the relay to hold the loop")
+        assert plant.epoch(k) == old  # b's epoch went to the device with its first write
+        reg = DEFAULT_MAP["epoch"]
+        written = plant.client.write_registers(reg.address, DEFAULT_MAP.encode("epoch", old + 1), device_id=k)
+        assert not written.isError(), written
+        try:
+            b.wait_until(lambda: f"loop {loop_id}: its device refused this daemon's write under lease epoch {old}"
+                         in b.log(), WAIT, "b to be fenced by the device")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}\nthe plant's log:\n{plant.log.read_text()}") from None
+        assert f"lease epoch {old + 1}, newer than this daemon's epoch {old}" in b.log()
+        wait_for(lambda: f"unit {k}: refused the writes of" in plant.log.read_text(), WAIT, "the plant's log")
+        assert f"its lease epoch {old} is older than the unit's {old + 1}" in plant.log.read_text()
+        frozen = plant.read(k)
+        readings = []
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end and (now := plant.read(k))["mode"] == "MAN":
+            readings.append(now)
+            time.sleep(0.05)
+        # b's relay levels (every 0.03 s) and its countdown in ite (every 0.5 s) stop at once: until the next owner
+        # restores the loop, it holds the last level b wrote.
+        assert readings and all(r == frozen for r in readings), (frozen, readings)
+        b.wait_until(lambda: "ended after this daemon lost the loop's lease" in b.log(), WAIT,
+                     "b to end its session without a record")
+        wait_for(lambda: plant.read(k)["mode"] == "AUTO", WAIT, "the next owner to restore the loop")
+        owner = wait_for(lambda: (o := fleet(a)["loops"][loop_id]) and o["epoch"] == old + 1 and o, WAIT,
+                         "the next owner's lease")
+        assert plant.epoch(k) == owner["epoch"] == old + 1
+        assert plant.log.read_text().count("refused the writes of") == 1  # nobody else was refused
 
 
 def test_a_drained_daemon_hands_its_idle_loops_to_the_others(tmp_path, database, plant):

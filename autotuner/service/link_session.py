@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from drivers.link import Link, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog
+from drivers.link import Fenced, Link, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog
 
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment, Status
@@ -109,10 +109,6 @@ class HandBack:
     track_timeout: float = 5.0
     watchdog: float = 0.0
     cap: float = math.inf
-
-
-class Fenced(LinkError):
-    """This daemon no longer holds the loop's lease: nothing more may be written to it (its new owner restores it)."""
 
 
 class NotTracking(Exception):

@@ -22,13 +22,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from drivers.link import Link, LinkError
+from drivers.link import Fenced, Link, LinkError
 from drivers.simplc import SimulatedPlc, run
 
 from autotuner.engine.control.gains import Gains
@@ -41,7 +40,7 @@ from autotuner.service.daemon.restore import Pending, Restored, restore_once
 from autotuner.service.daemon.timing import FLUSH_PERIOD, TimingBatch, Timings
 from autotuner.service.daemon.watch import Watch, WatchSink
 from autotuner.service.design_pool import Outcome
-from autotuner.service.link_session import Analyse, Fenced, SessionHooks, SessionPlan, analysed_in_thread
+from autotuner.service.link_session import Analyse, SessionHooks, SessionPlan, analysed_in_thread
 from autotuner.service.session_record import SessionRecord, read_gains
 from autotuner.service.session_runner import SessionOutcome, run_session
 
@@ -68,6 +67,10 @@ class FieldSink(WatchSink, Protocol):
     def design(self, job: DesignJob) -> Awaitable[Outcome]:
         """The design of an ended experiment."""
 
+    def superseded(self, loop_id: str) -> None:
+        """The loop's device refused a write: it was written a newer lease epoch than this daemon's (another daemon
+        took the loop over). Reported once, when it happens: the field writes nothing more to the loop meanwhile."""
+
 
 class Field(Protocol):
     """The device's side of every loop (see the module's docstring); loops named by id."""
@@ -81,11 +84,11 @@ class Field(Protocol):
     def watch(self) -> None:
         """Serve every loop: start its watch (monitor, handshake); its writes never fenced (one daemon, no leases)."""
 
-    def serve(self, loop_id: str, until: float) -> None:
-        """Serve the loop (a lease taken): start its watch, allow writes to it until ``until`` (monotonic)."""
+    def serve(self, loop_id: str, lease: Lease) -> None:
+        """Serve the loop (a lease taken): start its watch, allow writes to it under ``lease``."""
 
-    def grant(self, loop_id: str, until: float) -> None:
-        """Allow writes to a loop served until ``until`` (monotonic: a lease renewed)."""
+    def grant(self, loop_id: str, lease: Lease) -> None:
+        """Allow writes to a loop served under ``lease`` (renewed, or taken)."""
 
     def unserve(self, loop_id: str) -> None:
         """Stop serving the loop at once (its lease lost or released): its watch ends, every write to it is refused
@@ -133,14 +136,36 @@ def nominal_rate(loops: list[LoopConfig], sessions: dict[str, SessionPlan]) -> f
     return rate
 
 
+@dataclass(frozen=True)
+class Lease:
+    """A loop's lease as held here: valid ``until`` (monotonic), its ``epoch`` (written to the device)."""
+
+    until: float
+    epoch: int
+
+
+class Fence(Protocol):
+    """Whether a loop may be written, with which lease epoch, and who hears that its device fenced this daemon off."""
+
+    def writable(self, loop_id: str) -> bool:
+        """The loop may be written now."""
+
+    def epoch(self, loop_id: str) -> int | None:
+        """The epoch of the loop's lease held here (None: no leases)."""
+
+    def superseded(self, loop_id: str, error: str) -> None:
+        """The loop's device refused a write (``error``): it holds a newer epoch; nothing more may be written."""
+
+
 class FencedLink:
-    """``link`` with every write refused (:class:`~autotuner.service.link_session.Fenced`) unless ``allowed()``:
-    a daemon that lost loop ``loop_id``'s lease writes nothing more to it; reads go through."""
+    """``link`` with every write refused (:class:`~drivers.link.Fenced`) unless ``fence`` lets loop ``loop_id`` be
+    written, each write carrying the lease's epoch to the device: a daemon that lost the loop's lease — on its
+    own clock, or as the device sees it — writes nothing more to it; reads go through."""
 
     WRITES = frozenset({"write_mv", "write_mode", "write_gains", "write_flags", "write_watchdog", "write_heartbeat"})
 
-    def __init__(self, link: Link, allowed: Callable[[], bool], loop_id: str) -> None:
-        self._link, self._allowed, self._loop_id = link, allowed, loop_id
+    def __init__(self, link: Link, fence: Fence, loop_id: str) -> None:
+        self._link, self._fence, self._loop_id = link, fence, loop_id
 
     def __getattr__(self, name: str) -> Any:
         attribute = getattr(self._link, name)
@@ -148,12 +173,25 @@ class FencedLink:
             return attribute
 
         async def fenced(*args: Any) -> Any:
-            if not self._allowed():
+            if not self._fence.writable(self._loop_id):
                 raise Fenced(f"loop {self._loop_id}: this daemon's lease on it has expired or was taken over; "
                              "nothing more is written to it (its owner restores it)")
-            return await attribute(*args)
+            self._link.epoch = self._fence.epoch(self._loop_id)
+            try:
+                return await attribute(*args)
+            except Fenced as exc:  # the device's fence: the same as a lease lost here, from now on
+                self._fence.superseded(self._loop_id, str(exc))
+                raise
 
         return fenced
+
+
+def _carries_epoch(reach: Reach) -> bool:
+    """Whether the loop's device has a place for the lease's epoch (a link made to see; False if none can be)."""
+    try:
+        return reach.connect().carries_epoch
+    except LinkError:
+        return False
 
 
 @dataclass
@@ -186,10 +224,11 @@ class LocalField:
         self._halt = asyncio.Event()
         self._plants_halt = asyncio.Event()
         self._watches: dict[str, asyncio.Task[None]] = {}
-        # Until when (monotonic) each loop may be written; None: every loop always (no leases).
-        self._grants: dict[str, float] | None = None
+        # The lease under which each loop may be written; None: every loop always (no leases).
+        self._grants: dict[str, Lease] | None = None
         self._plants: list[asyncio.Task[None]] = []
         self._sink: FieldSink | None = None
+        self._told: set[str] = set()  # loops whose device was said to have no place for the epoch
         self._timings = Timings(elsewhere=analyse is not analysed_in_thread)
         self._flusher: asyncio.Task[None] | None = None
         self.cost = Cost()
@@ -207,14 +246,22 @@ class LocalField:
         for loop_id in self.reaches:
             self._start_watch(loop_id)
 
-    def serve(self, loop_id: str, until: float) -> None:
-        self.grant(loop_id, until)
+    def serve(self, loop_id: str, lease: Lease) -> None:
+        self.grant(loop_id, lease)
         self._start_watch(loop_id)
+        reach = self.reaches[loop_id]
+        if loop_id not in self._told and not _carries_epoch(reach):
+            self._told.add(loop_id)
+            log.warning("loop %s: its device has no place for the lease's epoch (%s): nothing on the device's side "
+                        "refuses the writes of a daemon that lost the lease, only that daemon's own clock "
+                        "(docs/fleet.md)", loop_id, "a simulated PLC of this process" if reach.plc is not None
+                        else "no epoch register in its map" if str(reach.config.link).startswith("modbus")
+                        else "no Epoch signals in its DBC")
 
-    def grant(self, loop_id: str, until: float) -> None:
+    def grant(self, loop_id: str, lease: Lease) -> None:
         if self._grants is None:
             self._grants = {}
-        self._grants[loop_id] = until
+        self._grants[loop_id] = lease
 
     def unserve(self, loop_id: str) -> None:
         if self._grants is None:
@@ -234,12 +281,31 @@ class LocalField:
 
     def writable(self, loop_id: str) -> bool:
         """The loop may be written now (no leases, or its lease valid here)."""
-        return self._grants is None or time.monotonic() < self._grants.get(loop_id, -math.inf)
+        if self._grants is None:
+            return True
+        lease = self._grants.get(loop_id)
+        return lease is not None and time.monotonic() < lease.until
+
+    def epoch(self, loop_id: str) -> int | None:
+        """The epoch of the loop's lease held here (None: no leases, or none held)."""
+        lease = None if self._grants is None else self._grants.get(loop_id)
+        return None if lease is None else lease.epoch
+
+    def superseded(self, loop_id: str, error: str) -> None:
+        """The loop's device refused a write, holding a newer epoch: nothing more is written to it (its grant is
+        withdrawn at once), logged and told to the loop manager once per lease."""
+        lease = None if self._grants is None else self._grants.pop(loop_id, None)
+        if lease is None:
+            return  # withdrawn already (told once)
+        log.error("loop %s: its device refused this daemon's write under lease epoch %d: %s", loop_id, lease.epoch,
+                  error)
+        if self._sink is not None:
+            self._sink.superseded(loop_id)
 
     def _connect(self, loop_id: str) -> Link:
         """A new link to the loop, its writes fenced by the loop's lease. (The reach's connector is read at each
         use: a test may replace it.)"""
-        return FencedLink(self.reaches[loop_id].connect(), lambda: self.writable(loop_id), loop_id)
+        return FencedLink(self.reaches[loop_id].connect(), self, loop_id)
 
     async def check(self, loop_id: str) -> None:
         await fresh_check(self.reaches[loop_id].config, lambda: self._connect(loop_id))

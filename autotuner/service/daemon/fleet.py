@@ -97,6 +97,10 @@ class Fleet:
         self.owners = await asyncio.to_thread(self.leases.owners)
         return Round(gained, lost, set(release), self.valid_until)
 
+    def drop(self, loop_id: str) -> None:
+        """The loop's lease is lost (its device holds a newer epoch): not held from now on, not renewed."""
+        self.held.pop(loop_id, None)
+
     async def leave(self) -> None:
         """Release every lease held (a daemon that stops after handing its loops back)."""
         held, self.held = self.held, {}

@@ -57,7 +57,7 @@ from autotuner.engine.outcome import Code
 from autotuner.engine.result import TuneResult
 from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.config import DaemonConfig, HandBackConfig, TuneRequest
-from autotuner.service.daemon.field import Field, LocalField
+from autotuner.service.daemon.field import Field, Lease, LocalField
 from autotuner.service.daemon.fleet import Fleet
 from autotuner.service.daemon.loop import Loop, Session
 from autotuner.service.daemon.recorder import HISTORY_WAIT, Recorder
@@ -198,13 +198,14 @@ class LoopManager:
         if done.released:
             log.info("fleet: released %d idle loop(s) to the other daemons (%s): %s", len(done.released),
                      "drained" if fleet.draining else "evening the loops out", ", ".join(sorted(done.released)))
-        for loop_id in fleet.held:
-            self.field.grant(loop_id, done.valid_until)
+        for loop_id, epoch in fleet.held.items():
+            self.field.grant(loop_id, Lease(done.valid_until, epoch))
         if done.gained:
             log.info("fleet: took over %d loop(s): %s", len(done.gained), ", ".join(sorted(done.gained)))
             await self._take_over(set(done.gained), orphans)
             for loop_id in done.gained:
-                self.field.serve(loop_id, done.valid_until)
+                if loop_id in fleet.held:  # (not superseded meanwhile)
+                    self.field.serve(loop_id, Lease(done.valid_until, fleet.held[loop_id]))
         for loop_id, loop in self.loops.items():
             owner = fleet.owners.get(loop_id)
             record = None if owner is None or not owner.live else OwnerRecord(owner.name, owner.url, owner.epoch)
@@ -624,6 +625,13 @@ class LoopManager:
             })
         if stage_changed:
             self._publish(loop, "state", loop.as_json())
+
+    def superseded(self, loop_id: str) -> None:
+        """The loop's device holds a newer lease epoch than this daemon's (the field's report, logged there): the
+        lease is lost, as if a renewal had found it another's — the loop is no longer served here."""
+        if self.fleet is not None:
+            self.fleet.drop(loop_id)
+        self.field.unserve(loop_id)
 
     def handed_back(self, loop_id: str, error: str) -> None:
         """The running session's hand-back is over (the field's report)."""

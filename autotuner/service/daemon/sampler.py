@@ -16,7 +16,8 @@ sampler → front
     calls ``durable`` (a session's record in the history), ``design`` (in the
     daemon's worker pool), ``edges`` (the device's TUNE/TBRK bits changed);
     notifications ``status``, ``handed_back``, ``timings``, ``reading``,
-    ``link_failed``, ``link_back``; its log records.
+    ``link_failed``, ``link_back``, ``superseded`` (a device fenced the
+    daemon off a loop); its log records.
 
 A sampler ends when the daemon says stop, and when its channel closes (the
 daemon died, even by SIGKILL): then it aborts every session, hands every loop
@@ -49,7 +50,7 @@ from autotuner.service.channel import (Channel, Peer, PeerLost, child_start, log
                                        tree_cpu_seconds)
 from autotuner.service.config import LoopConfig
 from autotuner.service.daemon.capacity import Cost
-from autotuner.service.daemon.field import FieldSink, LocalField, nominal_rate
+from autotuner.service.daemon.field import FieldSink, Lease, LocalField, nominal_rate
 from autotuner.service.daemon.refused import Refused
 from autotuner.service.daemon.restore import Pending, Restored
 from autotuner.service.daemon.timing import TimingBatch
@@ -64,7 +65,7 @@ MODULE = "autotuner.service.daemon.sampler"
 SAMPLER_CALLS = frozenset({"start", "check", "run", "write_gains", "read_gains", "restore", "halt_watches", "stop"})
 SAMPLER_NOTES = frozenset({"watch", "serve", "grant", "unserve", "abort", "cap"})
 FRONT_CALLS = frozenset({"durable", "design", "edges"})
-FRONT_NOTES = frozenset({"status", "handed_back", "timings", "reading", "link_failed", "link_back"})
+FRONT_NOTES = frozenset({"status", "handed_back", "timings", "reading", "link_failed", "link_back", "superseded"})
 # Worker processes a sampler analyses its sessions' periods in (one period's analysis is bounded:
 # docs/experiment.md); in threads they would hold the sampler's GIL, which its event loop needs after every read.
 ANALYSIS_WORKERS = os.cpu_count() or 1
@@ -123,6 +124,9 @@ class _ToDaemon(FieldSink):
 
     def link_back(self, loop_id: str) -> None:
         self.peer.note("link_back", loop_id)
+
+    def superseded(self, loop_id: str) -> None:
+        self.peer.note("superseded", loop_id)
 
     async def durable(self, loop_id: str, name: str, *args: object) -> str:
         try:
@@ -236,7 +240,7 @@ class _Shard:
         self.number, self.loops = number, loops
         self.cost = Cost()  # the sampler's own estimate, from its timings
         self.sessions: dict[str, SessionPlan] = {}  # running here, by loop id
-        self.served: dict[str, float] = {}  # a fleet's loops served here and until when they may be written
+        self.served: dict[str, Lease] = {}  # a fleet's loops served here and their leases
         self.process: subprocess.Popen[bytes] | None = None
         self.peer: Peer | None = None
         self.watching = False
@@ -259,8 +263,8 @@ class _Shard:
         await self.peer.call("start")
         if self.watching:  # (a sampler started again: what the one before did)
             self.peer.note("watch")
-        for loop_id, until in self.served.items():
-            self.peer.note("serve", loop_id, until)
+        for loop_id, lease in self.served.items():
+            self.peer.note("serve", loop_id, lease)
 
     async def _ready(self, channel: Channel) -> None:
         while (message := await channel.receive()) is not None:
@@ -406,15 +410,15 @@ class SamplerField:
             shard.watching = True
             shard.note("watch")
 
-    def serve(self, loop_id: str, until: float) -> None:
+    def serve(self, loop_id: str, lease: Lease) -> None:
         shard = self._of[loop_id]
-        shard.served[loop_id] = until
-        shard.note("serve", loop_id, until)
+        shard.served[loop_id] = lease
+        shard.note("serve", loop_id, lease)
 
-    def grant(self, loop_id: str, until: float) -> None:
+    def grant(self, loop_id: str, lease: Lease) -> None:
         shard = self._of[loop_id]
-        shard.served[loop_id] = until
-        shard.note("grant", loop_id, until)
+        shard.served[loop_id] = lease
+        shard.note("grant", loop_id, lease)
 
     def unserve(self, loop_id: str) -> None:
         shard = self._of[loop_id]
