@@ -77,12 +77,11 @@ START_WAIT, STOP_WAIT = 60.0, 30.0
 RESTART_PAUSE = 1.0
 # A sampler asks the kernel for real-time round-robin scheduling at this priority (1–99): it then runs as soon as it
 # wakes for a sample, before any ordinary process, however busy the machine (and whatever its sessions' groups:
-# nice values only count within one). Its analysis threads get a lower real-time priority: above every ordinary
-# process, so one holding the GIL is never starved while the event loop waits for it, below the event loop.
-# Without the privilege (CAP_SYS_NICE), nice PRIORITY_NICE, else nothing. (The kernel caps real-time tasks at 95 %
-# of a core each second by default, so a runaway sampler cannot freeze the machine.)
-RT_PRIORITY, ANALYSIS_RT_PRIORITY, PRIORITY_NICE = 20, 10, -5
-# The GIL's switch interval in a sampler, seconds: the event loop waits at most this for an analysis thread's GIL.
+# nice values only count within one). Its analysis workers run as ordinary processes: their work may wait, the
+# samples may not. Without the privilege (CAP_SYS_NICE), nice PRIORITY_NICE, else nothing. (The kernel caps
+# real-time tasks at 95 % of a core each second by default, so a runaway sampler cannot freeze the machine.)
+RT_PRIORITY, PRIORITY_NICE = 20, -5
+# The GIL's switch interval in a sampler, seconds: the event loop waits at most this for another thread's GIL.
 SWITCH_INTERVAL = 0.001
 # The loggers whose levels a sampler takes from the daemon's.
 LEVELS = ("", "autotuner", "pymodbus", "can")
@@ -204,12 +203,6 @@ def _raise_priority(shard: int) -> bool:
         log.info("sampler %d runs at the same priority as the API (a higher one needs CAP_SYS_NICE): a machine "
                  "busy with other programs can delay its samples", shard)
     return False
-
-
-def _analysis_priority() -> None:
-    """In an analysis worker of a real-time sampler: a lower real-time priority than the sampler's."""
-    with contextlib.suppress(PermissionError, OSError):
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(ANALYSIS_RT_PRIORITY))
 
 
 def _ordinary_priority() -> None:
