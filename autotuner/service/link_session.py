@@ -299,9 +299,11 @@ class SessionHooks:
     ``on_analysis(cpu)``: per period, the CPU seconds its analysis took.
     ``design(job)``: the design of the ended experiment (default: the design
     pool of this process). ``analyse(experiment)``: a period's pending
-    analysis (:func:`analysed`) off the event loop — the experiment analysed
-    (a copy, from a worker process) and the CPU seconds it took (default: a
-    thread of this process).
+    analysis (:func:`analysed`) in another process — the experiment analysed
+    (a copy) and the CPU seconds it took —, not awaited: the reads go on
+    meanwhile; None: in a thread of this process, awaited before the next
+    read (the thread holds the GIL the reads need: reading on while it runs
+    only delays the switches).
     """
 
     stop: asyncio.Event | None = None
@@ -311,7 +313,7 @@ class SessionHooks:
     on_timing: Callable[[float, float, float], None] | None = None
     on_analysis: Callable[[float], None] | None = None
     design: Callable[[DesignJob], Awaitable[Outcome]] = designed
-    analyse: Analyse = analysed_in_thread
+    analyse: Analyse | None = None
 
 
 class Overload:
@@ -521,8 +523,8 @@ class _Sampling:
 
     async def _catch_up(self) -> bool:
         """Step the experiment through the samples read and not stepped yet, write the MV it asks for, start the
-        analysis of a period that ended (in a worker thread, not awaited: the next samples are read on time
-        while it runs); False once the experiment has ended.
+        analysis of a period that ended (in a worker process, not awaited: the next samples are read on time
+        while it runs; in a thread of this process, awaited); False once the experiment has ended.
 
         The MV reaches the device once the samples read during an analysis are stepped: when one of them changed
         it, the experiment is told when (``applied``), and from then on of every later one (their MV arrived no
@@ -556,8 +558,13 @@ class _Sampling:
                 moved = None
             if experiment.analysis_pending:
                 # A period ended: its analysis runs off the event loop, so the other loops of this process and
-                # the handshake keep their time, and so do this loop's reads.
-                self._analysis = asyncio.ensure_future(self.hooks.analyse(experiment))
+                # the handshake keep their time, and so do this loop's reads when it runs in another process.
+                self._analysis = asyncio.ensure_future((self.hooks.analyse or analysed_in_thread)(experiment))
+                if self.hooks.analyse is None:
+                    await self.settled()
+                    experiment = self.experiment
+                    if experiment.done:
+                        return False
                 break
         if self._analysis is None:
             self._status = experiment.status()

@@ -40,7 +40,7 @@ from autotuner.service.daemon.restore import Pending, Restored, restore_once
 from autotuner.service.daemon.timing import FLUSH_PERIOD, TimingBatch, Timings
 from autotuner.service.daemon.watch import Watch, WatchSink
 from autotuner.service.design_pool import Outcome
-from autotuner.service.link_session import Analyse, SessionHooks, SessionPlan, analysed_in_thread
+from autotuner.service.link_session import Analyse, SessionHooks, SessionPlan
 from autotuner.service.session_record import SessionRecord, read_gains
 from autotuner.service.session_runner import SessionOutcome, run_session
 
@@ -212,7 +212,7 @@ class Reach:
 class LocalField:
     """The field of ``configs`` on the running event loop (:class:`Field`)."""
 
-    def __init__(self, configs: list[LoopConfig], analyse: Analyse = analysed_in_thread) -> None:
+    def __init__(self, configs: list[LoopConfig], analyse: Analyse | None = None) -> None:
         self.reaches = {c.id: Reach.of(c) for c in configs}
         self._analyse = analyse
         self._idle = {c.id: asyncio.Event() for c in configs}
@@ -229,7 +229,7 @@ class LocalField:
         self._plants: list[asyncio.Task[None]] = []
         self._sink: FieldSink | None = None
         self._told: set[str] = set()  # loops whose device was said to have no place for the epoch
-        self._timings = Timings(elsewhere=analyse is not analysed_in_thread)
+        self._timings = Timings(elsewhere=analyse is not None)
         self._flusher: asyncio.Task[None] | None = None
         self.cost = Cost()
 
