@@ -43,6 +43,7 @@ from typing import Any
 from autotuner.engine.plant.expression import parse_process
 from autotuner.service.channel import descendants, tree_cpu_seconds
 from autotuner.service.config import DaemonConfig, TuneRequest
+from autotuner.service.daemon.sampler import ANALYSIS_WORKERS_ENV
 from autotuner.service.design_pool import design_cpu
 
 # A fast plant: one tuning is about a minute of plant time (ts 0.1 s: about 27 samples per period).
@@ -62,8 +63,8 @@ class LoadSpec:
     read), ``opcua`` a subscribed OPC UA client; the plant (``plant``, sample time ``ts`` plant seconds,
     ``speed`` plant seconds per wall second, measurement ``noise`` σ in PV units, ``loads`` (T, SIZE) steps at
     the process input T plant seconds after a tuner takes the loop, MV units); the relay ``amp`` (MV units),
-    the experiments' ``time_limit`` (plant seconds), the loops' ``monitor_period`` (wall seconds) and the
-    daemon's ``samplers`` (0: in its own process)."""
+    the experiments' ``time_limit`` (plant seconds), the loops' ``monitor_period`` (wall seconds), the
+    daemon's ``samplers`` (0: in its own process) and each sampler's ``analysis_workers`` (0: threads)."""
 
     loops: int
     idle: int = 0
@@ -78,6 +79,7 @@ class LoadSpec:
     time_limit: float = 600.0
     monitor_period: float = 1.0
     samplers: int = 1
+    analysis_workers: int = 2
 
 
 @dataclass(frozen=True)
@@ -267,6 +269,7 @@ async def run_load(spec: LoadSpec) -> LoadResult:
     from api.app import create_app
 
     parse_process(spec.plant)  # a bad expression fails here, not in the child
+    os.environ[ANALYSIS_WORKERS_ENV] = str(spec.analysis_workers)  # read by the daemon's samplers
     loop = asyncio.get_running_loop()
     children = _Children()
     try:

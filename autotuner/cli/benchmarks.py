@@ -100,6 +100,8 @@ def loadbench_command(
                                                    "units); repeat for several.")] = None,
     samplers: Annotated[int, typer.Option(min=0, max=64, help="The daemon's sampler processes (0: sampling in the "
                                           "API's process).")] = 1,
+    analysis_workers: Annotated[int, typer.Option(min=0, max=64, help="Analysis worker processes per sampler "
+                                                  "(AUTOTUNER_ANALYSIS_WORKERS; 0: threads, awaited).")] = 2,
     speed: Annotated[float, typer.Option(min=0.1, max=100.0, help="Plant seconds per wall second.")] = 1.0,
     ts: Annotated[float, typer.Option(min=0.001, help="Sample time, plant seconds.")] = 0.1,
     plant: Annotated[str, typer.Option(help="Process transfer function in s.")] = "exp(-0.5*s)/(s+1)",
@@ -128,6 +130,7 @@ def loadbench_command(
     results = []
     for n in loops or [1, 10, 25, 50]:
         spec = LoadSpec(n, idle, clients, opcua, noise, steps, plant, ts, speed, samplers=samplers,
+                        analysis_workers=analysis_workers,
                         monitor_period=monitor_period)
         result = asyncio.run(run_load(spec))
         results.append(result)

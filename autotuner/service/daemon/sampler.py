@@ -66,9 +66,10 @@ SAMPLER_CALLS = frozenset({"start", "check", "run", "write_gains", "read_gains",
 SAMPLER_NOTES = frozenset({"watch", "serve", "grant", "unserve", "abort", "cap"})
 FRONT_CALLS = frozenset({"durable", "design", "edges"})
 FRONT_NOTES = frozenset({"status", "handed_back", "timings", "reading", "link_failed", "link_back", "superseded"})
-# Worker processes a sampler analyses its sessions' periods in (one period's analysis is bounded:
-# docs/experiment.md); in threads they would hold the sampler's GIL, which its event loop needs after every read.
-ANALYSIS_WORKERS = os.cpu_count() or 1
+# Worker processes a sampler analyses its sessions' periods in, not awaited by the sessions (docs/daemon.md,
+# "A plant"), from the environment; 0 (the default for now): in threads of the sampler, each awaited before the
+# session's next read.
+ANALYSIS_WORKERS_ENV = "AUTOTUNER_ANALYSIS_WORKERS"
 # How long a sampler whose daemon is gone may take to hand its loops back, wall seconds.
 LOST_HANDBACK = 20.0
 # How long the daemon waits for a sampler to start (imports, plants) and to stop, wall seconds.
@@ -167,9 +168,11 @@ async def serve(fd: int) -> None:
     channel, init = started
     realtime = _raise_priority(init.shard)
     sys.setswitchinterval(SWITCH_INTERVAL)
-    analyses = WorkerPool(ANALYSIS_WORKERS, _ordinary_priority)
-    await analyses.start()
-    field = LocalField(init.loops, functools.partial(analyses.run, analysed))
+    workers = _analysis_workers()
+    analyses = WorkerPool(workers, _ordinary_priority) if workers else None
+    if analyses is not None:
+        await analyses.start()
+    field = LocalField(init.loops, None if analyses is None else functools.partial(analyses.run, analysed))
     sampler = _Sampler(field)
     peer = Peer(channel, sampler, SAMPLER_CALLS, SAMPLER_NOTES)
     field.bind(_ToDaemon(peer))
@@ -182,7 +185,8 @@ async def serve(fd: int) -> None:
         await peer.drain(LOST_HANDBACK + 5.0)
         await field.stop()
     await channel.close()
-    analyses.close()
+    if analyses is not None:
+        analyses.close()
 
 
 def _raise_priority(shard: int) -> bool:
@@ -203,6 +207,12 @@ def _raise_priority(shard: int) -> bool:
         log.info("sampler %d runs at the same priority as the API (a higher one needs CAP_SYS_NICE): a machine "
                  "busy with other programs can delay its samples", shard)
     return False
+
+
+def _analysis_workers() -> int:
+    """The analysis worker processes asked for in the environment (0: none, or a value that is not a count)."""
+    value = os.environ.get(ANALYSIS_WORKERS_ENV, "0")
+    return max(int(value), 0) if value.isdigit() else 0
 
 
 def _ordinary_priority() -> None:
