@@ -33,8 +33,8 @@ from test_handback import (FIRST_AUTO_TOL, SAVED_MV, WAIT, Plc, at_relay_level, 
                            wait_for)
 
 
-def samplers_of(pid: int) -> list[int]:
-    """The sampler processes whose parent is ``pid`` (read from /proc)."""
+def children_of(pid: int, command: bytes) -> list[int]:
+    """The processes whose parent is ``pid`` and whose command line holds ``command`` (read from /proc)."""
     found = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -44,9 +44,19 @@ def samplers_of(pid: int) -> list[int]:
             cmdline = (entry / "cmdline").read_bytes()
         except OSError:
             continue
-        if int(stat.rpartition(")")[2].split()[1]) == pid and b"autotuner.service.daemon.sampler" in cmdline:
+        if int(stat.rpartition(")")[2].split()[1]) == pid and command in cmdline:
             found.append(int(entry.name))
     return found
+
+
+def samplers_of(pid: int) -> list[int]:
+    """The sampler processes of the daemon ``pid``."""
+    return children_of(pid, b"autotuner.service.daemon.sampler")
+
+
+def analysis_workers_of(sampler: int) -> list[int]:
+    """The analysis worker processes of the sampler ``sampler`` (spawned by multiprocessing)."""
+    return children_of(sampler, b"spawn_main")
 
 
 def alive(pid: int) -> bool:
@@ -107,6 +117,25 @@ def test_a_sampler_killed_mid_session_is_started_again_and_the_loop_restored(tmp
         # simulated PLC, starved, misses this test's 0.3 s timeout): not a session lost with the old sampler.
         assert final["stage"] == "done" and "sampler" not in final["message"], final["message"]
         assert f"sampler 1 (process {sampler}) ended" in d.output()
+
+
+def test_analysis_workers_start_with_the_first_tuning_at_a_priority_just_below_the_samplers(tmp_path, plc):
+    with daemon(tmp_path, plc) as d:
+        sampler = wait_for(lambda: samplers_of(d.proc.pid), WAIT, "the daemon's sampler")[0]
+        wait_for(lambda: d.status()["mode"] == "AUTO", WAIT, "the monitor's first reading")
+        assert analysis_workers_of(sampler) == []  # a sampler that has not tuned has started none
+        d.tune()
+        workers = wait_for(lambda: len(w := analysis_workers_of(sampler)) == 2 and w, WAIT, "two analysis workers")
+        policy, priority = os.sched_getscheduler(sampler), os.sched_getparam(sampler).sched_priority
+        # With real-time scheduling (root here), the workers one real-time priority below the sampler: above every
+        # ordinary process, never above the samples. Without it, ordinary ones.
+        expected = (os.SCHED_RR, priority - 1) if policy == os.SCHED_RR else (os.SCHED_OTHER, 0)
+        for worker in workers:
+            wait_for(lambda: (os.sched_getscheduler(worker), os.sched_getparam(worker).sched_priority) == expected,
+                     WAIT, f"worker {worker} at {expected}")
+        wait_for(lambda: not d.status()["tbsy"], 4 * WAIT, "the tuning to end")
+        assert d.status()["stage"] == "done"
+        assert sorted(analysis_workers_of(sampler)) == sorted(workers)  # kept for the next tuning
 
 
 def test_loops_of_one_device_share_a_sampler_and_the_shards_are_even():

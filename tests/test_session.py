@@ -381,7 +381,7 @@ def test_the_reads_keep_their_schedule_while_a_period_is_analysed():
 
         plan = SessionPlan(field_config(RelayConfig(amp=5.0, time_limit=500.0)), ts, speed=SPEED)
         try:
-            result = await asyncio.wait_for(tune_link(link, plan, SessionHooks(analyse=slow)), 120.0)
+            result = await asyncio.wait_for(tune_link(link, plan, SessionHooks(analyse=lambda: slow)), 120.0)
         finally:
             halt.set()
             await plant

@@ -42,12 +42,14 @@ def test_timings_name_the_loops_late_by_the_fields_own_fault_and_hand_over_once(
     t.add("A", 0.004, 0.001, tolerance=0.02)
     t.add("B", 0.090, 0.050, tolerance=0.02)
     t.add("B", 0.060, 0.030, tolerance=0.02)
-    t.analysed(0.002)
+    t.analysed(0.002, elsewhere=False)
+    t.analysed(0.5, elsewhere=True)  # in a worker process: not in this process's CPU time
     batch = t.take()
-    assert batch.late.count == 3 and batch.analysis.count == 1
+    assert batch.late.count == 3 and batch.analysis.count == 2
     assert batch.overloaded == 2 and batch.worst == {"B": 0.050}
+    assert 0.5 <= batch.cpu < 0.5 + 1.0  # the worker's half second, and this process's own (a thread's is in it)
     again = t.take()  # handed over: nothing new since, but the process's CPU meanwhile
-    assert again.late.count == 0 and again.overloaded == 0 and again.cpu >= 0.0
+    assert again.late.count == 0 and again.overloaded == 0 and 0.0 <= again.cpu < 0.5
 
 
 def test_the_cost_per_sample_follows_what_was_measured_and_a_load_is_cost_times_rate():

@@ -43,7 +43,7 @@ from typing import Any
 from autotuner.engine.plant.expression import parse_process
 from autotuner.service.channel import descendants, tree_cpu_seconds
 from autotuner.service.config import DaemonConfig, TuneRequest
-from autotuner.service.daemon.sampler import ANALYSIS_WORKERS_ENV
+from autotuner.service.daemon.analyses import DEFAULT_WORKERS, WORKERS_ENV
 from autotuner.service.design_pool import design_cpu
 
 # A fast plant: one tuning is about a minute of plant time (ts 0.1 s: about 27 samples per period).
@@ -79,7 +79,7 @@ class LoadSpec:
     time_limit: float = 600.0
     monitor_period: float = 1.0
     samplers: int = 1
-    analysis_workers: int = 2
+    analysis_workers: int = DEFAULT_WORKERS
 
 
 @dataclass(frozen=True)
@@ -269,7 +269,7 @@ async def run_load(spec: LoadSpec) -> LoadResult:
     from api.app import create_app
 
     parse_process(spec.plant)  # a bad expression fails here, not in the child
-    os.environ[ANALYSIS_WORKERS_ENV] = str(spec.analysis_workers)  # read by the daemon's samplers
+    os.environ[WORKERS_ENV] = str(spec.analysis_workers)  # read by the daemon's samplers
     loop = asyncio.get_running_loop()
     children = _Children()
     try:

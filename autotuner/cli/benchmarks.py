@@ -101,7 +101,7 @@ def loadbench_command(
     samplers: Annotated[int, typer.Option(min=0, max=64, help="The daemon's sampler processes (0: sampling in the "
                                           "API's process).")] = 1,
     analysis_workers: Annotated[int, typer.Option(min=0, max=64, help="Analysis worker processes per sampler "
-                                                  "(AUTOTUNER_ANALYSIS_WORKERS; 0: threads, awaited).")] = 2,
+                                                  "(AUTOTUNER_ANALYSIS_WORKERS; 0: threads, awaited).")] = 2,  # the daemon's default
     speed: Annotated[float, typer.Option(min=0.1, max=100.0, help="Plant seconds per wall second.")] = 1.0,
     ts: Annotated[float, typer.Option(min=0.001, help="Sample time, plant seconds.")] = 0.1,
     plant: Annotated[str, typer.Option(help="Process transfer function in s.")] = "exp(-0.5*s)/(s+1)",

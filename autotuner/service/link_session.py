@@ -296,14 +296,16 @@ class SessionHooks:
     completed behind its due time, the part of that the session's own process
     caused (not the link: the event loop, the analysis, a starved CPU), and the
     own lateness the experiment tolerates now (:class:`Overload`).
-    ``on_analysis(cpu)``: per period, the CPU seconds its analysis took.
-    ``design(job)``: the design of the ended experiment (default: the design
-    pool of this process). ``analyse(experiment)``: a period's pending
-    analysis (:func:`analysed`) in another process — the experiment analysed
-    (a copy) and the CPU seconds it took —, not awaited: the reads go on
-    meanwhile; None: in a thread of this process, awaited before the next
-    read (the thread holds the GIL the reads need: reading on while it runs
-    only delays the switches).
+    ``on_analysis(cpu, elsewhere)``: per period, the CPU seconds its analysis
+    took, and whether in another process. ``design(job)``: the design of the
+    ended experiment (default: the design pool of this process).
+    ``analyse()``: at each period's end, how to analyse it: a function that
+    runs a period's pending analysis (:func:`analysed`) in another process —
+    the experiment analysed (a copy) and the CPU seconds it took —, not
+    awaited: the reads go on meanwhile; or None (also when ``analyse`` is
+    None): in a thread of this process, awaited before the next read (the
+    thread holds the GIL the reads need: reading on while it runs only delays
+    the switches).
     """
 
     stop: asyncio.Event | None = None
@@ -311,9 +313,9 @@ class SessionHooks:
     on_saved: Callable[[LoopState, tuple[float, ...]], Awaitable[str]] | None = None
     on_handed_back: Callable[[str], None] | None = None
     on_timing: Callable[[float, float, float], None] | None = None
-    on_analysis: Callable[[float], None] | None = None
+    on_analysis: Callable[[float, bool], None] | None = None
     design: Callable[[DesignJob], Awaitable[Outcome]] = designed
-    analyse: Analyse | None = None
+    analyse: Callable[[], Analyse | None] | None = None
 
 
 class Overload:
@@ -467,6 +469,7 @@ class _Sampling:
         self._last_t = -math.inf  # the time of the latest sample read, plant seconds
         self._written = experiment.mv0  # the MV last written to the device (the saved one at the take-over)
         self._analysis: asyncio.Future[tuple[RelayExperiment, float]] | None = None  # the period's, off the loop
+        self._elsewhere = False  # whether that analysis runs in another process
         self._status = experiment.status()  # the experiment's status after its latest step outside an analysis
         self._tolerance = experiment.stall_tolerance / plan.speed  # the own lateness it tolerates, wall seconds
 
@@ -559,8 +562,10 @@ class _Sampling:
             if experiment.analysis_pending:
                 # A period ended: its analysis runs off the event loop, so the other loops of this process and
                 # the handshake keep their time, and so do this loop's reads when it runs in another process.
-                self._analysis = asyncio.ensure_future((self.hooks.analyse or analysed_in_thread)(experiment))
-                if self.hooks.analyse is None:
+                analyse = None if self.hooks.analyse is None else self.hooks.analyse()
+                self._analysis = asyncio.ensure_future((analyse or analysed_in_thread)(experiment))
+                self._elsewhere = analyse is not None
+                if analyse is None:
                     await self.settled()
                     experiment = self.experiment
                     if experiment.done:
@@ -582,7 +587,7 @@ class _Sampling:
         self.experiment, cpu = await asyncio.shield(self._analysis)
         self._analysis = None
         if self.hooks.on_analysis is not None:
-            self.hooks.on_analysis(cpu)
+            self.hooks.on_analysis(cpu, self._elsewhere)
 
     async def _fail(self, code: Code, message: str) -> None:
         """End the experiment with ``code`` and ``message`` once no analysis runs."""

@@ -34,13 +34,14 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.experiment.relay import Status
 from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.config import LoopConfig
+from autotuner.service.daemon.analyses import AnalysisWorkers
 from autotuner.service.daemon.capacity import Cost
 from autotuner.service.daemon.reach import connector, fresh_check, simulated_plc
 from autotuner.service.daemon.restore import Pending, Restored, restore_once
 from autotuner.service.daemon.timing import FLUSH_PERIOD, TimingBatch, Timings
 from autotuner.service.daemon.watch import Watch, WatchSink
 from autotuner.service.design_pool import Outcome
-from autotuner.service.link_session import Analyse, SessionHooks, SessionPlan
+from autotuner.service.link_session import SessionHooks, SessionPlan
 from autotuner.service.session_record import SessionRecord, read_gains
 from autotuner.service.session_runner import SessionOutcome, run_session
 
@@ -212,9 +213,9 @@ class Reach:
 class LocalField:
     """The field of ``configs`` on the running event loop (:class:`Field`)."""
 
-    def __init__(self, configs: list[LoopConfig], analyse: Analyse | None = None) -> None:
+    def __init__(self, configs: list[LoopConfig], analyses: AnalysisWorkers | None = None) -> None:
         self.reaches = {c.id: Reach.of(c) for c in configs}
-        self._analyse = analyse
+        self._analyses = analyses
         self._idle = {c.id: asyncio.Event() for c in configs}
         for idle in self._idle.values():
             idle.set()
@@ -229,7 +230,7 @@ class LocalField:
         self._plants: list[asyncio.Task[None]] = []
         self._sink: FieldSink | None = None
         self._told: set[str] = set()  # loops whose device was said to have no place for the epoch
-        self._timings = Timings(elsewhere=analyse is not None)
+        self._timings = Timings()
         self._flusher: asyncio.Task[None] | None = None
         self.cost = Cost()
 
@@ -320,6 +321,8 @@ class LocalField:
         self._sessions[loop_id] = (stop, plan)
         self._sids[loop_id] = sid
         self._idle[loop_id].clear()
+        if self._analyses is not None:
+            self._analyses.want()
         try:
             record = SessionRecord(lambda name, *args: sink.durable(loop_id, name, *args), sid, loop_id, user)
 
@@ -331,7 +334,8 @@ class LocalField:
                                  on_handed_back=lambda error: sink.handed_back(loop_id, error),
                                  on_timing=lambda late, own, tolerance: self._timings.add(loop_id, late, own,
                                                                                           tolerance),
-                                 on_analysis=self._timings.analysed, design=sink.design, analyse=self._analyse)
+                                 on_analysis=self._timings.analysed, design=sink.design,
+                                 analyse=None if self._analyses is None else self._analyses.analyse)
             return await run_session(lambda: self._connect(loop_id), plan, record, hooks)
         finally:
             del self._sessions[loop_id]

@@ -29,8 +29,6 @@ are restored as after a crash of the daemon (docs/handback.md).
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import functools
 import logging
 import os
 import signal
@@ -49,6 +47,7 @@ from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.channel import (Channel, Peer, PeerLost, child_start, log_levels, log_record, start_child,
                                        tree_cpu_seconds)
 from autotuner.service.config import LoopConfig
+from autotuner.service.daemon.analyses import AnalysisWorkers, worker_count
 from autotuner.service.daemon.capacity import Cost
 from autotuner.service.daemon.field import FieldSink, Lease, LocalField, nominal_rate
 from autotuner.service.daemon.refused import Refused
@@ -56,9 +55,8 @@ from autotuner.service.daemon.restore import Pending, Restored
 from autotuner.service.daemon.timing import TimingBatch
 from autotuner.service.daemon.watch import Reading
 from autotuner.service.design_pool import Outcome
-from autotuner.service.link_session import SessionPlan, analysed
+from autotuner.service.link_session import SessionPlan
 from autotuner.service.session_runner import SessionOutcome
-from autotuner.service.worker_pool import WorkerPool
 
 MODULE = "autotuner.service.daemon.sampler"
 # What each side serves of the other's messages.
@@ -66,10 +64,6 @@ SAMPLER_CALLS = frozenset({"start", "check", "run", "write_gains", "read_gains",
 SAMPLER_NOTES = frozenset({"watch", "serve", "grant", "unserve", "abort", "cap"})
 FRONT_CALLS = frozenset({"durable", "design", "edges"})
 FRONT_NOTES = frozenset({"status", "handed_back", "timings", "reading", "link_failed", "link_back", "superseded"})
-# Worker processes a sampler analyses its sessions' periods in, not awaited by the sessions (docs/daemon.md,
-# "A plant"), from the environment; 0 (the default for now): in threads of the sampler, each awaited before the
-# session's next read.
-ANALYSIS_WORKERS_ENV = "AUTOTUNER_ANALYSIS_WORKERS"
 # How long a sampler whose daemon is gone may take to hand its loops back, wall seconds.
 LOST_HANDBACK = 20.0
 # How long the daemon waits for a sampler to start (imports, plants) and to stop, wall seconds.
@@ -168,11 +162,9 @@ async def serve(fd: int) -> None:
     channel, init = started
     realtime = _raise_priority(init.shard)
     sys.setswitchinterval(SWITCH_INTERVAL)
-    workers = _analysis_workers()
-    analyses = WorkerPool(workers, _ordinary_priority) if workers else None
-    if analyses is not None:
-        await analyses.start()
-    field = LocalField(init.loops, None if analyses is None else functools.partial(analyses.run, analysed))
+    workers = worker_count()
+    analyses = AnalysisWorkers(workers, RT_PRIORITY - 1 if realtime else None) if workers else None
+    field = LocalField(init.loops, analyses)
     sampler = _Sampler(field)
     peer = Peer(channel, sampler, SAMPLER_CALLS, SAMPLER_NOTES)
     field.bind(_ToDaemon(peer))
@@ -207,21 +199,6 @@ def _raise_priority(shard: int) -> bool:
         log.info("sampler %d runs at the same priority as the API (a higher one needs CAP_SYS_NICE): a machine "
                  "busy with other programs can delay its samples", shard)
     return False
-
-
-def _analysis_workers() -> int:
-    """The analysis worker processes asked for in the environment (0: none, or a value that is not a count)."""
-    value = os.environ.get(ANALYSIS_WORKERS_ENV, "0")
-    return max(int(value), 0) if value.isdigit() else 0
-
-
-def _ordinary_priority() -> None:
-    """In an analysis worker: an ordinary process's priority (it inherited the sampler's, and must not compete
-    with it)."""
-    with contextlib.suppress(PermissionError, OSError):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    with contextlib.suppress(PermissionError, OSError):
-        os.setpriority(os.PRIO_PROCESS, 0, 0)
 
 
 def main(argv: list[str]) -> int:

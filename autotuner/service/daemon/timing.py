@@ -93,13 +93,12 @@ class TimingBatch:
 
 
 class Timings:
-    """What a field's sessions report, gathered until the next :meth:`take`; ``elsewhere``: their analyses run
-    in other processes (their CPU seconds are then added to the batch's: they are the field's work)."""
+    """What a field's sessions report, gathered until the next :meth:`take`."""
 
-    def __init__(self, elsewhere: bool = False) -> None:
+    def __init__(self) -> None:
         self._batch = TimingBatch()
         self._cpu = time.process_time()
-        self._elsewhere = elsewhere
+        self._elsewhere = 0.0  # CPU seconds of analyses in other processes since the last take
 
     def add(self, loop_id: str, late: float, own: float, tolerance: float) -> None:
         """A sample of ``loop_id``: ``late`` and ``own`` seconds; ``tolerance``: the own lateness (seconds) past
@@ -111,9 +110,12 @@ class Timings:
             batch.overloaded += 1
             batch.worst[loop_id] = max(own, batch.worst.get(loop_id, 0.0))
 
-    def analysed(self, cpu: float) -> None:
-        """A period's analysis took ``cpu`` CPU seconds."""
+    def analysed(self, cpu: float, elsewhere: bool) -> None:
+        """A period's analysis took ``cpu`` CPU seconds; ``elsewhere``: in another process (a worker), whose CPU
+        is then added to the batch's: it is the field's work."""
         self._batch.analysis.add(cpu)
+        if elsewhere:
+            self._elsewhere += cpu
 
     def read(self) -> None:
         """The monitor read a loop."""
@@ -123,5 +125,5 @@ class Timings:
         """The batch since the last take, with the process's CPU seconds since."""
         batch, self._batch = self._batch, TimingBatch()
         now = time.process_time()
-        batch.cpu, self._cpu = now - self._cpu + (batch.analysis.total if self._elsewhere else 0.0), now
+        batch.cpu, self._cpu, self._elsewhere = now - self._cpu + self._elsewhere, now, 0.0
         return batch
