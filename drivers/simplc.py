@@ -31,7 +31,7 @@ import functools
 import math
 import secrets
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from autotuner.engine.design.point_design import design
@@ -79,7 +79,10 @@ class SimulatedPlc:
     plant seconds after the PLC first ticks in MAN (a tuner taking the loop
     over): a disturbance during an experiment over the link. ``faults``: what
     is wrong with the loop (none by default); the stochastic load's noise is
-    seeded from ``seed`` apart from the PV noise's.
+    seeded from ``seed`` apart from the PV noise's. ``on_mode(t, mode, mv)``:
+    called at the first tick in a new mode, with the plant time (s) and the MV
+    the PID unit put out at that tick (MV units) — the device's own record of
+    a hand-over, which a client reading it may be too late to see.
     """
 
     process: Process
@@ -103,6 +106,7 @@ class SimulatedPlc:
     # of a client whose own epoch is older (docs/fleet.md). ``fenced``: the writes they refused so.
     epoch: int = 0
     fenced: int = 0
+    on_mode: Callable[[float, Mode, float], None] | None = None
 
     def __post_init__(self) -> None:
         if self.ts <= 0.0:
@@ -127,6 +131,7 @@ class SimulatedPlc:
                 raise ValueError(f"load step ({time}, {size}) must be T ≥ 0 plant seconds and a finite size")
         self._pending = sorted(self.loads, reverse=True)  # next step last
         self._taken_at: float | None = None  # plant time of the first tick in MAN
+        self._ticked_mode = self.mode  # the mode of the last tick
 
     @property
     def watchdog(self) -> Watchdog:
@@ -188,6 +193,10 @@ class SimulatedPlc:
         self.mv = self.pid.step(self.sim.t, self.sp, self.pv, man=man, hv=self.hv if man else None)
         if not man:
             self.hv = self.mv  # the manual value follows, so a switch to MAN is bumpless too
+        if self.mode is not self._ticked_mode:
+            self._ticked_mode = self.mode
+            if self.on_mode is not None:
+                self.on_mode(self.sim.t, self.mode, self.mv)
         if self._faulty is None:
             self.mv = self.sim.advance(self.mv)
             self.pv = self.sim.measure()

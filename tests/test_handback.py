@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import socket
 import sqlite3
@@ -118,6 +119,12 @@ class Plc:
                 "pv": self._input("pv"), "hv": self._holding("hv"), "tbsy": coils.bits[2], "te": coils.bits[3],
                 "ite": self._holding("ite"), "wd_time": self._holding("wd_time"),
                 "heartbeat": self._holding("heartbeat"), "boot": self._input("boot")}
+
+    def mode_changes(self) -> list[tuple[str, float]]:
+        """Each change of mode the PLC itself printed, oldest first: (mode, the MV its PID unit put out at the
+        first tick in that mode) — what no client can miss, however late the machine schedules it."""
+        found = re.findall(r"^mode (AUTO|MAN) at plant t=\S+ s, MV (\S+)$", self.log_path.read_text(), re.M)
+        return [(mode, float(mv)) for mode, mv in found]
 
     def write_hv(self, mv: float) -> None:
         """An operator's manual MV."""

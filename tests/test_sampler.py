@@ -29,7 +29,7 @@ from autotuner.service.daemon import LoopManager, Refused
 from autotuner.service.daemon.sampler import device_of, shards_of
 from autotuner.service.history import History
 from helpers import Daemon, until
-from test_handback import (FIRST_AUTO_TOL, SAVED_MV, WAIT, Plc, at_relay_level, daemon, first_auto, history_row,
+from test_handback import (FIRST_AUTO_TOL, SAVED_MV, WAIT, Plc, at_relay_level, daemon, history_row,
                            wait_for)
 
 
@@ -59,6 +59,12 @@ def analysis_workers_of(sampler: int) -> list[int]:
     return children_of(sampler, b"spawn_main")
 
 
+def handed_back(plc: Plc, after: int) -> tuple[str, float]:
+    """The PLC's first change to AUTO after its first ``after`` changes of mode, as it printed it (mode, MV)."""
+    return wait_for(lambda: next((c for c in plc.mode_changes()[after:] if c[0] == "AUTO"), None), WAIT,
+                    "the PLC's own record of its switch to AUTO")
+
+
 def alive(pid: int) -> bool:
     try:
         return (Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]) != "Z"
@@ -80,11 +86,12 @@ def test_a_daemon_killed_alone_leaves_its_sampler_to_hand_the_loop_back_bumpless
         sid = d.tune()
         at_relay_level(plc)
         sampler = wait_for(lambda: samplers_of(d.proc.pid), WAIT, "the daemon's sampler")[0]
+        changes = plc.mode_changes()
+        assert changes[-1][0] == "MAN", changes  # the session holds the loop
         d.proc.kill()  # the daemon's process only: its sampler sees its channel close
         d.proc.wait()
-        auto, before = first_auto(plc)
-        assert before[0]["mode"] == "MAN"
-        assert abs(auto["mv"] - SAVED_MV) < FIRST_AUTO_TOL, (auto, before[-3:])  # bumpless: the saved MV first
+        _, mv = handed_back(plc, len(changes))
+        assert abs(mv - SAVED_MV) < FIRST_AUTO_TOL, (mv, plc.mode_changes())  # bumpless: the saved MV first
         wait_for(lambda: not alive(sampler), WAIT, "the sampler to end once the loop is back")
         now = plc.read()
         assert now["tbsy"] is False and now["te"] is True and now["ite"] == float(Code.ABORTED), now
@@ -99,9 +106,10 @@ def test_a_sampler_killed_mid_session_is_started_again_and_the_loop_restored(tmp
         sid = d.tune()
         at_relay_level(plc)
         sampler = wait_for(lambda: samplers_of(d.proc.pid), WAIT, "the daemon's sampler")[0]
+        changes = len(plc.mode_changes())
         os.kill(sampler, signal.SIGKILL)
-        auto, before = first_auto(plc)  # restored by the new sampler: the saved MV before AUTO
-        assert abs(auto["mv"] - SAVED_MV) < FIRST_AUTO_TOL, (auto, before[-3:])
+        _, mv = handed_back(plc, changes)  # restored by the new sampler: the saved MV before AUTO
+        assert abs(mv - SAVED_MV) < FIRST_AUTO_TOL, (mv, plc.mode_changes())
         row = wait_for(lambda: (r := history_row(d.history, sid))["state"] == "interrupted" and r, WAIT,
                        "the session recorded as interrupted and its loop restored")
         assert f"sampler 1 (process {sampler}) ended" in row["result"]["message"], row

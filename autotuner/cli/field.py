@@ -7,12 +7,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import signal
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
 
 from autotuner.cli.app import DEMO_PLANT, Transport, app, bad_input, parse_loads, parse_plant, stdout
+
+if TYPE_CHECKING:
+    from drivers.link import Mode
 
 
 # Loops of `sim --loops`: the unit ids 1..247 of one Modbus server (drivers.modbus_plant.UNITS_PER_SERVER; a
@@ -74,7 +77,7 @@ def sim_command(
     address = None if modbus is None else _host_port(modbus)
     plant_ts = ts or default_sample_time(process) / PLANT_TICKS_PER_SAMPLE
     try:
-        plc = SimulatedPlc(process, ts=plant_ts, noise_std=noise, seed=seed, loads=tuple(steps))
+        plc = SimulatedPlc(process, ts=plant_ts, noise_std=noise, seed=seed, loads=tuple(steps), on_mode=_said_mode)
     except ValueError as exc:
         bad_input(str(exc))
     about = f"plant {plant}, ts {plc.ts:.4g} s, {speed:g}× real time; Ctrl-C stops"
@@ -100,6 +103,11 @@ def sim_command(
         asyncio.run(serve_one() if loops is None or address is None else serve_many(loops, *address))
     except OSError as exc:  # port in use, no such CAN interface
         bad_input(str(exc))
+
+
+def _said_mode(t: float, mode: Mode, mv: float) -> None:
+    """A simulated PLC's change of mode, on stdout: the device's own record of a hand-over (docs/modbus.md)."""
+    print(f"mode {mode.name} at plant t={t:.3f} s, MV {mv:.6g}", flush=True)
 
 
 def _stop_event(duration: float | None) -> asyncio.Event:
