@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from autotuner.service.config import DaemonConfig, TuneRequest
-from autotuner.service.daemon.capacity import DEFAULT_COST, MIN_SAMPLES, Cost
+from autotuner.service.daemon.capacity import DEFAULT_READING_COST, DEFAULT_SAMPLE_COST, MIN_SAMPLES, Cost, Rates
 from autotuner.service.daemon.field import nominal_rate
 from autotuner.service.daemon.settings import plan_of, settings_of
 from autotuner.service.daemon.timing import PER_DECADE, Histogram, Timings
@@ -52,19 +52,26 @@ def test_timings_name_the_loops_late_by_the_fields_own_fault_and_hand_over_once(
     assert again.late.count == 0 and again.overloaded == 0 and 0.0 <= again.cpu < 0.5
 
 
-def test_the_cost_per_sample_follows_what_was_measured_and_a_load_is_cost_times_rate():
+def test_a_sessions_sample_and_a_monitor_reading_are_costed_apart_and_a_load_is_costs_times_rates():
     cost = Cost()
-    cost.update(0.5, MIN_SAMPLES - 1)  # too few samples to say anything
-    assert cost.per_sample == DEFAULT_COST
+    cost.update(0.5, MIN_SAMPLES - 1, 0)  # too few samples to say anything
+    assert (cost.sample, cost.reading) == (DEFAULT_SAMPLE_COST, DEFAULT_READING_COST)
     for _ in range(60):
-        cost.update(0.2, 1000)  # 200 µs per sample, again and again
-    assert cost.per_sample == pytest.approx(200e-6, rel=1e-4)
-    assert cost.load(1500.0) == pytest.approx(0.3, rel=1e-4)
+        cost.update(0.05, 0, 1000)  # an idle field: 50 µs per reading, again and again
+    assert cost.reading == pytest.approx(50e-6, rel=1e-4)
+    assert cost.sample == DEFAULT_SAMPLE_COST  # readings alone say nothing of what a session's sample costs
+    cost.update(0.9, 10, 1000)  # a few samples among many readings: neither cost is certain
+    assert cost.reading == pytest.approx(50e-6, rel=1e-4) and cost.sample == DEFAULT_SAMPLE_COST
+    for _ in range(60):
+        cost.update(0.2 + 0.05, 1000, 1000)  # 200 µs per sample beside the readings' 50 µs
+    assert cost.sample == pytest.approx(200e-6, rel=1e-3)
+    assert cost.load(Rates(samples=1500.0, readings=400.0)) == pytest.approx(1500 * 200e-6 + 400 * 50e-6, rel=1e-3)
 
 
 def test_the_nominal_rate_counts_sessions_by_their_plan_and_idle_loops_by_their_monitor():
     config = DaemonConfig.model_validate({"history": ":memory:", "loops": [
         {"id": f"L{k}", "link": f"modbus://10.0.0.1:502/{k}", "ts": 0.1, "monitor_period": 2.0} for k in range(4)]})
     plan = plan_of(config.loops[0], settings_of(config.loops[0], TuneRequest()))
-    assert nominal_rate(config.loops, {}) == pytest.approx(4 * 0.5)
-    assert nominal_rate(config.loops, {"L0": plan, "L1": plan}) == pytest.approx(2 * 10.0 + 2 * 0.5)
+    assert nominal_rate(config.loops, {}) == Rates(samples=0.0, readings=pytest.approx(4 * 0.5))
+    assert nominal_rate(config.loops, {"L0": plan, "L1": plan}) == Rates(samples=pytest.approx(2 * 10.0),
+                                                                         readings=pytest.approx(2 * 0.5))

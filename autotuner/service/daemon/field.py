@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -35,7 +36,7 @@ from autotuner.engine.experiment.relay import Status
 from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.config import LoopConfig
 from autotuner.service.daemon.analyses import AnalysisWorkers
-from autotuner.service.daemon.capacity import Cost
+from autotuner.service.daemon.capacity import Cost, Rates
 from autotuner.service.daemon.reach import connector, fresh_check, simulated_plc
 from autotuner.service.daemon.restore import Pending, Restored, restore_once
 from autotuner.service.daemon.timing import FLUSH_PERIOD, TimingBatch, Timings
@@ -128,13 +129,12 @@ class Field(Protocol):
         """End everything: the watches, then the simulated plants (after the sessions have ended)."""
 
 
-def nominal_rate(loops: list[LoopConfig], sessions: dict[str, SessionPlan]) -> float:
-    """Samples per second (wall) of ``sessions`` (by loop id) and of the monitor of the other ``loops``."""
-    rate = 0.0
-    for loop in loops:
-        plan = sessions.get(loop.id)
-        rate += 1.0 / loop.monitor_period if plan is None else plan.speed / plan.ts
-    return rate
+def nominal_rate(loops: list[LoopConfig], sessions: dict[str, SessionPlan]) -> Rates:
+    """Samples per second (wall) of ``sessions`` (by loop id), and readings per second of the monitor of the other
+    ``loops``."""
+    samples = sum(plan.speed / plan.ts for loop_id, plan in sessions.items())
+    readings = sum(1.0 / loop.monitor_period for loop in loops if loop.id not in sessions)
+    return Rates(samples, readings)
 
 
 @dataclass(frozen=True)
@@ -404,8 +404,8 @@ class LocalField:
         while True:
             await asyncio.sleep(FLUSH_PERIOD)
             batch = self._timings.take()
-            self.cost.update(batch.cpu, batch.late.count + batch.readings)
-            batch.cost = self.cost.per_sample
+            self.cost.update(batch.cpu, batch.late.count, batch.readings)
+            batch.cost = dataclasses.replace(self.cost)
             if self._sink is not None:
                 self._sink.timings(batch)
 

@@ -322,7 +322,8 @@ class _FromSampler:
         self.shard, self.sink = shard, sink
 
     def timings(self, batch: TimingBatch) -> None:
-        self.shard.cost.per_sample = batch.cost
+        if batch.cost is not None:
+            self.shard.cost = batch.cost
         self.sink.timings(batch)
 
     def __getattr__(self, name: str) -> Any:

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from autotuner.service.daemon.capacity import Cost
+
 # Bucket bounds: 20 per decade from 10 µs to 1000 s (a percentile read from them is within 6 % of the sample's).
 PER_DECADE = 20
 BOUNDS = 10.0 ** (np.arange(-5 * PER_DECADE, 3 * PER_DECADE + 1) / PER_DECADE)
@@ -80,7 +82,8 @@ class TimingBatch:
     samples late enough by the field's own fault to hurt an experiment (``overloaded``) and per loop the worst
     of them (``worst``, seconds); ``analysis``: the CPU seconds of each period's analysis; ``readings``: the
     monitor's readings; ``cpu``: the CPU seconds the field's process (and its analyses) spent meanwhile; ``cost``: the field's
-    estimate of its CPU seconds per sample (:mod:`~autotuner.service.daemon.capacity`)."""
+    estimate of its CPU seconds per sample and per reading (:mod:`~autotuner.service.daemon.capacity`; None: not
+    yet)."""
 
     late: Histogram = field(default_factory=Histogram)
     own: Histogram = field(default_factory=Histogram)
@@ -89,7 +92,7 @@ class TimingBatch:
     worst: dict[str, float] = field(default_factory=dict)
     readings: int = 0
     cpu: float = 0.0
-    cost: float = 0.0
+    cost: Cost | None = None
 
 
 class Timings:
