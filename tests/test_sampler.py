@@ -234,7 +234,7 @@ def test_tune_is_refused_up_front_when_its_sampler_would_need_more_than_its_shar
         try:
             with pytest.raises(Refused) as refused:
                 await manager.request_tune("A", TuneRequest(), "test")
-            return refused.value, manager.field.load("A")
+            return refused.value, manager.field.load("A", {})
         finally:
             await manager.stop()
 
@@ -242,6 +242,34 @@ def test_tune_is_refused_up_front_when_its_sampler_would_need_more_than_its_shar
     assert refused.code == "overloaded" and refused.ite == Code.REFUSED_OVERLOADED
     assert "would need 4 % of a core" in refused.message.replace("4%", "4 %") and "sampler_load 1%" in refused.message
     assert idle < 0.01  # the monitor alone: one reading a second
+
+
+def test_tunes_asked_all_at_once_are_each_judged_with_the_others_started_before_it():
+    async def scenario() -> list[object]:
+        loops = [{"id": f"L{k}", "sim": {"plant": PLANT}, "ts": 0.05, "speed": 5.0, "tuning": {"amp": 1.0}}
+                 for k in range(10)]
+        # Each session: 100 samples a second at the assumed 400 µs, 4 % of a core; the idle loops' readings at the
+        # assumed 100 µs each, 0.01 % a loop. Within 20 %: four sessions (16.06 %), not five (20.05 %).
+        config = DaemonConfig.model_validate({"history": ":memory:", "samplers": 0, "sampler_load": 0.2,
+                                              "loops": loops})
+        manager = LoopManager(config, History(":memory:"))
+        await manager.start()
+        try:
+            answers = await asyncio.gather(*(manager.request_tune(f"L{k}", TuneRequest(), "test")
+                                             for k in range(10)), return_exceptions=True)
+            for loop in manager.loops.values():
+                if loop.busy:
+                    manager.abort(loop.config.id)
+            await until(lambda: not any(loop.busy for loop in manager.loops.values()), 120.0, "the sessions to end")
+            return answers
+        finally:
+            await manager.stop()
+
+    answers = asyncio.run(scenario())
+    started = [a for a in answers if isinstance(a, str)]
+    refused = [a for a in answers if isinstance(a, Refused)]
+    assert len(started) == 4 and len(refused) == 6, answers
+    assert all(r.code == "overloaded" and r.ite == Code.REFUSED_OVERLOADED for r in refused)
 
 
 def test_a_second_daemon_on_the_same_sqlite_history_exits_2_naming_the_file_and_the_first(tmp_path, plc):

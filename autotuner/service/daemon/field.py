@@ -106,9 +106,9 @@ class Field(Protocol):
         """TBRK: abort session ``sid`` of the loop, at once or as soon as it starts here (an abort may arrive
         before the session's own start, never after its end matters)."""
 
-    def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
-        """The share of a core the loop's sampler is predicted to need (:mod:`~autotuner.service.daemon.capacity`),
-        with a session of ``plan`` on the loop added (None: as it runs now)."""
+    def load(self, loop_id: str, sessions: dict[str, SessionPlan]) -> float:
+        """The share of a core the sampler of ``loop_id`` is predicted to need (:mod:`~autotuner.service.daemon.capacity`)
+        with ``sessions`` running (loop id → plan: every session of the daemon; those of the sampler's loops count)."""
 
     def cap(self, seconds: float) -> None:
         """No hand-back try of a running session starts later than ``seconds`` wall seconds from now."""
@@ -130,9 +130,10 @@ class Field(Protocol):
 
 
 def nominal_rate(loops: list[LoopConfig], sessions: dict[str, SessionPlan]) -> Rates:
-    """Samples per second (wall) of ``sessions`` (by loop id), and readings per second of the monitor of the other
-    ``loops``."""
-    samples = sum(plan.speed / plan.ts for loop_id, plan in sessions.items())
+    """Samples per second (wall) of the ``sessions`` (by loop id) of ``loops``, and readings per second of the monitor
+    of their other loops."""
+    ours = {loop.id for loop in loops}
+    samples = sum(plan.speed / plan.ts for loop_id, plan in sessions.items() if loop_id in ours)
     readings = sum(1.0 / loop.monitor_period for loop in loops if loop.id not in sessions)
     return Rates(samples, readings)
 
@@ -346,10 +347,7 @@ class LocalField:
         """The sessions running now: session id by loop id."""
         return dict(self._sids)
 
-    def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
-        sessions = {loop: p for loop, (_, p) in self._sessions.items()}
-        if plan is not None:
-            sessions[loop_id] = plan
+    def load(self, loop_id: str, sessions: dict[str, SessionPlan]) -> float:
         return self.cost.load(nominal_rate([r.config for r in self.reaches.values()], sessions))
 
     def abort(self, loop_id: str, sid: str) -> None:

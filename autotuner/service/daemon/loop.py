@@ -22,7 +22,7 @@ from autotuner.service.daemon.recorder import HistoryHealth
 from autotuner.service.daemon.restore import Pending
 from autotuner.service.daemon.settings import settings_of
 from autotuner.service.daemon.status import BoundsRecord, LoopStatus, OwnerRecord, UnitsRecord
-from autotuner.service.link_session import not_restored
+from autotuner.service.link_session import SessionPlan, not_restored
 
 
 @dataclass
@@ -41,6 +41,7 @@ class Session:
     mv_range: tuple[float, float] | None = None
     intended: Gains | None = None
     restore_error: str | None = None  # None: the hand-back has not reported yet
+    plan: SessionPlan | None = None  # what it runs (its samples per second count in the admission)
 
 
 @dataclass

@@ -381,7 +381,11 @@ class LoopManager:
         if self.max_sessions is not None and tuning >= self.max_sessions:
             raise Refused("overloaded", f"loop {loop_id!r} not tuned: the daemon tunes {tuning} loops, its "
                           f"max_sessions; retry when one has ended", Code.REFUSED_OVERLOADED)
-        if (load := self.field.load(loop_id, plan)) > self.sampler_load:
+        # Every session started, the ones whose task has not reached its sampler yet too: a hundred TUNEs asked at
+        # once are each judged with the others.
+        sessions = {other.config.id: other.running.plan for other in self.loops.values()
+                    if other.running is not None and other.running.plan is not None}
+        if (load := self.field.load(loop_id, {**sessions, loop_id: plan})) > self.sampler_load:
             raise Refused("overloaded", f"loop {loop_id!r} not tuned: with it, its sampler would need {load:.0%} of "
                           f"a core, beyond its sampler_load {self.sampler_load:.0%} ({tuning} loops tuning); retry "
                           "when fewer tune", Code.REFUSED_OVERLOADED)
@@ -401,7 +405,8 @@ class LoopManager:
         self.recorder.record(self.history.begin, sid, loop_id, user, settings.as_json())  # before the session's
         loop.session, loop.status, loop.result = sid, None, None
         loop.events.trend.start(sid)
-        loop.running = Session(sid, start=time.monotonic())
+        loop.running = Session(sid, start=time.monotonic(),
+                               plan=plan_of(loop.config, settings, self.handback_config.session()))
         loop.running.task = asyncio.create_task(self._session(loop, loop.running, user, settings))
         self._publish(loop, "state", loop.as_json())
         return sid
@@ -530,7 +535,8 @@ class LoopManager:
     async def _session(self, loop: Loop, running: Session, user: str, settings: Settings) -> None:
         """Run the session in the field; record its end (:meth:`_ended`), whatever way it ends."""
         sid, loop_id = running.sid, loop.config.id
-        plan = plan_of(loop.config, settings, self.handback_config.session())
+        plan = running.plan
+        assert plan is not None, "a session is started with its plan"
         outcome: SessionOutcome | None = None
         state, why_none = "finished", "aborted: the daemon stopped"
         try:

@@ -219,7 +219,6 @@ class _Shard:
     def __init__(self, number: int, loops: list[LoopConfig]) -> None:
         self.number, self.loops = number, loops
         self.cost = Cost()  # the sampler's own estimate, from its timings
-        self.sessions: dict[str, SessionPlan] = {}  # running here, by loop id
         self.served: dict[str, Lease] = {}  # a fleet's loops served here and their leases
         self.process: subprocess.Popen[bytes] | None = None
         self.peer: Peer | None = None
@@ -413,16 +412,10 @@ class SamplerField:
             raise Refused("link_unhealthy", f"loop {loop_id!r} not tuned: {exc}", Code.REFUSED_LINK) from None
 
     async def run(self, loop_id: str, sid: str, user: str, plan: SessionPlan) -> SessionOutcome:
-        shard = self._of[loop_id]
-        shard.sessions[loop_id] = plan
-        try:
-            return await shard.call("run", loop_id, sid, user, plan)
-        finally:
-            del shard.sessions[loop_id]
+        return await self._of[loop_id].call("run", loop_id, sid, user, plan)
 
-    def load(self, loop_id: str, plan: SessionPlan | None = None) -> float:
+    def load(self, loop_id: str, sessions: dict[str, SessionPlan]) -> float:
         shard = self._of[loop_id]
-        sessions = shard.sessions if plan is None else {**shard.sessions, loop_id: plan}
         return shard.cost.load(nominal_rate(shard.loops, sessions))
 
     def abort(self, loop_id: str, sid: str) -> None:
