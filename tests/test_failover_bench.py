@@ -19,7 +19,7 @@ WAIT = 240.0  # s: a run of the tiny size on a loaded machine
 
 
 def _bench(log: Path, *extra: str) -> subprocess.Popen[bytes]:
-    """``autotuner failover`` of 2 daemons sharing 4 loops, one loop of the victim tuned; stdout and stderr in ``log``."""
+    """``autotuner failover``: 2 daemons sharing 4 loops, one loop of the victim tuned; its output in ``log``."""
     with open(log, "w") as out:
         return subprocess.Popen([sys.executable, "-m", "autotuner.cli", "failover", "--daemons", "2", "--loops", "4",
                                  "--tuning", "1", "--lease", f"{LEASE:g}", "--speed", "5", *extra],
