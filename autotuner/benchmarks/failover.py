@@ -359,7 +359,7 @@ def _await_running(api: _Api, port: int, sessions: dict[str, str], limit: float,
             running = sum(s["tbsy"] for s in status)
             at_relay = sum(s["tbsy"] and s["stage"] == "relay" for s in status)
             seen |= {s["id"] for s in status if s["stage"] in ("relay", "done")}
-        time.sleep(POLL)
+        time.sleep(2.5 * POLL)  # (every loop's status: not too often, the daemon has its tunings to run)
     return running, at_relay, time.monotonic() - start
 
 
