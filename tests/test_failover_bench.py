@@ -10,9 +10,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 from autotuner.service.channel import descendants
+from test_handback import wait_for
 
 LEASE = 4.0
 WAIT = 240.0  # s: a run of the tiny size on a loaded machine
@@ -24,15 +24,6 @@ def _bench(log: Path, *extra: str) -> subprocess.Popen[bytes]:
         return subprocess.Popen([sys.executable, "-m", "autotuner.cli", "failover", "--daemons", "2", "--loops", "4",
                                  "--tuning", "1", "--lease", f"{LEASE:g}", "--speed", "5", *extra],
                                 stdout=out, stderr=subprocess.STDOUT)
-
-
-def _wait_for(predicate: Any, timeout: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout
-    while not (value := predicate()):
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
-        time.sleep(0.2)
-    return value
 
 
 def _identity(pid: int) -> tuple[str, str] | None:
@@ -87,7 +78,7 @@ def test_sigterm_stops_every_process_the_benchmark_started(tmp_path):
     log = tmp_path / "bench.log"
     bench = _bench(log)
     try:
-        _wait_for(lambda: "split evenly" in log.read_text() or bench.poll() is not None, WAIT, "the loops split")
+        wait_for(lambda: "split evenly" in log.read_text() or bench.poll() is not None, WAIT, "the loops split")
         assert bench.poll() is None, log.read_text()
         port = re.search(r"PostgreSQL server of its own:\s+\S+@127\.0\.0\.1:(\d+)/", log.read_text()).group(1)
         started = {pid: _identity(pid) for pid in [*descendants(bench.pid), *_postgres_server(port)]}
