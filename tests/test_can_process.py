@@ -23,7 +23,8 @@ import httpx
 import pytest
 
 from autotuner.engine.outcome import Code
-from drivers.can_link import CanLink
+from drivers.can_bus import open_bus
+from drivers.can_link import CanLink, encode, epoch_to_wire
 from drivers.link import Fenced, Mode, TuneFlags, Watchdog
 from helpers import free_port
 from test_handback import PLC_TS, SAVED_MV, AMP, SPEED, START, TOKEN, WAIT, wait_for
@@ -146,7 +147,14 @@ def test_the_node_of_a_process_of_its_own_fences_an_older_epoch_and_the_link_lea
             wait_for(lambda: reader.read()["ite"] == 3.0, WAIT, "the old owner's flags")
             reader._call(new.write_flags(TuneFlags(tbsy=True, ite=4.0)))  # the new owner's first frame
             wait_for(lambda: reader.read()["ite"] == 4.0, WAIT, "the new owner's flags")
-            reader._call(old.write_flags(TuneFlags(te=True, ite=22.0)))  # already on its way: ignored
+            # The old owner's flags already on their way (sent by a bus of this test's own: the old link, once the
+            # node has reported epoch 6, sends nothing more): ignored, and reported.
+            frame = encode(old.db, "AT_CmdFlags", {"TBSY": 0, "TE": 1, "ITE": 22.0, "Epoch": epoch_to_wire(5, 24)})
+            raw = open_bus("udp_multicast", old.channel, **old.bus_kwargs)
+            try:
+                raw.send(frame)
+            finally:
+                raw.shutdown()
             wait_for(lambda: old.reported_epoch == (6, 1), WAIT, "the node's report of its fence")
             for write in (old.write_flags(TuneFlags(te=True, ite=22.0)), old.write_watchdog(Watchdog(0.0, 0.0))):
                 with pytest.raises(Fenced, match="has seen lease epoch 6, newer than this daemon.s epoch 5"):

@@ -10,14 +10,14 @@ Once the loops are split evenly, ``tuning`` loops of the first daemon are
 tuned through its API; every answer is kept (a 409 ``overloaded`` is a
 result, not a hang). Once each accepted tuning has been seen at its relay
 (or has ended already: not all at once), or after ``relay_wait`` seconds
-whatever they do, that daemon — its process
-group: the daemon and its sampler — gets SIGKILL; how many were running,
-and how many at their relay, is reported. Measured from then, through a
-survivor's ``GET /fleet`` (polled every 0.2 s): when each of its loops has a
-live owner again (p50, p99, max, seconds), how many never did within
-``lease + 120`` s; and, from the shared history, how each accepted session
-was recorded and how many of the interrupted ones (that had touched their
-loop) a survivor handed back or found back.
+whatever they do, that daemon — its process group: the daemon and its
+sampler — gets SIGKILL; how many were running, and how many at their
+relay, is reported. Measured from then, through the survivors' ``GET
+/fleet`` (polled every 0.2 s): when each of its loops has a live owner
+again (p50, p99, max, seconds), how many never did within ``lease + 120``
+s; and, from the shared history, how each accepted session is recorded
+(state, code, and how the new owner dealt with its loop: restored, found
+back, …) once every record is final (or after two minutes, as it is).
 
 Every process the run starts is stopped when it ends, however it ends: a
 result, an error, SIGTERM or SIGINT (the daemons and the plant by their
@@ -56,7 +56,7 @@ LOOP_TS = 0.3  # the loops' experiment sample time, plant seconds
 START_WAIT = 180.0  # s: a plant serving, the loops split
 STOP_WAIT = 20.0  # s: a child stopping on SIGTERM before it gets SIGKILL
 POLL = 0.2  # s between two looks at the fleet
-RECORD_WAIT = 120.0  # s after the takeovers for the interrupted sessions to be recorded and restored
+RECORD_WAIT = 120.0  # s after the takeovers for the interrupted sessions' records to be final
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,7 @@ class FailoverResult:
     """What a run measured: the victim's loops; the answers to its TUNEs (``"202"``, ``"409 overloaded"``, … →
     count); its sessions running (TBSY) and at their relay at the kill, ``waited`` s after the TUNEs; each of its
     loops' time to a new owner (s, those owned again); how its accepted sessions are recorded in the history
-    (``"interrupted, code 1"`` … → count); how many interrupted ones were handed back or found back."""
+    (``"interrupted, code 1: loop restored to AUTO"`` … → count)."""
 
     spec: FailoverSpec
     victim_loops: int
@@ -92,7 +92,6 @@ class FailoverResult:
     waited: float
     times: tuple[float, ...]
     records: dict[str, int]
-    restored: int
 
     def percentile(self, q: float) -> float:
         """The ``q``-th percentile of the takeover times, s (NaN if no loop was owned again)."""
@@ -104,9 +103,14 @@ class FailoverResult:
         return self.victim_loops - len(self.times)
 
     @property
-    def to_restore(self) -> int:
-        """The accepted sessions the kill interrupted after they had touched their loop (a loop to hand back)."""
-        return sum(n for key, n in self.records.items() if not key.startswith("finished") and "untouched" not in key)
+    def interrupted(self) -> int:
+        """The accepted sessions the kill interrupted (not recorded as finished by the victim itself)."""
+        return sum(n for key, n in self.records.items() if not key.startswith("finished"))
+
+    @property
+    def dealt_with(self) -> int:
+        """The interrupted sessions whose loops their new owner has dealt with (the record final: ``interrupted``)."""
+        return sum(n for key, n in self.records.items() if key.startswith("interrupted"))
 
 
 class _Signals:
@@ -297,11 +301,9 @@ def _run(spec: FailoverSpec, database: str, procs: _Processes, api: _Api,
     times = _takeovers(api, ports[1:], mine, killed, spec.lease + 120.0, procs)
     progress(f"{len(times)}/{len(mine)} loops of d0 owned again, the last {max(times.values(), default=0):.1f} s "
              f"after the kill")
-    records, restored = _recorded(api, ports[1:], sessions, procs)
-    progress(f"sessions recorded: {records}; {restored} handed back or found back; load average "
-             f"{os.getloadavg()[0]:.2f}")
-    return FailoverResult(spec, len(mine), counts, running, at_relay, waited, tuple(sorted(times.values())), records,
-                          restored)
+    records = _recorded(api, ports[1], sessions, procs)
+    progress(f"sessions recorded: {records}; load average {os.getloadavg()[0]:.2f}")
+    return FailoverResult(spec, len(mine), counts, running, at_relay, waited, tuple(sorted(times.values())), records)
 
 
 def _start(spec: FailoverSpec, database: str, procs: _Processes, progress: Callable[[str], None]) -> list[int]:
@@ -383,37 +385,29 @@ def _takeovers(api: _Api, ports: list[int], mine: list[str], killed: float, limi
     return taken
 
 
-def _recorded(api: _Api, ports: list[int], sessions: dict[str, str], procs: _Processes) -> tuple[dict[str, int], int]:
-    """How the sessions (loop → id) are recorded in the history (state, code → count; those the kill interrupted
-    before they touched their loop marked so) once none is left running or not restored (or after RECORD_WAIT s: as
-    they are then), and how many of the interrupted ones that touched their loop it has handed back or found back
-    (no restore pending, as the loop's new owner shows it)."""
+def _recorded(api: _Api, port: int, sessions: dict[str, str], procs: _Processes) -> dict[str, int]:
+    """How the sessions (loop → id) are recorded in the history, read through the daemon at ``port`` (state, code
+    and how the loop was dealt with → count), once every record is final — finished, or interrupted and its loop
+    handed back, found back or left as an operator set it (the new owner appends how) — or as they are after
+    RECORD_WAIT s (``not_restored``: its loop not handed back yet)."""
     deadline = time.monotonic() + RECORD_WAIT
     while True:
         procs.check()
         try:
-            records = {loop_id: _record(api, ports[0], loop_id, sid) for loop_id, sid in sessions.items()}
-            if all(r["state"] in ("finished", "interrupted") for r in records.values()) \
-                    or time.monotonic() > deadline:
-                break
+            records = [_record(api, port, loop_id, sid) for loop_id, sid in sessions.items()]
+            if all(r["state"] in ("finished", "interrupted") for r in records) or time.monotonic() > deadline:
+                return dict(sorted(Counter(_how(r) for r in records).items()))
         except httpx.HTTPError:
             if time.monotonic() > deadline:
-                raise RuntimeError(f"the survivors' history did not answer within {RECORD_WAIT:g} s") from None
+                raise RuntimeError(f"the survivors did not answer within {RECORD_WAIT:g} s") from None
         time.sleep(1.0)
-    keys = Counter(f"{r['state']}, code {r['code']}" + (" (loop untouched)" if _untouched(r) else "")
-                   for r in records.values())
-    restored = 0
-    for loop_id, r in records.items():
-        if r["state"] != "finished" and not _untouched(r):
-            owner = api.get(ports[0], f"/loops/{loop_id}")["owner"]
-            status = api.get(int(owner["url"].rsplit(":", 1)[1]), f"/loops/{loop_id}") if owner else None
-            restored += status is not None and status["restore"] is None and status["session"] == sessions[loop_id]
-    return dict(sorted(keys.items())), restored
 
 
-def _untouched(record: dict[str, Any]) -> bool:
-    """Whether a session's record says it was interrupted before it touched its loop (nothing to restore)."""
-    return "before it touched the loop" in (record.get("message") or "")
+def _how(record: dict[str, Any]) -> str:
+    """A session's record in a few words: its state, code and what its message ends with, the MV left out
+    (``interrupted, code 1: loop restored to AUTO``)."""
+    last = (record.get("message") or "").rsplit("; ", 1)[-1]
+    return f"{record['state']}, code {record['code']}: {last.split(' with MV')[0]}"
 
 
 def _record(api: _Api, port: int, loop_id: str, sid: str) -> dict[str, Any]:
@@ -423,7 +417,8 @@ def _record(api: _Api, port: int, loop_id: str, sid: str) -> dict[str, Any]:
 
 
 HEADERS = ["daemons", "loops", "lease s", "loops of the killed daemon", "TUNE answers", "running at the kill",
-           "owned again p50 s", "p99 s", "max s", "not owned again", "sessions recorded", "restored"]
+           "owned again p50 s", "p99 s", "max s", "not owned again", "sessions recorded",
+           "interrupted, dealt with"]
 
 
 def table_rows(results: list[FailoverResult]) -> list[list[str]]:
@@ -432,7 +427,7 @@ def table_rows(results: list[FailoverResult]) -> list[list[str]]:
              ", ".join(f"{answer}: {n}" for answer, n in r.answers.items()),
              f"{r.running} ({r.at_relay} at the relay)", f"{r.percentile(50):.1f}", f"{r.percentile(99):.1f}",
              f"{r.percentile(100):.1f}", str(r.unowned), ", ".join(f"{key}: {n}" for key, n in r.records.items()),
-             f"{r.restored}/{r.to_restore}"] for r in results]
+             f"{r.dealt_with}/{r.interrupted}"] for r in results]
 
 
 def markdown(results: list[FailoverResult]) -> str:
