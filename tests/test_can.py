@@ -604,9 +604,9 @@ def test_a_short_epoch_reads_back_as_the_epoch_nearest_the_newest(bits):
                 continue
             value = epoch_to_wire(epoch, bits)
             assert 1 <= value <= modulus
-            # Independently: of the epochs with this residue, the one nearest the newest.
-            near = min((e for e in range(newest - modulus, newest + modulus + 1) if e % modulus == value - 1),
-                       key=lambda e: abs(e - newest))
+            # Independently: of the epochs with this residue (every one within a modulus of the newest), the nearest.
+            residue = [value - 1 + k * modulus for k in range(newest // modulus - 2, newest // modulus + 3)]
+            near = min((e for e in residue if abs(e - newest) <= modulus), key=lambda e: abs(e - newest))
             assert epoch_from_wire(value, bits, newest) == near == epoch, (newest, epoch)
     assert epoch_to_wire(None, bits) == epoch_to_wire(0, bits) == 0 and epoch_from_wire(0, bits, 9) == 0
     assert epoch_to_wire(70000, 32) == epoch_from_wire(70000, 32, 5) == 70000  # a full signal: the epoch itself
