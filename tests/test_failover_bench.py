@@ -1,30 +1,34 @@
 """The failover benchmark (``autotuner failover``, docs/fleet.md) as a process: a tiny run measures a takeover that
-honours the lease, and SIGTERM while it runs stops every process it started (daemons, their samplers, the plant,
-the PostgreSQL server) before it exits."""
+honours the lease; SIGTERM, SIGINT or an error (a daemon of its own dying) while it runs, and it stops every process
+it started (the daemons, their samplers, the plant, the PostgreSQL server) before it exits."""
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
+import pytest
+
 from autotuner.engine.outcome import Code
-from autotuner.service.channel import descendants
 from test_handback import wait_for
 
 LEASE = 4.0
+MARK = "AUTOTUNER_FAILOVER_TEST"  # an environment variable the benchmark's processes inherit: how the test finds them
 WAIT = 240.0  # s: a run of the tiny size on a loaded machine
 
 
-def _bench(log: Path, *extra: str) -> subprocess.Popen[bytes]:
+def _bench(log: Path, *extra: str, env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
     """``autotuner failover``: 2 daemons sharing 4 loops, one loop of the victim tuned; its output in ``log``."""
     with open(log, "w") as out:
         return subprocess.Popen([sys.executable, "-m", "autotuner.cli", "failover", "--daemons", "2", "--loops", "4",
                                  "--tuning", "1", "--lease", f"{LEASE:g}", "--speed", "5", *extra],
-                                stdout=out, stderr=subprocess.STDOUT)
+                                stdout=out, stderr=subprocess.STDOUT, env=env)
 
 
 def _identity(pid: int) -> tuple[str, str] | None:
@@ -76,32 +80,53 @@ def test_a_tiny_run_measures_the_takeover_within_the_lease_and_records_the_sessi
     assert fields["interrupted, dealt with"] == "1/1", text
 
 
-def test_sigterm_stops_every_process_the_benchmark_started(tmp_path):
-    log = tmp_path / "bench.log"
-    bench = _bench(log)
+def _marked(mark: str, but: int) -> dict[int, str]:
+    """The live processes (not zombies) other than ``but`` whose environment holds ``MARK=mark``: the benchmark's
+    children and theirs inherit it, wherever they were re-parented; pid → command line."""
+    found = {}
+    for environ in Path("/proc").glob("[0-9]*/environ"):
+        pid = int(environ.parent.name)
+        try:
+            marked = f"{MARK}={mark}".encode() in environ.read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if marked and pid != but and (ident := _identity(pid)):
+            found[pid] = ident[1]
+    return found
+
+
+@pytest.mark.parametrize("ending", ["SIGTERM", "SIGINT", "a daemon dies"])
+def test_every_process_the_benchmark_started_is_stopped_however_it_ends(tmp_path, ending):
+    log, mark = tmp_path / "bench.log", uuid.uuid4().hex
+    bench = _bench(log, env={**os.environ, MARK: mark})
     try:
         wait_for(lambda: "split evenly" in log.read_text() or bench.poll() is not None, WAIT, "the loops split")
         assert bench.poll() is None, log.read_text()
         port = re.search(r"PostgreSQL server of its own:\s+\S+@127\.0\.0\.1:(\d+)/", log.read_text()).group(1)
-        started = {pid: _identity(pid) for pid in [*descendants(bench.pid), *_postgres_server(port)]}
-        commands = [ident[1] for ident in started.values() if ident]
-        # What it started, seen running: two daemons (and their samplers), the plant, the PostgreSQL server.
+        commands = list(_marked(mark, bench.pid).values())
+        # What it started, seen running: two daemons and their samplers, the plant, the PostgreSQL server.
         assert sum(" serve --config " in c for c in commands) == 2, commands
         assert sum(" sim --loops 4 " in c for c in commands) == 1, commands
         assert sum("autotuner.service.daemon.sampler" in c for c in commands) >= 2, commands
         assert _postgres_server(port), commands
-    finally:
-        bench.send_signal(signal.SIGTERM)
+        if ending == "a daemon dies":
+            d1 = next(pid for pid, c in _marked(mark, bench.pid).items() if " serve " in c and "/d1.yaml " in c)
+            os.killpg(d1, signal.SIGKILL)  # the daemon and its sampler: the benchmark's own error, not a signal to it
+        else:
+            bench.send_signal(getattr(signal, ending))
         code = bench.wait(90)
-    assert code == 128 + signal.SIGTERM, log.read_text()
-    assert "stopped by signal 15" in log.read_text()
-
-    def remaining() -> list[str]:
-        return [ident[1] for pid, ident in started.items() if ident and _identity(pid) == ident]
-
+    finally:
+        if bench.poll() is None:
+            bench.send_signal(signal.SIGTERM)
+            bench.wait(90)
+    text = log.read_text()
+    if ending == "a daemon dies":  # an error: named, exit 1
+        assert code == 1 and f"d1 exited with code {-signal.SIGKILL}" in text, text
+    else:
+        assert code == 128 + getattr(signal, ending) and f"stopped by signal {getattr(signal, ending)}" in text, text
     # Killed ones may take a moment to go (SIGKILL is delivered asynchronously).
     deadline = time.monotonic() + 10.0
-    while remaining() and time.monotonic() < deadline:
+    while _marked(mark, bench.pid) and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert not remaining()
+    assert not _marked(mark, bench.pid)
     assert not _postgres_server(port)
