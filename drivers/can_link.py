@@ -41,7 +41,7 @@ import cantools
 from autotuner.engine.control.gains import Gains
 
 from . import can_bus
-from .link import BadValue, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog, checked, float32_step
+from .link import BadValue, Fenced, LinkError, LoopState, Mode, Sample, TuneFlags, Watchdog, checked, float32_step
 
 #: Frames the node sends (cyclic status, gains on request) and the link reads.
 PROCESS, STATUS, SETPOINT = "AT_Process", "AT_Status", "AT_Setpoint"
@@ -52,11 +52,16 @@ CMD_GAINS = ("AT_CmdGains1", "AT_CmdGains2", "AT_CmdGains3")
 CMD_APPLY, REQUEST = "AT_CmdGainsApply", "AT_Request"
 #: Optional frames of the hand-back watchdog (a DBC without them: the device has no watchdog).
 CMD_WATCHDOG, HEARTBEAT = "AT_CmdWatchdog", "AT_Heartbeat"
-#: The signal of a fleet's lease epoch (optional): in the command frames that move the loop, and the heartbeat. A
-#: frame carries no sender: the node fences by content, ignoring a frame whose epoch is older than the newest seen.
+#: The signal of a fleet's lease epoch (optional): in every command frame that moves the loop, the watchdog's
+#: frames included. A frame carries no sender: the node fences by content, ignoring a frame whose epoch is older
+#: than the newest seen. A signal shorter than 32 bits (the frames with no room for more) carries it short
+#: (:func:`epoch_to_wire`).
 EPOCH = "Epoch"
-EPOCH_FRAMES = (CMD_MV, CMD_MODE, CMD_APPLY)
+EPOCH_FRAMES = (CMD_MV, CMD_MODE, CMD_FLAGS, CMD_APPLY)
 WATCHDOG_SIGNALS: dict[str, tuple[str, ...]] = {CMD_WATCHDOG: ("WdMV", "WdTime", "WdMode"), HEARTBEAT: ("Counter",)}
+#: The node's report of its fence (optional frame): the newest epoch it has seen, the frames it ignored so far.
+FENCE = "AT_Fence"
+FENCE_SIGNALS = ("Epoch", "Fenced")
 
 #: Every message name a DBC must define, with the signals each must carry.
 REQUIRED: dict[str, tuple[str, ...]] = {
@@ -99,6 +104,29 @@ def bus_time(timestamp: float, arrival: float, wall_offset: float) -> float:
     return arrival
 
 
+def epoch_to_wire(epoch: int | None, bits: int) -> int:
+    """The value of an ``Epoch`` signal of ``bits`` bits for the lease ``epoch`` (None or 0: no fleet, sent as 0).
+
+    A signal of 32 bits carries the epoch itself. A shorter one (AT_CmdFlags has 24 bits free, AT_CmdWatchdog 15)
+    carries ``1 + epoch mod (2**bits − 1)``: never 0 for an epoch, so 0 still means none, and the node takes it for
+    the epoch nearest the newest it has seen (:func:`epoch_from_wire`).
+    """
+    if not epoch:
+        return 0
+    return epoch if bits >= 32 else epoch % ((1 << bits) - 1) + 1
+
+
+def epoch_from_wire(value: int, bits: int, newest: int) -> int:
+    """The lease epoch an ``Epoch`` signal of ``bits`` bits carries (0: none): a short one
+    (:func:`epoch_to_wire`) read as the epoch nearest ``newest`` (the newest the node has seen; not 0) with that
+    residue — right while the sender's epoch is within (2**bits − 1) / 2 of it (16383 takeovers for 15 bits)."""
+    if value == 0 or bits >= 32:
+        return value
+    modulus = (1 << bits) - 1
+    ahead = (value - 1 - newest) % modulus
+    return newest + ahead if ahead <= modulus // 2 else newest + ahead - modulus
+
+
 def default_dbc() -> Path:
     """Path of the DBC shipped for the simulated PLC."""
     return Path(str(resources.files("drivers") / "data" / "autotuner.dbc"))
@@ -138,6 +166,14 @@ def has_watchdog(db: cantools.database.can.Database) -> bool:
         if not set(signals) <= have:
             return False
     return True
+
+
+def has_fence(db: cantools.database.can.Database) -> bool:
+    """Whether the DBC has the node's fence report (AT_Fence with its signals)."""
+    try:
+        return set(FENCE_SIGNALS) <= {s.name for s in db.get_message_by_name(FENCE).signals}
+    except KeyError:
+        return False
 
 
 def watchdog_limit(db: cantools.database.can.Database) -> float | None:
@@ -224,12 +260,13 @@ class CanLink:
         self.bus_kwargs = bus_kwargs
         self._shared: can_bus.SharedBus | None = None  # the bus, shared with the process's other links on it
         self._bus: can.BusABC | None = None  # its python-can bus while the link is open
-        # The frames with an Epoch signal (each sent with the link's epoch, 0 if none).
-        self._epoch_frames = frozenset(m.name for m in self.db.messages if any(g.name == EPOCH for g in m.signals))
+        # The frames with an Epoch signal (each sent with the link's epoch, 0 if none), and its length, bits.
+        self._epoch_bits = {m.name: g.length for m in self.db.messages for g in m.signals if g.name == EPOCH}
         #: The lease epoch the frames carry (a fleet's daemon sets it; None: none, sent as 0).
         self.epoch: int | None = None
+        reports = (FENCE,) if has_fence(self.db) else ()
         self._ids = {m.frame_id: m for m in self.db.messages
-                     if m.name in (PROCESS, STATUS, SETPOINT, *GAINS)}
+                     if m.name in (PROCESS, STATUS, SETPOINT, *GAINS, *reports)}
         self.frame_ids = frozenset(self._ids)
         # name -> (decoded signals, monotonic bus time: see bus_time)
         self._latest: dict[str, tuple[dict[str, Any], float]] = {}
@@ -360,14 +397,34 @@ class CanLink:
 
     @property
     def carries_epoch(self) -> bool:
-        """Whether the DBC's frames that move the loop (AT_CmdMV, AT_CmdMode, AT_CmdGainsApply) carry an Epoch."""
-        return all(name in self._epoch_frames for name in EPOCH_FRAMES)
+        """Whether every frame the link sends that moves the loop carries an Epoch: AT_CmdMV, AT_CmdMode,
+        AT_CmdFlags, AT_CmdGainsApply, and AT_CmdWatchdog and AT_Heartbeat where the DBC has them."""
+        needed = EPOCH_FRAMES + ((CMD_WATCHDOG, HEARTBEAT) if self._watchdog else ())
+        return all(name in self._epoch_bits for name in needed)
+
+    @property
+    def reported_epoch(self) -> tuple[int, int] | None:
+        """The node's last report of its fence (AT_Fence): (the newest lease epoch it has seen, the frames it ignored
+        so far); None: none received (or the DBC has no AT_Fence)."""
+        report = self._latest.get(FENCE)
+        return None if report is None else (int(report[0][EPOCH]), int(report[0]["Fenced"]))
+
+    def _fence(self) -> None:
+        """Fenced if the node reported a newer lease epoch than the link's: it ignores the link's frames."""
+        report = self.reported_epoch
+        if self.epoch is None or report is None or report[0] <= self.epoch:
+            return
+        raise Fenced(f"CAN node on {self.interface}/{self.channel} has seen lease epoch {report[0]}, newer than this "
+                     f"daemon's epoch {self.epoch} (another daemon took the loop over), and ignores its frames "
+                     f"({report[1]} ignored so far): nothing more is sent to it")
 
     async def _send(self, *frames: tuple[str, dict[str, Any]]) -> None:
         self._check()
-        epoch = {EPOCH: self.epoch or 0}
+        if any(name in self._epoch_bits for name, _ in frames):
+            self._fence()
         try:
-            messages = [encode(self.db, name, {**values, **epoch} if name in self._epoch_frames else values)
+            messages = [encode(self.db, name, {**values, EPOCH: epoch_to_wire(self.epoch, self._epoch_bits[name])}
+                               if name in self._epoch_bits else values)
                         for name, values in frames]
         except ValueError as exc:
             raise LinkError(str(exc)) from exc

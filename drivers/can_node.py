@@ -11,6 +11,9 @@ The node does not tick the PLC: run :func:`drivers.simplc.run` next to it
 (``period`` is in wall seconds, so for a plant run ``speed`` times faster than
 real time pass ``period = plc.ts / speed``).
 
+A fleet's fence (docs/can.md): a command frame whose ``Epoch`` is older than
+the newest the node has seen is ignored and reported at once (AT_Fence).
+
 Fault injection: ``node.silent = True`` stops every transmission (the node
 "goes silent"), while received commands are still applied, as with a node
 whose transmitter has failed; ``node.deaf = True`` ignores received commands.
@@ -31,9 +34,9 @@ from autotuner.engine.checks import finite
 from autotuner.engine.control.gains import Gains
 
 from .can_bus import RX_POLL, open_bus
-from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, CMD_WATCHDOG, EPOCH, GAINS,
-                       HEARTBEAT, PROCESS, REQUEST, SETPOINT, STATUS, encode, gains_from_wire, gains_to_wire,
-                       has_watchdog, load_dbc)
+from .can_link import (CMD_APPLY, CMD_FLAGS, CMD_GAINS, CMD_MODE, CMD_MV, CMD_SP, CMD_WATCHDOG, EPOCH, FENCE,
+                       GAINS, HEARTBEAT, PROCESS, REQUEST, SETPOINT, STATUS, encode, epoch_from_wire, gains_from_wire,
+                       gains_to_wire, has_fence, has_watchdog, load_dbc)
 from .link import LinkError, Mode, Watchdog
 from .simplc import SimulatedPlc
 
@@ -65,6 +68,9 @@ class CanPlcNode:
         if has_watchdog(self.db):
             names += (CMD_WATCHDOG, HEARTBEAT)
         self._cmds = {self.db.get_message_by_name(n).frame_id: self.db.get_message_by_name(n) for n in names}
+        # The length (bits) of each command frame's Epoch signal; whether the DBC has the fence's report frame.
+        self._epoch_bits = {m.name: g.length for m in self._cmds.values() for g in m.signals if g.name == EPOCH}
+        self._reports = has_fence(self.db)
         self._task: asyncio.Task[None] | None = None
         self._notifier: can.Notifier | None = None
 
@@ -124,6 +130,12 @@ class CanPlcNode:
         if gains:
             for name, values in zip(GAINS, gains_to_wire(plc.gains)):
                 self._send(name, values)
+            self.report_fence()
+
+    def report_fence(self) -> None:
+        """Send AT_Fence (where the DBC has it): the newest lease epoch seen, the frames ignored so far."""
+        if self._reports:
+            self._send(FENCE, {"Epoch": self.plc.epoch, "Fenced": self.plc.fenced % (1 << 32)})
 
     async def _cyclic(self) -> None:
         start = time.monotonic()
@@ -161,15 +173,21 @@ class CanPlcNode:
 
     def _superseded(self, name: str, v: dict[str, Any]) -> bool:
         """The fence of a fleet (docs/fleet.md): a frame whose Epoch (0: none, not fenced) is older than the newest
-        the node has seen is ignored (an apply drops the staged gains too), counted in ``plc.fenced`` and logged once
-        per epoch; a newer one becomes the newest."""
-        epoch = int(v.get(EPOCH, 0))
+        the node has seen is ignored (an apply drops the staged gains too), counted in ``plc.fenced``, logged once
+        per epoch and reported at once (AT_Fence); a newer one becomes the newest. A short Epoch
+        (:func:`~drivers.can_link.epoch_to_wire`) is read as the epoch nearest the newest; before any full one has
+        been seen (the newest 0) it fences nothing and sets nothing."""
         plc = self.plc
+        bits = self._epoch_bits.get(name, 32)
+        if bits < 32 and plc.epoch == 0:
+            return False
+        epoch = epoch_from_wire(int(v.get(EPOCH, 0)), bits, plc.epoch)
         if epoch >= plc.epoch or epoch == 0:
             plc.epoch = max(plc.epoch, epoch)
             return False
         plc.fenced += 1
         self.stats["fenced"] += 1
+        self.report_fence()
         if name == CMD_APPLY:
             self._staged = {}
         if epoch not in self._fenced_epochs:

@@ -24,7 +24,8 @@ class Fenced(LinkError):
     """The writer no longer holds the loop's lease: nothing more may be written to it (its new owner restores it).
 
     Raised before a write by a daemon whose lease has run out on its own clock, and by a link whose device refused a
-    write because it was written a newer lease epoch than the link's (docs/fleet.md)."""
+    write because it was written a newer lease epoch than the link's (a CAN node, which cannot answer a frame:
+    reported a newer epoch; docs/fleet.md)."""
 
 
 class BadValue(LinkError):

@@ -10,6 +10,7 @@ import math
 import struct
 import time
 
+import can
 import cantools
 import pytest
 
@@ -20,10 +21,11 @@ from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.service.remote_tuning import field_config
 from autotuner.service.link_session import HandBack, SessionPlan, tune_link
 from autotuner.engine.simulated_tuning import default_sample_time
-from drivers.can_link import (CMD_SP, EPOCH_FRAMES, REQUIRED, WATCHDOG_SIGNALS, CanLink, default_dbc, gains_from_wire,
-                              gains_to_wire, load_dbc, ti_from_wire, ti_to_wire)
+from drivers.can_link import (CMD_SP, EPOCH_FRAMES, FENCE, FENCE_SIGNALS, REQUIRED, WATCHDOG_SIGNALS, CanLink,
+                              default_dbc, epoch_from_wire, epoch_to_wire, gains_from_wire, gains_to_wire, load_dbc,
+                              ti_from_wire, ti_to_wire)
 from drivers.can_node import serve_can
-from drivers.link import LinkError, Mode, TuneFlags, Watchdog
+from drivers.link import Fenced, LinkError, Mode, TuneFlags, Watchdog
 from drivers.simplc import SimulatedPlc, run
 
 PLANT = "exp(-s)/(2*s+1)"
@@ -85,7 +87,7 @@ async def new_frames(link: CanLink, node) -> None:
 DB = cantools.database.load_file(str(default_dbc()))
 
 IDS = {
-    "AT_Process": 0x100, "AT_Status": 0x101, "AT_Setpoint": 0x102,
+    "AT_Process": 0x100, "AT_Status": 0x101, "AT_Setpoint": 0x102, "AT_Fence": 0x103,
     "AT_Gains1": 0x110, "AT_Gains2": 0x111, "AT_Gains3": 0x112,
     "AT_CmdMV": 0x200, "AT_CmdMode": 0x201, "AT_CmdSP": 0x202, "AT_CmdFlags": 0x203,
     "AT_CmdWatchdog": 0x204, "AT_Heartbeat": 0x205,
@@ -100,8 +102,9 @@ def test_default_dbc_ships_with_the_package_and_has_the_documented_ids():
     assert {m.name: m.frame_id for m in DB.messages} == IDS
     for m in DB.messages:
         assert not m.is_extended_frame and m.frame_id <= 0x7FF
-        epoch = {"Epoch"} if m.name in (*EPOCH_FRAMES, "AT_Heartbeat") else set()
-        assert {s.name for s in m.signals} == set({**REQUIRED, **WATCHDOG_SIGNALS}[m.name]) | epoch
+        epoch = {"Epoch"} if m.name in (*EPOCH_FRAMES, *WATCHDOG_SIGNALS) else set()
+        signals = {**REQUIRED, **WATCHDOG_SIGNALS, FENCE: FENCE_SIGNALS}[m.name]
+        assert {s.name for s in m.signals} == set(signals) | epoch
     load_dbc()  # passes its own check
 
 
@@ -146,9 +149,15 @@ def test_status_frame_layout():
 def test_command_bit_frames_layout():
     assert DB.encode_message("AT_CmdMode", {"Mode": 1, "Epoch": 3}) == b"\x01\0\0\0" + struct.pack("<I", 3)
     assert DB.decode_message(IDS["AT_CmdMode"], bytes(8), decode_choices=False) == {"Mode": 0, "Epoch": 0}
-    raw = bytes([0b10, 0, 0, 0]) + struct.pack("<f", 3.0)
-    assert DB.encode_message("AT_CmdFlags", {"TBSY": 0, "TE": 1, "ITE": 3.0}) == raw
-    assert DB.decode_message(IDS["AT_CmdFlags"], raw) == {"TBSY": 0, "TE": 1, "ITE": 3.0}
+    # The flags carry a short epoch in bytes 1-3 (24 bits), the watchdog in bits 49-63 (15 bits): docs/can.md.
+    raw = bytes([0b10, 0x56, 0x34, 0x12]) + struct.pack("<f", 3.0)
+    assert DB.encode_message("AT_CmdFlags", {"TBSY": 0, "TE": 1, "Epoch": 0x123456, "ITE": 3.0}) == raw
+    assert DB.decode_message(IDS["AT_CmdFlags"], raw) == {"TBSY": 0, "TE": 1, "Epoch": 0x123456, "ITE": 3.0}
+    raw = struct.pack("<fHH", 50.0, 200, 1 | 0x7ABC << 1)
+    values = {"WdMV": 50.0, "WdTime": 20.0, "WdMode": 1, "Epoch": 0x7ABC}
+    assert DB.encode_message("AT_CmdWatchdog", values) == raw
+    assert DB.decode_message(IDS["AT_CmdWatchdog"], raw, decode_choices=False) == values
+    assert DB.encode_message("AT_Fence", {"Epoch": 6, "Fenced": 70000}) == struct.pack("<II", 6, 70000)
     assert DB.encode_message("AT_CmdGainsApply", {"Apply": 1, "Epoch": 2**32 - 1}) == b"\x01\0\0\0\xff\xff\xff\xff"
     assert DB.encode_message("AT_Heartbeat", {"Counter": 0x1234, "Epoch": 5}) == b"\x34\x12\0\0\x05\0\0\0"
     assert DB.encode_message("AT_Request", {"All": 1}) == b"\x01"
@@ -585,26 +594,102 @@ def test_session_over_can_nan_pv():
     assert plc.mode is mode and plc.gains == gains
 
 
-def test_the_node_ignores_command_frames_of_an_older_lease_epoch():
-    """The fence of a fleet on CAN (docs/can.md): a frame names no sender, so the node fences by content — a command
-    whose Epoch is older than the newest it has seen is ignored; Epoch 0 (no fleet) is never fenced."""
+@pytest.mark.parametrize("bits", [15, 24])
+def test_a_short_epoch_reads_back_as_the_epoch_nearest_the_newest(bits):
+    """AT_CmdFlags and AT_CmdWatchdog have no room for 32 bits: 1 + epoch mod (2**bits - 1), never 0 (none)."""
+    modulus = 2**bits - 1
+    for newest in (1, 2, 5, modulus - 1, modulus, modulus + 1, 10 * modulus + 17, 2**32 - 2**16):
+        for epoch in (newest - modulus // 2, newest - 3, newest - 1, newest, newest + 1, newest + modulus // 2):
+            if epoch < 1:
+                continue
+            value = epoch_to_wire(epoch, bits)
+            assert 1 <= value <= modulus
+            # Independently: of the epochs with this residue (every one within a modulus of the newest), the nearest.
+            residue = [value - 1 + k * modulus for k in range(newest // modulus - 2, newest // modulus + 3)]
+            near = min((e for e in residue if abs(e - newest) <= modulus), key=lambda e: abs(e - newest))
+            assert epoch_from_wire(value, bits, newest) == near == epoch, (newest, epoch)
+    assert epoch_to_wire(None, bits) == epoch_to_wire(0, bits) == 0 and epoch_from_wire(0, bits, 9) == 0
+    assert epoch_to_wire(70000, 32) == epoch_from_wire(70000, 32, 5) == 70000  # a full signal: the epoch itself
+
+
+def superseded_frames(epoch: int) -> list[can.Message]:
+    """Every command frame that moves the loop, as a daemon of lease ``epoch`` sends them, packed by hand per
+    docs/can.md: MV 22, mode AUTO, TBSY and TE with ite 7, the watchdog disarmed, heartbeat 9, gains K 2, Ti 3."""
+    flags = 1 + epoch % (2**24 - 1)  # the short epochs
+    watchdog = 1 + epoch % (2**15 - 1)
+    frames = [(0x200, struct.pack("<fI", 22.0, epoch)), (0x201, struct.pack("<II", 1, epoch)),
+              (0x203, bytes([0b11]) + flags.to_bytes(3, "little") + struct.pack("<f", 7.0)),
+              (0x204, struct.pack("<fHH", 30.0, 0, watchdog << 1)), (0x205, struct.pack("<HHI", 9, 0, epoch)),
+              (0x210, struct.pack("<ff", 2.0, 3.0)), (0x211, struct.pack("<ff", 0.0, 10.0)),
+              (0x212, struct.pack("<ff", 1.0, 0.0)), (0x213, struct.pack("<II", 1, epoch))]
+    return [can.Message(arbitration_id=i, data=data, is_extended_id=False) for i, data in frames]
+
+
+def test_the_node_ignores_every_command_frame_of_an_older_lease_epoch_and_reports_it():
+    """The fence of a fleet on CAN (docs/can.md): a frame names no sender, so the node fences by content — every
+    command frame that moves the loop whose Epoch is older than the newest it has seen is ignored (the flags and the
+    watchdog's too, their short epochs read as the nearest), and reported at once (AT_Fence)."""
     async def main():
-        async with rig() as (plc, node, link):
-            assert link.carries_epoch
-            link.epoch = 5
-            await link.write_mv(11.0)
-            assert await until(lambda: plc.hv == 11.0) and plc.epoch == 5
-            link.epoch = 6  # another daemon took the loop over
-            await link.write_mode(Mode.MAN)
-            assert await until(lambda: plc.mode is Mode.MAN) and plc.epoch == 6
-            link.epoch = 5  # the one superseded: its MV, mode, gains and heartbeat are ignored
-            await link.write_mv(22.0)
-            await link.write_mode(Mode.AUTO)
-            await link.write_heartbeat(9)
-            await link.write_gains(Gains(k=2.0, ti=3.0))
-            assert await until(lambda: node.stats["fenced"] == 4) and plc.fenced == 4
-            assert plc.hv == 11.0 and plc.mode is Mode.MAN and plc.heartbeat != 9 and plc.gains.k != 2.0
-            link.epoch = None  # a tuner outside a fleet sends Epoch 0: not fenced
-            await link.write_mv(33.0)
-            assert await until(lambda: plc.hv == 33.0) and plc.epoch == 6 and node.stats["fenced"] == 4
+        async with rig() as (plc, node, old):
+            new = CanLink("virtual", old.channel, timeout=0.3)
+            raw = can.Bus(interface="virtual", channel=old.channel)  # frames already on their way from the old owner
+            await new.open()
+            try:
+                assert old.carries_epoch and new.carries_epoch
+                old.epoch, new.epoch = 5, 6
+                await old.write_mv(11.0)
+                await old.write_watchdog(Watchdog(timeout=20.0, mv=50.0, mode=Mode.AUTO))
+                await old.write_heartbeat(1)
+                assert await until(lambda: plc.heartbeat == 1) and plc.epoch == 5 and plc.watchdog.timeout == 20.0
+                await new.write_mode(Mode.MAN)  # the new owner: its epoch is the newest
+                await new.write_flags(TuneFlags(tbsy=True, ite=5.0))
+                assert await until(lambda: plc.flags.tbsy) and plc.epoch == 6 and plc.mode is Mode.MAN
+                reported = node.stats["sent"]
+                for frame in superseded_frames(5):
+                    raw.send(frame)
+                # MV, mode, flags, watchdog, heartbeat and the apply ignored (the staged gains dropped with it).
+                assert await until(lambda: plc.fenced == 6) and node.stats["fenced"] == 6
+                assert plc.hv == 11.0 and plc.mode is Mode.MAN and plc.heartbeat == 1 and plc.gains.k != 2.0
+                assert plc.flags == TuneFlags(tbsy=True, ite=5.0)
+                assert plc.watchdog == Watchdog(timeout=20.0, mv=50.0, mode=Mode.AUTO)
+                assert node.stats["sent"] >= reported + 6  # a report at once for each
+                assert await until(lambda: old.reported_epoch == (6, 6))
+            finally:
+                raw.shutdown()
+                await new.close()
+    arun(main())
+
+
+def test_the_link_whose_node_reports_a_newer_epoch_is_fenced_and_sends_nothing():
+    async def main():
+        async with rig() as (plc, node, old):
+            new = CanLink("virtual", old.channel, timeout=0.3)
+            plain = CanLink("virtual", old.channel, timeout=0.3)  # a tuner outside a fleet: Epoch 0, never fenced
+            await new.open()
+            await plain.open()
+            try:
+                old.epoch, new.epoch = 5, 6
+                await old.write_mv(11.0)
+                await new.write_mv(12.0)
+                assert await until(lambda: plc.hv == 12.0 and old.reported_epoch is not None
+                                   and old.reported_epoch[0] == 6)
+                sent = old.stats["sent"]
+                writes = [old.write_mv(40.0), old.write_mode(Mode.MAN), old.write_flags(TuneFlags(tbsy=True)),
+                          old.write_watchdog(Watchdog(timeout=0.0, mv=0.0)), old.write_heartbeat(3),
+                          old.write_gains(Gains(k=2.0, ti=3.0))]
+                for write in writes:
+                    with pytest.raises(Fenced, match="has seen lease epoch 6, newer than this daemon.s epoch 5"):
+                        await write
+                assert old.stats["sent"] == sent  # nothing sent
+                await old.read_pv()  # reads are not fenced
+                await new.write_flags(TuneFlags(te=True, ite=22.0))
+                await plain.write_mv(33.0)
+                assert await until(lambda: plc.flags.te and plc.hv == 33.0) and plc.fenced == 0
+                # A short epoch newer than the newest becomes the newest (a daemon whose first frame is its flags).
+                new.epoch = 7
+                await new.write_flags(TuneFlags(te=False, ite=0.0))
+                assert await until(lambda: plc.epoch == 7) and not plc.flags.te
+            finally:
+                await new.close()
+                await plain.close()
     arun(main())

@@ -23,8 +23,9 @@ import httpx
 import pytest
 
 from autotuner.engine.outcome import Code
-from drivers.can_link import CanLink
-from drivers.link import Mode
+from drivers.can_bus import open_bus
+from drivers.can_link import CanLink, encode, epoch_to_wire
+from drivers.link import Fenced, Mode, TuneFlags, Watchdog
 from helpers import free_port
 from test_handback import PLC_TS, SAVED_MV, AMP, SPEED, START, TOKEN, WAIT, wait_for
 
@@ -131,6 +132,38 @@ def test_sigkill_of_the_daemon_over_can_between_processes_and_the_node_watchdog_
     # test_handback's watchdog test).
     assert abs(back["mv"] - SAVED_MV) < 2 * 0.1 * AMP, back
     assert now["tbsy"] is False and now["te"] is True and now["ite"] == float(Code.WATCHDOG_FALLBACK), now
+
+
+def test_the_node_of_a_process_of_its_own_fences_an_older_epoch_and_the_link_learns_it(tmp_path):
+    """The fleet's fence over CAN between processes (docs/can.md): the short epoch of AT_CmdFlags read by the node
+    against its newest, a superseded daemon's frame ignored and reported, and its link refusing what follows."""
+    with processes(tmp_path) as (node, reader, config, node_log):
+        old, new = reader.link, CanLink.from_url(reader.url, timeout=2.0)
+        reader._call(new.open())
+        try:
+            old.epoch, new.epoch = 5, 6
+            reader._call(old.write_mv(40.0))
+            reader._call(old.write_flags(TuneFlags(tbsy=True, ite=3.0)))
+            wait_for(lambda: reader.read()["ite"] == 3.0, WAIT, "the old owner's flags")
+            reader._call(new.write_flags(TuneFlags(tbsy=True, ite=4.0)))  # the new owner's first frame
+            wait_for(lambda: reader.read()["ite"] == 4.0, WAIT, "the new owner's flags")
+            # The old owner's flags already on their way (sent by a bus of this test's own: the old link, once the
+            # node has reported epoch 6, sends nothing more): ignored, and reported.
+            frame = encode(old.db, "AT_CmdFlags", {"TBSY": 0, "TE": 1, "ITE": 22.0, "Epoch": epoch_to_wire(5, 24)})
+            raw = open_bus("udp_multicast", old.channel, **old.bus_kwargs)
+            try:
+                raw.send(frame)
+            finally:
+                raw.shutdown()
+            wait_for(lambda: old.reported_epoch == (6, 1), WAIT, "the node's report of its fence")
+            for write in (old.write_flags(TuneFlags(te=True, ite=22.0)), old.write_watchdog(Watchdog(0.0, 0.0))):
+                with pytest.raises(Fenced, match="has seen lease epoch 6, newer than this daemon.s epoch 5"):
+                    reader._call(write)
+            now = reader.read()  # the new owner's flags stand
+            assert (now["tbsy"], now["te"], now["ite"]) == (True, False, 4.0), now
+        finally:
+            reader._call(new.close())
+    assert "ignored AT_CmdFlags of lease epoch 5, older than the newest seen, 6" in node_log.read_text()
 
 
 def test_sim_takes_the_udp_multicast_options_only_with_that_interface():

@@ -159,24 +159,46 @@ def loadbench_command(
 def failover_command(
     daemons: Annotated[int, typer.Option(min=2, max=16, help="Daemons in the fleet.")] = 3,
     loops: Annotated[int, typer.Option(min=2, max=2000, help="Loops they share.")] = 300,
-    tuning: Annotated[int, typer.Option(min=0, max=500, help="Loops of the killed daemon tuning when it dies.")] = 20,
+    tuning: Annotated[int, typer.Option(min=0, max=500, help="Loops of the killed daemon asked to tune before it "
+                                        "dies.")] = 20,
     lease: Annotated[float, typer.Option(min=2.0, max=600.0, help="Lease time, seconds.")] = 10.0,
+    speed: Annotated[float, typer.Option(min=0.1, max=100.0, help="Plant seconds per wall second.")] = 10.0,
+    samplers: Annotated[int, typer.Option(min=0, max=64, help="Sampler processes of each daemon.")] = 1,
+    monitor_period: Annotated[float, typer.Option(min=0.05, max=60.0, help="The loops' monitor period, wall "
+                                                  "seconds.")] = 1.0,
+    relay_wait: Annotated[float, typer.Option(min=0.0, max=600.0, help="Longest wait, seconds, for the accepted "
+                                              "tunings to run before the kill.")] = 60.0,
     database: Annotated[str | None, typer.Option(help="PostgreSQL URL (postgresql+psycopg://…) of an empty database. "
                                                  "Default: a server of the benchmark's own (the distribution's "
                                                  "PostgreSQL programs).")] = None,
     as_markdown: Annotated[bool, typer.Option("--markdown", help="Print a markdown table.")] = False,
 ) -> None:
     """Benchmark: a fleet of daemons on one PostgreSQL, one killed while it tunes; how soon its loops have an owner
-    again and its sessions are recovered (docs/fleet.md). Real processes on this machine; a few minutes."""
+    again and how its sessions are recorded (docs/fleet.md). Real processes on this machine; a few minutes. Every
+    process it starts is stopped when it ends, also on SIGTERM or Ctrl-C."""
     from autotuner.benchmarks.failover import HEADERS, FailoverSpec, markdown, run_failover, table_rows
 
     if tuning > loops // daemons:
         bad_input(f"--tuning {tuning} is more than the killed daemon's share of the loops ({loops // daemons})")
+    start = time.monotonic()
+
+    def progress(text: str) -> None:
+        stderr.print(f"failover {time.monotonic() - start:6.1f} s: {text}", highlight=False, markup=False,
+                     soft_wrap=True)
+
+    spec = FailoverSpec(daemons, loops, tuning, lease, speed, samplers, monitor_period, relay_wait, database)
     try:
-        result = run_failover(FailoverSpec(daemons, loops, tuning, lease, database=database))
+        result = run_failover(spec, progress)
     except FileNotFoundError as exc:
         bad_input(str(exc))
-    title = f"failover: {daemons} daemons, {loops} loops, lease {lease:g} s; one daemon killed (SIGKILL)"
+    except RuntimeError as exc:
+        stderr.print(f"failover: {exc}", highlight=False, markup=False)
+        raise typer.Exit(EXIT_FAILED) from None
+    except SystemExit as exc:  # SIGTERM, SIGINT
+        progress(f"stopped by signal {int(exc.code or 0) - 128}; every process it started is stopped")
+        raise
+    title = (f"failover: {daemons} daemons, {loops} loops, lease {lease:g} s, {speed:g}× real time, samplers "
+             f"{samplers}, monitor period {monitor_period:g} s; one daemon killed (SIGKILL)")
     if as_markdown:
         print(f"{title}\n\n{markdown([result])}")
         return
