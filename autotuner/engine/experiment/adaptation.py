@@ -71,7 +71,7 @@ class Adaptation:
         """Raise the target towards ``wanted_deg`` (degrees of lag; never lower, never above MAX_TARGET_DEG)."""
         self.target_deg = min(max(self.target_deg, wanted_deg), MAX_TARGET_DEG)
 
-    def adapt(self, omega: float, lag: float) -> None:
+    def adapt(self, omega: float, lag: float, curve: float | None = None) -> None:
         """Retune the filter for the next period from the period just measured (``omega``, rad/s; the
         process ``lag`` there, radians).
 
@@ -86,16 +86,23 @@ class Adaptation:
         offset = math.pi - lag - self.filter.phase(omega)
         # Not from the first whole period: its lag still carries the start's transient (133° where the cycle
         # lags 140°), and a secant through it can even have the wrong sign.
+        on_curve = lag if curve is None else curve
         if self._last is not None and len(self.lags) > 2:
             w_prev, lag_prev = self._last
             dlog = math.log(omega / w_prev)
             if abs(dlog) > 0.005:
-                self._slope = min(max((lag - lag_prev) / dlog, 0.2), 5.0)
-        self._last = (omega, lag)
-        step = min(max((target - lag) / self._slope, -MAX_LOG_STEP), MAX_LOG_STEP)
+                self._slope = min(max((on_curve - lag_prev) / dlog, 0.2), 5.0)
+        self._last = (omega, on_curve)
+        step = min(max((target - on_curve) / self._slope, -MAX_LOG_STEP), MAX_LOG_STEP)
         omega_next = omega * math.exp(RELAXATION * step)
         now = self.filter.phase(omega_next)
         self.set(now + RELAXATION * (math.pi - target - offset - now), omega_next)
+
+    def expect_slope(self, slope: float) -> None:
+        """Take ``slope`` (d lag / d ln ω, radians) for the process phase curve until two periods have measured
+        one (a model's, in place of the first guess of 1)."""
+        if self._last is None and math.isfinite(slope) and slope > 0.0:
+            self._slope = min(max(slope, 0.2), 5.0)
 
     def phase_deg(self) -> float:
         """The filter's phase at the frequency it was set for, degrees."""

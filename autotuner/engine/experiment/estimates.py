@@ -1,10 +1,10 @@
 """The estimates of the point: one :class:`Estimate` per whole period, and how they are measured.
 
 Each whole period (rising crossing to rising crossing, sub-sample times) gives
-``F(jω)`` over that period and ``x = |F(jω)|/K0`` over the last two (the name
-the design and docs/experiment.md give it): the Fourier coefficients of the PV
-as sampled and of the MV as the process held it (``applied``), the PV's drift
-across the periods taken out. An estimate whose windows held a stall of the
+``F(jω)`` and ``x = |F(jω)|/K0`` over that period (the name the design and
+docs/experiment.md give it): the Fourier coefficients of the PV as sampled and
+of the MV as the process held it (``applied``), the PV's drift across the
+periods taken out, and quiet, the transient's share (transient.py). An estimate whose windows held a stall of the
 samples (a link or a machine that stopped) is kept but left out of the
 stopping rule, with those before it.
 """
@@ -18,7 +18,7 @@ import numpy as np
 
 from autotuner.engine.experiment import transient
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
-from autotuner.engine.experiment.load_fit import settled_x
+from autotuner.engine.experiment.load_fit import first_order_model, settled_x
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.point import Point
 from autotuner.engine.experiment.record import Samples
@@ -40,7 +40,7 @@ class Estimate:
     """One whole period's estimate.
 
     point: F(jω) over the period ``[start, end]`` (s).
-    x: |F|/K0 over the two periods ``[before, end]`` (the load fit's when a load is followed).
+    x: |F|/K0 over the period ``[start, end]`` (the load fit's when a load is followed).
     wide_x: |F|/K0 over the same two periods with a Hann window (the mean weighted to their middle): the
         unstable-process tests read its sign, which one period of the start-up transient can invert on a
         stable lag-dominant process.
@@ -150,7 +150,7 @@ def longest_gap(tt: np.ndarray, start: float, end: float) -> float:
 
 def period_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[float],
                  fitted_x: float | None) -> tuple[Point, float]:
-    """The point over the last whole period of ``bounds`` (crossing times, s) and |F|/K0 over the last two.
+    """The point and |F|/K0 over the last whole period of ``bounds`` (crossing times, s).
 
     ``loop``: the loop under test; ``raw``: the samples from ``bounds[0]`` on; ``detrended``: their PV with its
     drift across ``bounds`` removed (for the point); ``fitted_x``: the load fit's |F|/K0 when a load is
@@ -168,8 +168,8 @@ def period_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[f
 def corrected(loop: Loop, raw: Samples, pv: np.ndarray, bounds: list[float]) -> tuple[Point, float]:
     """The point over the last period of ``bounds`` (crossing times, s) from the ``raw`` samples with the PV
     ``pv`` (their PV, detrended across ``bounds`` when there are three), the transient's share taken out
-    (transient.py, CORRECTIONS times: the model it uses goes through the point), and |F|/K0 over the
-    periods of ``bounds``."""
+    (transient.py, CORRECTIONS times: the model it uses goes through the point), and |F|/K0 over that
+    period."""
     ta, tb = bounds[-2], bounds[-1]
     omega = 2.0 * math.pi / (tb - ta)
     measured = response(loop, replace(raw, y=pv), ta, tb, omega, hann=False)
@@ -188,13 +188,26 @@ def corrected(loop: Loop, raw: Samples, pv: np.ndarray, bounds: list[float]) -> 
     return Point(omega, value), x
 
 
-def _static_x(loop: Loop, raw: Samples, bounds: list[float], value: complex) -> float:
-    """|F|/K0 for the point ``value`` from the means of the ``raw`` samples over the periods of ``bounds`` (s).
+def model_slope(point: Point, x: float) -> float:
+    """d lag / d ln ω (radians) at the ``point`` of the first-order model through it with ``x`` = |F|/K0
+    (methods.md §6): ``ωL + ωT/(1 + (ωT)²)``; nan for an unstable process's (``x`` < 0)."""
+    if x < 0.0:
+        return math.nan
+    _, tc, delay = first_order_model(x, point.gain, point.omega, lag(point.value))
+    wt = point.omega * tc
+    return point.omega * delay + (wt / (1.0 + wt * wt) if math.isfinite(wt) else 0.0)
 
-    The static ratio takes the means over two periods where there are two (the noise of a mean falls with
-    its length), with the MV's as the slow lag has passed it on.
+
+def _static_x(loop: Loop, raw: Samples, bounds: list[float], value: complex) -> float:
+    """|F|/K0 for the point ``value`` from the means of the ``raw`` samples over the last period of ``bounds``
+    (s), with the MV's as the slow lag has passed it on.
+
+    One period, not two: the period before still carries more of the start's transient (the point's
+    correction needs an |F|/K0 that has shed it: the first two estimates of
+    ``10*exp(-0.3*s)/((10*s+1)*(0.7*s+1))`` read −2.0 and 0.77 times the true |F|/K0 over two periods, 0.56
+    and 0.84 over one), and the averaged rule's estimates over one period each are independent of each other.
     """
-    start, tb = bounds[0], bounds[-1]
+    start, tb = bounds[-2], bounds[-1]
     du = held_coefficient(raw.s, raw.u - loop.mv0, start, tb, 0.0, hann=False).real
     dy = sampled_coefficient(raw.t, raw.y - loop.sp, start, tb, 0.0, hann=False).real
     # Compare estimates through |F|/K0, which stays bounded as K0 grows.
