@@ -32,12 +32,6 @@ NOISY = 0.002
 # difference of disjoint windows, but by √ρ/(1 − √ρ) × that of windows half a period apart — 2.4–2.9 times
 # more for ρ = 0.5–0.3.
 HALF_TOL = 1.0 / 3.0
-# The first estimate may already settle the point, against the period before it (the one right after the
-# filter's first setting), when the two agree within this share of the tolerances: the transient's share
-# is taken out of both (transient.py), and what is left of it decays by ρ per period; agreeing within a third
-# leaves the latest off by at most ρ/(1 − ρ) of a third of the difference the plain rule accepts.
-EARLY_PERIODS = 2
-EARLY_TOL = 1.0 / 3.0
 
 
 def tolerances(config: RelayConfig) -> Tolerances:
@@ -88,26 +82,6 @@ def at_rising(loop: Loop, estimates: Estimates, periods: int, since: float, targ
     # (the period right after the filter's first correction).
     longest = len(usable) - 1 if scattered else 2 + (periods - MIN_PERIODS) // 2
     return judge(pairs(usable), target_deg, tolerances(loop.config), longest, scattered, x_std)
-
-
-def at_first(loop: Loop, switching: Switching, estimates: Estimates, since: float,
-             target_deg: float) -> Verdict | None:
-    """At the rising switch that made the first estimate of a quiet, noise-free run: the verdict when the
-    period before it agrees with it within ``EARLY_TOL`` of the tolerances, else None. ``loop``,
-    ``switching``: the loop under test and the relay's crossings; ``since``, ``target_deg``: as for
-    :func:`at_rising`."""
-    crossings = switching.crossings
-    if switching.periods != EARLY_PERIODS or len(estimates) != 1 or noisy(loop, estimates):
-        return None
-    if crossings[0] < since or not estimates.usable(since):
-        return None
-    raw = loop.record.since(crossings[0])
-    if longest_gap(raw.t, crossings[0], raw.t[-1]) > GAP * loop.dt:
-        return None
-    first = period_point(loop, raw, raw.y, crossings[:2], None)
-    c = loop.config
-    tol = replace(tolerances(c), gain_tol=c.gain_tol * EARLY_TOL, static_tol=c.static_tol * EARLY_TOL)
-    return judge([first, *pairs(estimates.items)], target_deg, tol, 2, False)
 
 
 def at_falling(loop: Loop, switching: Switching, estimates: Estimates, since: float,

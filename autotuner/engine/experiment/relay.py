@@ -321,9 +321,6 @@ class RelayExperiment:
         wide = wide_x(loop, detrended, bounds) if fit is None else x
         gap = longest_gap(raw.t, bounds[0], bounds[-1])
         self._estimates.add(Estimate(point, x, wide, *bounds), gap, loop.dt)
-        if fit is None:
-            self._accept(convergence.at_first(loop, self._switching, self._estimates, self._since(),
-                                              self._adaptation.target_deg))
         self._accept(convergence.at_rising(loop, self._estimates, self._switching.periods, self._since(),
                                            self._adaptation.target_deg, None if fit is None else fit.x_std))
 
