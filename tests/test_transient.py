@@ -40,8 +40,9 @@ def _first_estimate_error(monkeypatch: pytest.MonkeyPatch, corrections: int) -> 
 def test_the_first_estimate_of_a_first_order_process_is_exact_once_its_transient_is_taken_out(
         monkeypatch: pytest.MonkeyPatch) -> None:
     # The first period after the filter's first correction: the cycle is not periodic yet.
+    corrections = estimates.CORRECTIONS
     assert _first_estimate_error(monkeypatch, 0) > 0.01
-    assert _first_estimate_error(monkeypatch, estimates.CORRECTIONS) < 2e-4
+    assert _first_estimate_error(monkeypatch, corrections) < 2e-4
 
 
 def test_the_model_runs_exactly_on_uneven_samples() -> None:

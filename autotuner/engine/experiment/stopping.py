@@ -149,8 +149,8 @@ def _settled(estimates: list[tuple[Point, float]]) -> tuple[Point, float]:
 
 def _on_line(recent: list[tuple[Point, float]], target_deg: float, tol: Tolerances) -> Verdict | None:
     """The point at ``target_deg`` (degrees of lag) on the line in ln ω through the latest two of the three
-    ``recent`` estimates, when the oldest lies on it (LINE_TOL of ``tol.gain_tol``) and the target is within
-    LINE_REACH of their spacing; else None. Its |F|/K0 is the latest's at the point's |F| (K0 as the latest
+    ``recent`` estimates, when their phases converge to it from one side, the oldest lies on the line
+    (LINE_TOL of ``tol.gain_tol``) and the target is within LINE_REACH of their spacing; else None. Its |F|/K0 is the latest's at the point's |F| (K0 as the latest
     estimate has it)."""
     (p0, x0), (p1, _), (p2, x2) = recent
     l0, l1, l2 = (math.log(p.omega) for p in (p0, p1, p2))
@@ -163,9 +163,12 @@ def _on_line(recent: list[tuple[Point, float]], target_deg: float, tol: Toleranc
 
     if abs(p0.value - line(l0)) > LINE_TOL * tol.gain_tol * p2.gain:
         return None
-    lag1, lag2 = -math.radians(p1.phase_deg), -math.radians(p2.phase_deg)
-    if lag2 == lag1:
+    lags = [-math.radians(p.phase_deg) - math.radians(target_deg) for p in (p0, p1, p2)]
+    if not (abs(lags[0]) > abs(lags[1]) > abs(lags[2]) and lags[0] * lags[2] > 0.0):
+        # Only a phase that converges from one side, as a filter's corrections do: a cycle whose frequency
+        # wanders (a link's timing) puts two estimates on a line through a third by chance.
         return None
+    lag1, lag2 = -math.radians(p1.phase_deg), -math.radians(p2.phase_deg)
     at = l2 + (math.radians(target_deg) - lag2) * spacing / (lag2 - lag1)
     if abs(at - l2) > LINE_REACH * abs(spacing):
         return None
