@@ -74,6 +74,9 @@ _POINTS_PER_PERIOD = 2.0
 _RESOLUTION = 0.01
 # Refinements of x in settled_x from the plain ratio of the means (3–4 settle it to 1e-3).
 _SETTLE_ITERATIONS = 4
+# ...and it has settled when its last step is within this share of itself (a fiftieth of static_tol):
+# otherwise the root is searched to the same share.
+_SETTLED = 4e-4
 # settled_x's lag is summed over chunks of at most this many time constants (e^300 stays finite)...
 _CHUNK = 300.0
 # ...over the MV of this many time constants before its window (e^-36 is below a double's rounding).
@@ -232,21 +235,29 @@ def settled_x(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, om
 
     lo, hi = _X_MAX * 1e-3, _X_MAX
     if slope == 0.0:
-        # From the plain ratio the refinement converges in a few steps where the correction is small.
-        v, step = x, math.inf
-        for _ in range(_SETTLE_ITERATIONS):
-            if not 0.0 < v < _X_MAX:
-                break
-            step = mismatch(v) / dy
-            v -= step
-        if abs(step) <= _X_TOL:
-            return v
+        # From the plain ratio the refinement converges in a few steps where the correction is small: a
+        # step of the plain ratio's refinement (v·dy − |F|·seen = 0 with seen held), then secant steps.
+        v = x
+        if 0.0 < v < _X_MAX:
+            before, missed = v, mismatch(v)
+            v -= missed / dy
+            for _ in range(_SETTLE_ITERATIONS):
+                if not 0.0 < v < _X_MAX:
+                    break
+                now = mismatch(v)
+                if now == missed:
+                    break
+                step = now * (v - before) / (now - missed)
+                before, missed = v, now
+                v -= step
+                if abs(step) <= _SETTLED * v:
+                    return v
         # Not settled: a first estimate whose means are far from settled, or a plain ratio at or just above
         # 1 on a process with dead time whose shifted MV the window has not seen in full (exp(-s)/(0.2*s+1)
         # read 0.66, then 1.02 after the steps, true 0.93): the root within (0, 1) where there is one.
         if mismatch(lo) * mismatch(hi) > 0.0:
             return x if near_one else v
-        return float(scipy.optimize.brentq(mismatch, lo, hi, xtol=1e-5))
+        return float(scipy.optimize.brentq(mismatch, lo, hi, xtol=_SETTLED * lo, rtol=_SETTLED))
     # A free response to take out moves the mean far more as x changes (through T) than the plain
     # ratio's refinement can follow: the root of the mismatch within (0, 1), bracketed.
     if near_one or mismatch(lo) * mismatch(hi) > 0.0:
