@@ -166,8 +166,8 @@ def period_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[f
 
 
 def corrected(loop: Loop, raw: Samples, pv: np.ndarray, bounds: list[float]) -> tuple[Point, float]:
-    """The point over the last period of ``bounds`` (crossing times, s) from the ``raw`` samples with the PV
-    ``pv`` (their PV, detrended across ``bounds`` when there are three), the transient's share taken out
+    """The point of the ``loop`` over the last period of ``bounds`` (crossing times, s) from the ``raw`` samples
+    with the PV ``pv`` (their PV, detrended across ``bounds`` when there are three), the transient's share taken out
     (transient.py, CORRECTIONS times: the model it uses goes through the point), and |F|/K0 over that
     period."""
     ta, tb = bounds[-2], bounds[-1]

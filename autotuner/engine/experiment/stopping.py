@@ -1,7 +1,7 @@
 """The stopping rule: when the estimates of the point (and of |F|/K0) are good enough.
 
 Each whole period gives one estimate of ``F(jω)`` over that period and one
-of ``|F|/K0``. Two ways to be done:
+of ``|F|/K0``. Three ways to be done:
 
 * **settled** (a quiet plant): the latest ``k ≥ 2`` estimates agree — the
   standard error of their mean is within half of ``gain_tol`` (relative) and
@@ -15,6 +15,13 @@ of ``|F|/K0``. Two ways to be done:
   timing) settle too when ``k ≥ CURVE_MIN`` of them lie on a line in ω
   within that standard error and their mean lags as asked: the result is
   then their mean, F at their mean ω.
+* **on a line** (a quiet plant whose phase still converges from one side):
+  the point at the target on the line in ln ω through the latest two
+  estimates, when the one before lies on it within ``LINE_TOL`` of
+  ``gain_tol``. Each estimate has shed the transient's share
+  (transient.py), so they are points of the process's curve at their own
+  ω; the line reaches the target a filter correction or two sooner than
+  the cycle does.
 * **averaged** (measurement noise that makes single estimates scatter more
   than ``gain_tol``; the settled rule is then not used): the mean of at least ``NOISY_MIN`` estimates whose
   standard error is within ``noise_tol`` (relative |F|) and ``static_tol``
@@ -150,8 +157,8 @@ def _settled(estimates: list[tuple[Point, float]]) -> tuple[Point, float]:
 def _on_line(recent: list[tuple[Point, float]], target_deg: float, tol: Tolerances) -> Verdict | None:
     """The point at ``target_deg`` (degrees of lag) on the line in ln ω through the latest two of the three
     ``recent`` estimates, when their phases converge to it from one side, the oldest lies on the line
-    (LINE_TOL of ``tol.gain_tol``) and the target is within LINE_REACH of their spacing; else None. Its |F|/K0 is the latest's at the point's |F| (K0 as the latest
-    estimate has it)."""
+    (LINE_TOL of ``tol.gain_tol``) and the target is within LINE_REACH of their spacing; else None. Its
+    |F|/K0 is the latest's at the point's |F| (K0 as the latest estimate has it)."""
     (p0, x0), (p1, _), (p2, x2) = recent
     l0, l1, l2 = (math.log(p.omega) for p in (p0, p1, p2))
     spacing = l2 - l1
