@@ -71,43 +71,31 @@ class Adaptation:
         """Raise the target towards ``wanted_deg`` (degrees of lag; never lower, never above MAX_TARGET_DEG)."""
         self.target_deg = min(max(self.target_deg, wanted_deg), MAX_TARGET_DEG)
 
-    def adapt(self, omega: float, lag: float, curve: float | None = None) -> None:
+    def adapt(self, omega: float, lag: float) -> None:
         """Retune the filter for the next period from the period just measured (``omega``, rad/s; the
-        process ``lag`` there as the cycle measured it and, ``curve``, without the transient's share where
-        it is known (estimates.corrected), radians).
+        process ``lag`` there, radians).
 
         Two things move when the filter changes: the frequency of the cycle and
-        the process phase there. The pairs ``(ln ω, curve)`` trace the process
-        phase curve, and a secant step on it predicts the frequency with the
-        requested lag; the loop's phase balance, calibrated on the period just
-        measured as the cycle saw it (it absorbs hysteresis, sampling delays
-        and the cycle's own transient), gives the filter phase needed there.
-        (Calibrated on ``curve`` instead, the balance took the cycle's
-        transient for the process's and the median of the batch's sample did
-        not move, while ``(1-0.9*s)/(s+1)^3`` took 5.3 periods instead of 3.8.)
+        the process phase there. The measured pairs ``(ln ω, lag)`` trace the
+        process phase curve, and a secant step on it predicts the frequency
+        with the requested lag; the loop's phase balance, calibrated on the
+        period just measured (it absorbs hysteresis and sampling delays),
+        gives the filter phase needed there.
         """
         target = math.radians(self.target_deg)
         offset = math.pi - lag - self.filter.phase(omega)
-        on_curve = lag if curve is None else curve
         # Not from the first whole period: its lag still carries the start's transient (133° where the cycle
         # lags 140°), and a secant through it can even have the wrong sign.
         if self._last is not None and len(self.lags) > 2:
             w_prev, lag_prev = self._last
             dlog = math.log(omega / w_prev)
             if abs(dlog) > 0.005:
-                self._slope = min(max((on_curve - lag_prev) / dlog, 0.2), 5.0)
-        self._last = (omega, on_curve)
-        step = min(max((target - on_curve) / self._slope, -MAX_LOG_STEP), MAX_LOG_STEP)
+                self._slope = min(max((lag - lag_prev) / dlog, 0.2), 5.0)
+        self._last = (omega, lag)
+        step = min(max((target - lag) / self._slope, -MAX_LOG_STEP), MAX_LOG_STEP)
         omega_next = omega * math.exp(RELAXATION * step)
         now = self.filter.phase(omega_next)
         self.set(now + RELAXATION * (math.pi - target - offset - now), omega_next)
-
-    def expect_slope(self, slope: float) -> None:
-        """Take ``slope`` (d lag / d ln ω, radians) for the process phase curve until two periods have measured
-        one: the first-order model's through the first period's point (estimates.model_slope), in place of
-        the first guess of 1 (a dead time's curve is 2–2.6 steep: with 1, the first step overshot)."""
-        if self._last is None and math.isfinite(slope) and slope > 0.0:
-            self._slope = min(max(slope, 0.2), 5.0)
 
     def phase_deg(self) -> float:
         """The filter's phase at the frequency it was set for, degrees."""

@@ -18,7 +18,7 @@ import numpy as np
 
 from autotuner.engine.experiment import transient
 from autotuner.engine.experiment.fourier import held_coefficient, sampled_coefficient
-from autotuner.engine.experiment.load_fit import first_order_model, settled_x
+from autotuner.engine.experiment.load_fit import settled_x
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.point import Point
 from autotuner.engine.experiment.record import Samples
@@ -186,16 +186,6 @@ def corrected(loop: Loop, raw: Samples, pv: np.ndarray, bounds: list[float]) -> 
         value = measured - transient.bias(loop, raw.t, measure, bounds, value, x)
         x = _static_x(loop, raw, bounds, value)
     return Point(omega, value), x
-
-
-def model_slope(point: Point, x: float) -> float:
-    """d lag / d ln ω (radians) at the ``point`` of the first-order model through it with ``x`` = |F|/K0
-    (methods.md §6): ``ωL + ωT/(1 + (ωT)²)``; nan for an unstable process's (``x`` < 0)."""
-    if x < 0.0:
-        return math.nan
-    _, tc, delay = first_order_model(x, point.gain, point.omega, lag(point.value))
-    wt = point.omega * tc
-    return point.omega * delay + (wt / (1.0 + wt * wt) if math.isfinite(wt) else 0.0)
 
 
 def _static_x(loop: Loop, raw: Samples, bounds: list[float], value: complex) -> float:

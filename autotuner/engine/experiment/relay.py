@@ -41,8 +41,8 @@ from autotuner.engine.experiment import convergence, endings
 from autotuner.engine.experiment.adaptation import Adaptation
 from autotuner.engine.experiment.config import RelayConfig
 from autotuner.engine.experiment.endings import Ended
-from autotuner.engine.experiment.estimates import (Estimate, Estimates, corrected, drift, lag, longest_gap, mean_x,
-                                                   model_slope, period_point, response, wide_x)
+from autotuner.engine.experiment.estimates import (Estimate, Estimates, drift, lag, longest_gap, mean_x, period_point,
+                                                   response, wide_x)
 from autotuner.engine.experiment.identification import Identification, identification
 from autotuner.engine.experiment.levels import Levels, listed
 from autotuner.engine.experiment.load_following import LoadFollowing
@@ -264,13 +264,7 @@ class RelayExperiment:
             # (A PV still settling at TUNE makes any process's first |F|/K0 negative: the load fit judges it.)
             self._unstable.suspect(mean_x(self._loop, raw, ta, tb, abs(value)), omega)
         self._unstable.recognise(self._since())
-        curve = None
-        if self._load.fit is None:
-            point, x = corrected(self._loop, raw, raw.y, [ta, tb])
-            curve = lag(point.value)
-            if len(self._adaptation.lags) == 1:
-                self._adaptation.expect_slope(model_slope(point, x))
-        self._adapt(ta, omega, period_lag, curve)
+        self._adapt(ta, omega, period_lag)
         if len(switching.rising) >= 3:
             self._judge(raw, detrended)
         if self._load.fit is None and self._load.due():
@@ -304,14 +298,14 @@ class RelayExperiment:
             return raw, raw
         return raw, replace(raw, y=raw.y - drift(raw.t, raw.y, crossings[-3:]))
 
-    def _adapt(self, ta: float, omega: float, period_lag: float, curve: float | None) -> None:
+    def _adapt(self, ta: float, omega: float, period_lag: float) -> None:
         """Correct the filter from the period that started at ``ta`` (s), unless it was a transient."""
         changed_at = self._levels.changed_at
         # (A change of the levels made just now, at the end of the period, leaves the period clean.)
         clean = ta >= changed_at or changed_at >= self._loop.record.time(-1)
         # Nor, on a process that is or may be unstable, before an estimate has said which phase it reaches.
         if clean and not (self._unstable.unstable and not self._unstable.aimed):
-            self._adaptation.adapt(omega, period_lag, curve)
+            self._adaptation.adapt(omega, period_lag)
 
     def _judge(self, raw: Samples, detrended: Samples) -> None:
         """Estimate the point over the last period and stop if it has converged."""
