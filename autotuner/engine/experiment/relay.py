@@ -311,7 +311,8 @@ class RelayExperiment:
         """Estimate the point over the last period and stop if it has converged."""
         loop, crossings, fit = self._loop, self._switching.crossings, self._load.fit
         bounds = crossings[-3:]
-        point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x)
+        point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x,
+                                convergence.noisy(loop, self._estimates))
         wide = wide_x(loop, detrended, bounds) if fit is None else x
         gap = longest_gap(raw.t, bounds[0], bounds[-1])
         self._estimates.add(Estimate(point, x, wide, *bounds), gap, loop.dt)
