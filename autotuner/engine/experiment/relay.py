@@ -18,9 +18,9 @@ no I/O). Stages:
 
 The point ``F(jω)`` is the ratio of the Fourier coefficients of PV and MV over
 the last whole period, and ``x = |F(jω)|/K0`` the ratio of their mean
-deviations from the operating point over it, each without the share of the
-start's transient a first-order model says it holds (estimates.py,
-transient.py). The
+deviations from the operating point over it (over the last two under noise);
+on a quiet, noise-free run the point is taken without the share of the start's
+transient a first-order model says it holds (estimates.py, transient.py). The
 experiment stops when the estimates agree (convergence.py, stopping.py). Load
 steps and drift are estimated through and followed (load_following.py); an
 open-loop unstable process is recognised (unstable.py) and kept bounded
