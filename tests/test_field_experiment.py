@@ -54,8 +54,10 @@ def test_a_load_step_part_way_is_estimated_through(size: float) -> None:
 def test_a_small_load_step_against_the_bias_is_not_taken_for_a_resonance(expr: str) -> None:
     # −0.1 × amp at 3.5 periods made the period ratio |F|/K0 read 1.4–1.5 (1.0–1.09 on the slow
     # one): the fit that had found the step was then skipped as "a resonance", and the runs ended
-    # "ok" with K0 0.26 and 0.15 (true 1) and Ms 1.78 and 5.99 on the true plant.
-    experiment, _, process = _run(expr, loads=[(3.5, -0.1)])
+    # "ok" with K0 0.26 and 0.15 (true 1) and Ms 1.78 and 5.99 on the true plant. The quiet run of the
+    # first now ends at 3.7 periods, before a step at 3.5 shows: the step comes at 2.5, where a
+    # one-period ratio read 1.3–1.5 from the next estimate on and only the first (0.39) below 1.
+    experiment, _, process = _run(expr, loads=[(2.5, -0.1)])
     _assert_accurate(experiment, process, 0.1)  # as for the other load steps
     assert experiment.result.disturbance
 

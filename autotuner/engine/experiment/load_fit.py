@@ -74,10 +74,13 @@ _POINTS_PER_PERIOD = 2.0
 _RESOLUTION = 0.01
 # Refinements of x in settled_x from the plain ratio of the means (3–4 settle it to 1e-3).
 _SETTLE_ITERATIONS = 4
+# ...and it has settled when its last step is within this share of itself (a fiftieth of static_tol):
+# otherwise the root is searched to the same share.
+_SETTLED = 4e-4
 # settled_x's lag is summed over chunks of at most this many time constants (e^300 stays finite)...
 _CHUNK = 300.0
 # ...over the MV of this many time constants before its window (e^-36 is below a double's rounding).
-_MEMORY = 36.0
+MEMORY = 36.0
 # The full search scans x on this many points over its range, then searches the best point's
 # neighbourhood to _X_TOL (Brent's method: about 7 evaluations where the residual is smooth, at most
 # _X_STEPS — the golden-section steps that narrow a cell of the scan's grid to _X_TOL); a refit near an
@@ -146,8 +149,10 @@ class LoadFit:
         return self.step_time is not None or self.ramp != 0.0 or self.free != 0.0
 
 
-def _model(x: float, gain: float, omega: float, lag: float) -> tuple[float, float, float]:
-    """(K0, T, L) of the first-order-plus-dead-time model through the point with ``|F|/K0 = x``."""
+def first_order_model(x: float, gain: float, omega: float, lag: float) -> tuple[float, float, float]:
+    """(K0, T, L) of the first-order-plus-dead-time model through the point ``gain`` (|F|, PV per MV unit),
+    ``lag`` (radians) at ``omega`` (rad/s) with ``|F|/K0 = x``: K0 in PV per MV unit, T and L in s (K0 and T
+    infinite for ``x`` = 0: an integrator ``|F|·ω/s`` with dead time L)."""
     x = min(max(x, -_X_MAX), _X_MAX)
     if x == 0.0:
         return math.inf, math.inf, max((lag - math.pi / 2) / omega, 0.0)
@@ -164,7 +169,7 @@ def _filter(dt: float, x: float, gain: float, omega: float, lag: float) -> tuple
     (as the simulated plant does it): with ``L = m·dt + θ`` the delayed input
     switches within each interval at ``θ``.
     """
-    k0, t, delay = _model(x, gain, omega, lag)
+    k0, t, delay = first_order_model(x, gain, omega, lag)
     m = int(delay // dt)
     theta = delay - m * dt
     if math.isinf(k0):
@@ -208,46 +213,64 @@ def settled_x(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, om
     away: both are taken out of ``dy`` (a load step half a period before TUNE
     made ``exp(-s)/(2*s+1)`` read ``|F|/K0`` 0.10 instead of 0.39).
 
-    Only the MV of the last ``_MEMORY`` time constants of the lag before the
+    Only the MV of the last ``MEMORY`` time constants of the lag before the
     window is read: an older input reaches the window's mean by less than
     e^−36 of itself, below a double's rounding.
     """
     # The dead time of the model is at most lag/ω (x → 1): the window must start after the delayed MV does.
-    if not 0.0 < x < _X_MAX or dy == 0.0 or t[0] + lag / omega > ta:
+    if dy == 0.0 or t[0] + lag / omega > ta:
+        return x
+    near_one = _X_MAX <= x < 1.0 / _X_MAX
+    if not (0.0 < x < _X_MAX or near_one):
         return x
 
     def mismatch(v: float) -> float:
         """``v`` × the PV's mean response less ``|F|`` × the MV's mean as model ``v`` has passed it on."""
-        _, tc, delay = _model(v, gain, omega, lag)
-        first = max(int(np.searchsorted(t, ta - delay - _MEMORY * tc, side="right")) - 1, 0)
+        _, tc, delay = first_order_model(v, gain, omega, lag)
+        first = max(int(np.searchsorted(t, ta - delay - MEMORY * tc, side="right")) - 1, 0)
         end = int(np.searchsorted(t, tb - delay, side="right")) + 1
         seen = _lagged_mean(t[first:end] + delay, u[first:end] - u0, tc, ta, tb)
         left = tc / (tb - ta) * (math.exp(-(ta - t0) / tc) - math.exp(-(tb - t0) / tc))
         return v * (dy - slope * tc * (1.0 - left)) - gain * seen
 
+    lo, hi = _X_MAX * 1e-3, _X_MAX
     if slope == 0.0:
-        # From the plain ratio the refinement converges in a few steps: the correction is small.
-        for _ in range(_SETTLE_ITERATIONS):
-            if not 0.0 < x < _X_MAX:
-                return x
-            x -= mismatch(x) / dy
-        return x
+        # From the plain ratio the refinement converges in a few steps where the correction is small: a
+        # step of the plain ratio's refinement (v·dy − |F|·seen = 0 with seen held), then secant steps.
+        v = x
+        if 0.0 < v < _X_MAX:
+            before, missed = v, mismatch(v)
+            v -= missed / dy
+            for _ in range(_SETTLE_ITERATIONS):
+                if not 0.0 < v < _X_MAX:
+                    break
+                now = mismatch(v)
+                if now == missed:
+                    break
+                step = now * (v - before) / (now - missed)
+                before, missed = v, now
+                v -= step
+                if abs(step) <= _SETTLED * v:
+                    return v
+        # Not settled: a first estimate whose means are far from settled, or a plain ratio at or just above
+        # 1 on a process with dead time whose shifted MV the window has not seen in full (exp(-s)/(0.2*s+1)
+        # read 0.66, then 1.02 after the steps, true 0.93): the root within (0, 1) where there is one.
+        if mismatch(lo) * mismatch(hi) > 0.0:
+            return x if near_one else v
+        return float(scipy.optimize.brentq(mismatch, lo, hi, xtol=_SETTLED * lo, rtol=_SETTLED))
     # A free response to take out moves the mean far more as x changes (through T) than the plain
     # ratio's refinement can follow: the root of the mismatch within (0, 1), bracketed.
-    lo, hi = _X_MAX * 1e-3, _X_MAX
-    if mismatch(lo) * mismatch(hi) > 0.0:
+    if near_one or mismatch(lo) * mismatch(hi) > 0.0:
         return x
     return float(scipy.optimize.brentq(mismatch, lo, hi, xtol=1e-5))
 
 
-def _lagged_mean(s: np.ndarray, u: np.ndarray, tc: float, ta: float, tb: float) -> float:
-    """Mean over ``[ta, tb]`` of ``u`` (held from the times ``s``, zero before) through ``1/(tc·s + 1)``.
+def lag_states(s: np.ndarray, u: np.ndarray, tc: float) -> np.ndarray:
+    """The output of ``1/(tc·s + 1)`` (``tc``: s) at each of the times ``s`` (s) for the input ``u`` held from
+    them, from zero at ``s[0]``.
 
-    Exact for any spacing of ``s`` (a link samples unevenly): the lag ``z``
-    obeys ``z = u − tc·z'``, so its mean is the input's less ``tc`` times its
-    change over the window, and ``z`` at the window's ends follows from its
-    values at the switch times, a product of exponentials (summed in chunks
-    short enough not to overflow). The window starts at ``s[0]`` or later.
+    Exact for any spacing of ``s`` (a link samples unevenly): a product of
+    exponentials, summed in chunks short enough not to overflow.
     """
     z = np.zeros(len(s))
     decay = np.exp(-np.diff(s) / tc)
@@ -260,13 +283,30 @@ def _lagged_mean(s: np.ndarray, u: np.ndarray, tc: float, ta: float, tb: float) 
         gains = (1.0 - decay[k:end - 1]) * u[k:end - 1] * grow
         z[k + 1:end] = (z[k] + np.cumsum(gains)) / grow
         k = end - 1
+    return z
 
-    def at(time: float) -> float:
-        i = int(np.searchsorted(s, time, side="right")) - 1
-        return float(u[i] + (z[i] - u[i]) * math.exp(-(time - s[i]) / tc))
 
+def lag_at(s: np.ndarray, u: np.ndarray, z: np.ndarray, tc: float, times: np.ndarray) -> np.ndarray:
+    """The lag's output at ``times`` (s) from its ``z`` = :func:`lag_states` of ``u`` held from ``s`` (s), ``tc``
+    in s; zero before ``s[0]``."""
+    i = np.searchsorted(s, times, side="right") - 1
+    before = i < 0
+    i = np.maximum(i, 0)
+    out = u[i] + (z[i] - u[i]) * np.exp(-(times - s[i]) / tc)
+    return np.where(before, 0.0, out)
+
+
+def _lagged_mean(s: np.ndarray, u: np.ndarray, tc: float, ta: float, tb: float) -> float:
+    """Mean over ``[ta, tb]`` of ``u`` (held from the times ``s``, zero before) through ``1/(tc·s + 1)``.
+
+    Exact for any spacing of ``s``: the lag ``z`` obeys ``z = u − tc·z'``, so
+    its mean is the input's less ``tc`` times its change over the window, and
+    ``z`` at the window's ends follows from its values at the switch times
+    (:func:`lag_states`). The window starts at ``s[0]`` or later.
+    """
+    ends = lag_at(s, u, lag_states(s, u, tc), tc, np.array([ta, tb]))
     mean = held_coefficient(s, u, ta, tb, 0.0, hann=False).real
-    return mean - tc * (at(tb) - at(ta)) / (tb - ta)
+    return mean - tc * float(ends[1] - ends[0]) / (tb - ta)
 
 
 def _average(columns: np.ndarray, n: int) -> np.ndarray:
@@ -413,7 +453,7 @@ class LoadFitter:
     # -- one candidate model ----------------------------------------------
 
     def _free(self, x: float) -> np.ndarray:
-        tc = _model(x, self.gain, self.omega, self.lag)[1]
+        tc = first_order_model(x, self.gain, self.omega, self.lag)[1]
         # An integrator's free response is a constant: the offset already.
         return np.exp(-(self.t - self.t[0]) / tc) if math.isfinite(tc) else np.zeros(len(self.t))
 

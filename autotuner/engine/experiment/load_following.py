@@ -145,7 +145,8 @@ class LoadFollowing:
 
         The fit would invent loads there. But a load step against the relay's
         bias makes a plain lag's ratio |F|/K0 read above 1 too (−0.1 × amp on
-        ``exp(-s)/(2*s+1)``: 0.37, then 1.4): there an earlier estimate of about
+        ``exp(-s)/(2*s+1)``: 0.37, then 1.4; over one period from 2.5 periods on,
+        only the first estimate read below 1): there an earlier estimate of about
         the same |F| (within 10 %) read below 1, or a ratio a third away — one
         that cancels the bias runs away (1.1, 1.8, 2.9, 5.9 on
         ``exp(-s)/(0.05*s+1)^2`` at −0.2 × amp). A resonance builds |F| up with
@@ -157,7 +158,7 @@ class LoadFollowing:
             return False
         gain = latest.point.gain
         return not any((e.x < 1.0 or abs(e.x - x) > x / 3.0) and abs(e.point.gain - gain) <= 0.1 * gain
-                       for e in self.estimates.items[1:-1])
+                       for e in self.estimates.items[:-1])
 
     def _agree(self, a: LoadFit, b: LoadFit) -> bool:
         """Two fits describe the same disturbance (step time within a quarter period, sizes within a third)."""

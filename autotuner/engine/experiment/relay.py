@@ -18,7 +18,9 @@ no I/O). Stages:
 
 The point ``F(jω)`` is the ratio of the Fourier coefficients of PV and MV over
 the last whole period, and ``x = |F(jω)|/K0`` the ratio of their mean
-deviations from the operating point over the last two (estimates.py). The
+deviations from the operating point over it (over the last two under noise);
+on a quiet, noise-free run the point is taken without the share of the start's
+transient a first-order model says it holds (estimates.py, transient.py). The
 experiment stops when the estimates agree (convergence.py, stopping.py). Load
 steps and drift are estimated through and followed (load_following.py); an
 open-loop unstable process is recognised (unstable.py) and kept bounded
@@ -309,7 +311,8 @@ class RelayExperiment:
         """Estimate the point over the last period and stop if it has converged."""
         loop, crossings, fit = self._loop, self._switching.crossings, self._load.fit
         bounds = crossings[-3:]
-        point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x)
+        point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x,
+                                convergence.noisy(loop, self._estimates))
         wide = wide_x(loop, detrended, bounds) if fit is None else x
         gap = longest_gap(raw.t, bounds[0], bounds[-1])
         self._estimates.add(Estimate(point, x, wide, *bounds), gap, loop.dt)

@@ -1,7 +1,7 @@
 """The stopping rule: when the estimates of the point (and of |F|/K0) are good enough.
 
 Each whole period gives one estimate of ``F(jω)`` over that period and one
-of ``|F|/K0``. Two ways to be done:
+of ``|F|/K0``. Three ways to be done:
 
 * **settled** (a quiet plant): the latest ``k ≥ 2`` estimates agree — the
   standard error of their mean is within half of ``gain_tol`` (relative) and
@@ -15,6 +15,13 @@ of ``|F|/K0``. Two ways to be done:
   timing) settle too when ``k ≥ CURVE_MIN`` of them lie on a line in ω
   within that standard error and their mean lags as asked: the result is
   then their mean, F at their mean ω.
+* **on a line** (a quiet plant whose phase still converges from one side):
+  the point at the target on the line in ln ω through the latest two
+  estimates, when the one before lies on it within ``LINE_TOL`` of
+  ``gain_tol``. Each estimate has shed the transient's share
+  (transient.py), so they are points of the process's curve at their own
+  ω; the line reaches the target a filter correction or two sooner than
+  the cycle does.
 * **averaged** (measurement noise that makes single estimates scatter more
   than ``gain_tol``; the settled rule is then not used): the mean of at least ``NOISY_MIN`` estimates whose
   standard error is within ``noise_tol`` (relative |F|) and ``static_tol``
@@ -53,6 +60,16 @@ NOISY_MIN = 3
 # a settled scatter (its estimates move along the curve as the filter's corrections die out): P5-059 of the
 # batch stopped at 6.8 periods with a point error of 0.9 % instead of 7.7 and 0.08 %.
 CURVE_MIN = 6
+
+# The line rule (a quiet run whose phase is still moving): the point at the target read off the line in ln ω
+# through the latest two estimates, at most this many of their spacings beyond the latest...
+LINE_REACH = 1.0
+# ...when the one before them lies on that line within this share of gain_tol (each estimate's transient is
+# taken out, transient.py: what is left decays from one to the next, and shows as the oldest's distance from
+# the line through the newer two)...
+LINE_TOL = 1.0 / 3.0
+# ...and their spacing is at least this much of ln ω (closer, the line's direction is their noise).
+LINE_SPACING = 0.002
 
 
 @dataclass(frozen=True)
@@ -137,6 +154,63 @@ def _settled(estimates: list[tuple[Point, float]]) -> tuple[Point, float]:
     return point, x
 
 
+def _on_line(recent: list[tuple[Point, float]], target_deg: float, tol: Tolerances) -> Verdict | None:
+    """The point at ``target_deg`` (degrees of lag) on the line in ln ω through the latest two of the three
+    ``recent`` estimates, when their phases converge to it from one side, the oldest lies on the line
+    (LINE_TOL of ``tol.gain_tol``) and the target is within LINE_REACH of their spacing; else None. Its
+    |F|/K0 is the latest's at the point's |F| (K0 as the latest estimate has it)."""
+    (p0, x0), (p1, _), (p2, x2) = recent
+    l0, l1, l2 = (math.log(p.omega) for p in (p0, p1, p2))
+    spacing = l2 - l1
+    if abs(spacing) < LINE_SPACING:
+        return None
+
+    def line(at: float) -> complex:
+        return p2.value + (p2.value - p1.value) * (at - l2) / spacing
+
+    if abs(p0.value - line(l0)) > LINE_TOL * tol.gain_tol * p2.gain:
+        return None
+    lags = [-math.radians(p.phase_deg) - math.radians(target_deg) for p in (p0, p1, p2)]
+    if not (abs(lags[0]) > abs(lags[1]) > abs(lags[2]) and lags[0] * lags[2] > 0.0):
+        # Only a phase that converges from one side, as a filter's corrections do: a cycle whose frequency
+        # wanders (a link's timing) puts two estimates on a line through a third by chance.
+        return None
+    lag1, lag2 = -math.radians(p1.phase_deg), -math.radians(p2.phase_deg)
+    at = l2 + (math.radians(target_deg) - lag2) * spacing / (lag2 - lag1)
+    if abs(at - l2) > LINE_REACH * abs(spacing):
+        return None
+    point = Point(math.exp(at), line(at))
+    if abs(-point.phase_deg - target_deg) > tol.phase_tol_deg:
+        return None
+    # |F|/K0 moves along the curve with |F|: each estimate's K0 read at the point's |F|, judged as the
+    # settled rule judges the latest two (three on a slow mode).
+    xs = [(point, x * point.gain / p.gain) for p, x in recent]
+    x = xs[-1][1]
+    if not _static_settled(xs, xs[-2:], tol):
+        return None
+    return Verdict(point, x, 3)
+
+
+def _static_settled(estimates: list[tuple[Point, float]], recent: list[tuple[Point, float]],
+                    tol: Tolerances) -> bool:
+    """True when the |F|/K0 of the ``recent`` (the latest of ``estimates``, (point, x) pairs) agree within
+    half of ``tol.static_tol`` (standard error), and on a slow mode or an unstable process the latest
+    STATIC_MIN each within half the static bound."""
+    k = len(recent)
+    _, x, _, x_spread = _stats(recent)
+    static_ok = x_spread / math.sqrt(k) <= 0.5 * tol.static_tol
+    if x < -tol.static_tol or 1.0 < slow_memory(x) <= SLOW_MEMORY_MAX:
+        # A slow mode remembers the relay's means of earlier periods: its |F|/K0 estimates converge
+        # more slowly than the point's, and two can agree by chance (100·e^{−20s}/(300s+1):
+        # 0.0805, 0.0803, then 0.0768; true 0.0771): three must agree, each within the bound.
+        # So must an unstable process's, whose design hangs on K0 (its pole is |F|/K0 of the
+        # point's gain at high ω): after its target moved, exp(-0.5*s)/(2*s-1) read K0 −0.80,
+        # −0.91, −0.965 (true −1), and two of them agreed within static_tol.
+        last = estimates[-max(k, STATIC_MIN):]
+        static_ok = static_ok and len(last) >= STATIC_MIN and _stats(last)[3] <= 0.5 * static_bound(tol, x)
+    return static_ok
+
+
 def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances, longest: int,
           noisy: bool, x_std: float | None = None) -> Verdict | None:
     """The accepted mean of the latest ``estimates`` ((point, x) pairs), or None to go on.
@@ -146,6 +220,10 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
     the averaged rule; ``x_std`` (from a load fit) replaces the spread
     of |F|/K0 by the fit's own standard error.
     """
+    if not noisy and x_std is None and len(estimates) >= 3:
+        on_line = _on_line(estimates[-3:], target_deg, tol)
+        if on_line is not None:
+            return on_line
     for k in range(2, min(len(estimates), longest) + 1):
         recent = estimates[-k:]
         mean, x, spread, x_spread = _stats(recent)
@@ -159,16 +237,8 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
         else:
             static_ok = x_spread / math.sqrt(k) <= 0.5 * tol.static_tol
         if not noisy:
-            if x_std is None and (x < -tol.static_tol or 1.0 < slow_memory(x) <= SLOW_MEMORY_MAX):
-                # A slow mode remembers the relay's means of earlier periods: its |F|/K0 estimates converge
-                # more slowly than the point's, and two can agree by chance (100·e^{−20s}/(300s+1):
-                # 0.0805, 0.0803, then 0.0768; true 0.0771): three must agree, each within the bound.
-                # So must an unstable process's, whose design hangs on K0 (its pole is |F|/K0 of the
-                # point's gain at high ω): after its target moved, exp(-0.5*s)/(2*s-1) read K0 −0.80,
-                # −0.91, −0.965 (true −1), and two of them agreed within static_tol.
-                last = estimates[-max(k, STATIC_MIN):]
-                static_ok = static_ok and len(last) >= STATIC_MIN and _stats(last)[3] <= 0.5 * static_bound(
-                    tol, x)
+            if x_std is None:
+                static_ok = _static_settled(estimates, recent, tol)
             if spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
                 point, x = _settled(estimates)
                 return Verdict(point, x, k)
