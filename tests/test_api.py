@@ -35,6 +35,8 @@ OPERATOR, VIEWER, ADMIN = "op-secret", "view-secret", "admin-secret"
 # 25 ms of wall time per sample: converges on a busy CI machine too.
 SPEED = 12.0
 API = "/api/v1"
+# The demo plant's loops (drivers/data/demo_plant.yaml): the three healthy ones first, then the faulty ones.
+DEMO = ["TIC-101", "LIC-201", "FIC-301", "TIC-102", "FIC-302", "TIC-103", "LIC-202"]
 
 
 # samplers 0: the simulated plants in this process, where the tests read them (tests/test_sampler.py runs the
@@ -66,7 +68,7 @@ def wait_idle(client: TestClient, loop_id: str, timeout: float = 60.0, token: st
 
 
 def test_health_needs_no_token_and_everything_else_does(client):
-    assert client.get(f"{API}/health").json() == {"status": "ok", "loops": 3}
+    assert client.get(f"{API}/health").json() == {"status": "ok", "loops": len(DEMO)}
     for method, path in (("GET", "/loops"), ("GET", "/loops/TIC-101"), ("POST", "/loops/TIC-101/tune"),
                          ("POST", "/loops/TIC-101/break"), ("GET", "/loops/TIC-101/history"),
                          ("GET", "/sessions/x"), ("GET", "/loops/TIC-101/events"), ("GET", "/events")):
@@ -79,7 +81,7 @@ def test_health_needs_no_token_and_everything_else_does(client):
 
 def test_viewer_reads_but_cannot_write(client):
     loops = client.get(f"{API}/loops", headers=auth(VIEWER)).json()
-    assert [loop["id"] for loop in loops] == ["TIC-101", "LIC-201", "FIC-301"]
+    assert [loop["id"] for loop in loops] == DEMO
     assert loops[0]["tbsy"] is False and loops[0]["te"] is False and loops[0]["ite"] == 0
     for path in ("/loops/TIC-101/tune", "/loops/TIC-101/break"):
         r = client.post(API + path, headers=auth(VIEWER))
@@ -229,7 +231,7 @@ def test_the_overview_stream_carries_every_loops_state_and_throttled_live_values
         with http.stream("GET", "/events") as stream:
             for kind, data in sse(stream):
                 events.append((kind, data))
-                if len(events) == 3:
+                if len(events) == len(DEMO):
                     assert httpx.post(f"{url}{API}/loops/TIC-101/tune", headers=auth(OPERATOR)).status_code == 202
                 if kind == "state" and data["id"] == "TIC-101" and data["tbsy"]:
                     tuning_since = tuning_since or time.monotonic()
@@ -238,12 +240,12 @@ def test_the_overview_stream_carries_every_loops_state_and_throttled_live_values
                     break
         assert httpx.post(f"{url}{API}/loops/TIC-101/break", headers=auth(OPERATOR)).status_code == 202
     # Opens with every loop's state in the config's order (the status of GET /loops/{id}); then state and live only.
-    assert [k for k, _ in events[:3]] == ["state"] * 3
-    assert [d["id"] for _, d in events[:3]] == ["TIC-101", "LIC-201", "FIC-301"]
+    assert [k for k, _ in events[:len(DEMO)]] == ["state"] * len(DEMO)
+    assert [d["id"] for _, d in events[:len(DEMO)]] == DEMO
     assert set(events[0][1]) == {f.name for f in dataclasses.fields(LoopStatus)}
-    assert {k for k, _ in events[3:]} == {"state", "live"}
+    assert {"state", "live"} <= {k for k, _ in events[len(DEMO):]} <= {"state", "live", "health"}
     live = [d for k, d in events if k == "live"]
-    assert {d["loop"] for d in live} == {"TIC-101", "LIC-201", "FIC-301"}  # the idle loops' monitor readings too
+    assert {d["loop"] for d in live} == set(DEMO)  # the idle loops' monitor readings too
     tuning = [d for d in live if d["loop"] == "TIC-101" and "relay" in d]
     assert tuning and {"time", "pv", "sp", "mv", "relay", "ite", "stage", "progress"} <= tuning[-1].keys()
     idle = [d for d in live if d["loop"] == "LIC-201"]

@@ -214,6 +214,27 @@ class SimPlant(Strict):
         return simulated_plc("", data, ts=tick)
 
 
+# Bounds of a loop's health monitoring, plant seconds: a window from a minute to a day; an assessment at most
+# every hour and at least every second (each costs a few ms of a worker's CPU).
+HEALTH_WINDOW = (60.0, 86400.0)
+HEALTH_EVERY = (1.0, 3600.0)
+
+
+class HealthConfig(Strict):
+    """A loop's health monitoring (docs/health.md, "Online"): while idle, its monitor's readings over the last
+    ``window`` plant seconds are assessed every ``every`` plant seconds (``enabled`` false: never)."""
+
+    enabled: bool = True
+    window: Annotated[float, Field(ge=HEALTH_WINDOW[0], le=HEALTH_WINDOW[1])] = 3600.0
+    every: Annotated[float, Field(ge=HEALTH_EVERY[0], le=HEALTH_EVERY[1])] = 60.0
+
+    @model_validator(mode="after")
+    def _within_window(self) -> HealthConfig:
+        if self.every > self.window:
+            raise ValueError(f"every ({self.every:g} s) must not exceed the window ({self.window:g} s)")
+        return self
+
+
 class LoopConfig(Strict):
     """One loop: a field link (``link`` + ``map``/``dbc``) or an in-process simulated plant (``sim``).
 
@@ -228,6 +249,7 @@ class LoopConfig(Strict):
     are read this often, wall seconds (the live values of the status and the
     ``sample`` events). units: engineering units and display of its values
     (:class:`Units`; absent: no unit, 4 significant digits, axes fit the data).
+    health: its health monitoring (:class:`HealthConfig`).
     """
 
     id: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
@@ -246,6 +268,7 @@ class LoopConfig(Strict):
     handshake: bool = False
     handshake_poll: Annotated[float, Field(ge=0.02, le=60.0)] = 0.5
     monitor_period: Annotated[float, Field(ge=0.05, le=60.0)] = 1.0
+    health: HealthConfig = HealthConfig()
 
     @property
     def max_amp(self) -> float:
