@@ -208,11 +208,14 @@ def test_events_stream_samples_and_state_changes():
                     break
         assert http.post("/loops/TIC-101/break").status_code == 202
     # The stream opens with the state and the replay of the trend kept (here the monitor's readings so far); then
-    # state, sample (monitor or experiment) events only.
+    # state, sample (monitor or experiment) events, and the health summary's change the tuning makes (pending: the
+    # samples before it were another loop's).
     assert events[0][0] == "state" and events[0][1]["tbsy"] is False
     assert events[1][0] == "replay" and events[1][1]["session"] is None
     assert set(events[1][1]) == {"session", "time", "t", "pv", "sp", "mv", "relay"}
-    assert {k for k, _ in events[2:]} == {"state", "sample"}
+    assert {k for k, _ in events[2:]} == {"state", "sample", "health"}
+    health = [d for k, d in events if k == "health"]
+    assert health[-1]["loop"] == "TIC-101" and health[-1]["state"] == "pending" and health[-1]["flags"] == []
     assert next(d for k, d in events[2:] if k == "state")["tbsy"] is True
     samples = [d for k, d in events if k == "sample"]
     assert {"t", "pv", "mv", "relay", "filter_phase_deg", "ite", "stage", "progress"} <= samples[-1].keys()

@@ -105,7 +105,7 @@ def _control(stretch: LoopRecord, model: Process | None, a: float, tu: float | N
 
 @dataclass(frozen=True)
 class Detail:
-    """An assessment with what it read: ``record`` the window as assessed (on its even grid), ``crossings`` the
+    """An ``assessment`` with what it read: ``record`` the window as assessed (on its even grid), ``crossings`` the
     times of the control error's zero crossings Hägglund's detector counted (the half-cycles' bounds, s, the
     record's clock; empty without control-performance indices), ``period`` and ``amplitude`` the oscillation's
     (s, PV units; None: none found) — the evidence a page draws."""

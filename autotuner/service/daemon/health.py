@@ -243,6 +243,15 @@ class LoopHealth:
             return summary_of("pending", None, f"collecting: {len(self.readings)} of {self.needed()} samples")
         return summary_of("ok", self.assessment)
 
+    def detail(self) -> dict[str, Any]:
+        """The loop's health in full (``GET /loops/{id}/health``): the summary's state, severity, rank and reason,
+        the assessment, the configured window, the assessment before the newest tuning and the evidence."""
+        summary = self.summary()
+        return {"loop": self.config.id, "state": summary["state"], "severity": summary["severity"],
+                "rank": summary["rank"], "reason": summary["reason"], "assessment": self.assessment,
+                "window_setting": self.config.health.window, "before_tuning": self.before,
+                "evidence": self.evidence if self.assessment is not None else None}
+
     def restore(self, latest: dict[str, Any] | None, before: dict[str, Any] | None) -> None:
         """After a restart: the newest stored assessment (``latest``, with its ``session``: the newest tuning
         before it) is the current one unless the loop was tuned since (``self.session`` differs): then it is the
