@@ -10,6 +10,7 @@ deadlines far beyond what an idle machine needs.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -77,7 +78,10 @@ def test_the_demo_plants_loops_are_told_apart_online_kept_and_pending_again_afte
         rows = get(daemon, "/loop-health")
         assert [(row["loop"], row["rank"]) for row in rows] == sorted(
             ((row["loop"], row["rank"]) for row in rows), key=lambda item: (-item[1], item[0]))
-        assert rows[-1]["loop"] == "TIC-101" and rows[-1]["rank"] == 0 and rows[0]["rank"] > 0
+        for row in rows:  # the rank: 10 × the worst severity + the number of flags (docs/health.md, "Online")
+            level = ("none", "low", "medium", "high").index(row["severity"])
+            assert row["rank"] == (10 * level + len(row["flags"]) if row["flags"] else 0), row
+        assert {row["loop"] for row in rows if row["rank"] > 0} >= {"TIC-102", "LIC-202"}
 
         # the detail: the assessment, the window, the evidence the page draws
         detail = get(daemon, "/loops/TIC-102/health")
@@ -115,17 +119,20 @@ def test_the_demo_plants_loops_are_told_apart_online_kept_and_pending_again_afte
         history = {loop_id: get(daemon, f"/loops/{loop_id}/health/history?limit=1000") for loop_id in LOOPS}
     assert daemon.proc.returncode == 0
 
-    # restarted with a window of a day: no new assessment for minutes, so what it shows is what it kept
+    # restarted with a window of a day: no new assessment for minutes (4320 readings needed), so what it shows is
+    # what the history kept — the assessments read above and those the first daemon made after the read
     with Daemon(write_config(tmp_path, window=86400.0)) as daemon:
         for loop_id in LOOPS:
-            stored = history[loop_id]
-            assert stored and [row["time"] for row in stored] == sorted((row["time"] for row in stored), reverse=True)
-            assert get(daemon, f"/loops/{loop_id}/health/history?limit=1000")[:len(stored)] == stored
+            read = history[loop_id]
+            stored = get(daemon, f"/loops/{loop_id}/health/history?limit=1000")
+            assert [row["time"] for row in stored] == sorted((row["time"] for row in stored), reverse=True)
+            assert stored[len(stored) - len(read):] == read  # nothing lost, the newer ones in front
             back = get(daemon, f"/loops/{loop_id}/health")
-            newest = stored[0]
-            assert back["state"] == "ok" and back["assessment"]["time"] == newest["time"]
-            assert back["assessment"]["flags"] == newest["flags"] == kept[loop_id]["assessment"]["flags"]
-            assert back["assessment"]["indices"] == kept[loop_id]["assessment"]["indices"]
+            assert back["state"] == "ok" and back["assessment"]["time"] == stored[0]["time"]
+            assert back["assessment"]["flags"] == stored[0]["flags"]
+            assert back["assessment"]["recommendation"] == stored[0]["recommendation"]
+            if stored[0]["time"] == kept[loop_id]["assessment"]["time"]:
+                assert back["assessment"] == kept[loop_id]["assessment"]
             assert back["window_setting"] == 86400.0 and back["evidence"] is None  # the samples are not kept
         restored = get(daemon, "/loops/TIC-101/health")["before_tuning"]
         assert restored["session"] == sid and restored["time"] == kept["TIC-101"]["before_tuning"]["time"]
@@ -148,3 +155,42 @@ def test_health_reads_need_a_token_and_name_what_is_wrong() -> None:
         assert client.get("/api/v1/loops/TIC-102/health/history?limit=1000", headers=auth).json() == []
         detail = client.get("/api/v1/loops/TIC-102/health", headers=auth).json()
         assert detail["state"] == "pending" and detail["assessment"] is None and detail["window_setting"] == 3600.0
+
+
+def test_the_record_keeps_the_newest_readings_in_order_and_drops_what_cannot_be_assessed() -> None:
+    from autotuner.service.daemon.health import Readings
+
+    ring = Readings(4)
+    for k in range(6):
+        ring.add(float(k), 50.0, 50.0 + k, 40.0 - k, k % 2 == 0)
+    ring.add(5.0, 50.0, 1.0, 1.0, True)  # no later than the newest: a clock stepped back
+    ring.add(6.0, 50.0, math.nan, 1.0, True)  # not a number
+    t, sp, pv, mv, auto = ring.columns()
+    assert list(t) == [2.0, 3.0, 4.0, 5.0] and list(pv) == [52.0, 53.0, 54.0, 55.0]
+    assert list(mv) == [38.0, 37.0, 36.0, 35.0] and list(auto) == [1.0, 0.0, 1.0, 0.0]
+    assert len(ring) == 4 and ring.span == 3.0
+    ring.clear()
+    assert len(ring) == 0 and ring.span == 0.0
+    sparse = Readings(10, stride=3)  # one reading in three: the ring spans a longer window
+    for k in range(10):
+        sparse.add(float(k), 0.0, 0.0, 0.0, True)
+    assert list(sparse.columns()[0]) == [0.0, 3.0, 6.0, 9.0]
+
+
+def test_a_loops_assessments_are_due_on_its_own_staggered_grid() -> None:
+    from autotuner.service.config import LoopConfig
+    from autotuner.service.daemon.health import LoopHealth
+
+    config = LoopConfig.model_validate({"id": "A", "sim": {"plant": "1/(s+1)"}, "ts": 0.1, "monitor_period": 1.0,
+                                        "health": {"window": 600.0, "every": 60.0}})
+    health = LoopHealth(config, origin=1000.0, phase=0.25)
+    for k in range(59):  # 59 readings over 58 s: fewer than a tenth of the window
+        health.add(1000.0 + k, 50.0, 50.0, 50.0, True)
+    assert not health.is_due(1059.0) and health.summary()["reason"] == "collecting: 59 of 60 samples"
+    health.add(1059.0, 50.0, 50.0, 50.0, True)
+    assert health.is_due(1059.5)  # ready: at once
+    job = health.job(1059.5)
+    assert job.columns.shape == (5, 60) and job.window == 600.0 and job.limits.mv == (0.0, 100.0)
+    assert health.due == 75.0 and not health.is_due(1070.0)  # then at 60·(k + 0.25): 15, 75, 135, ... plant s
+    health.done({"error": "no"}, 1060.0, health.generation)
+    assert not health.is_due(1074.0) and health.is_due(1075.0)
