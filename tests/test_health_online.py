@@ -10,6 +10,7 @@ deadlines far beyond what an idle machine needs.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -84,6 +85,18 @@ def test_the_demo_plants_loops_are_told_apart_online_kept_and_pending_again_afte
         severities = sticky["assessment"]["severities"]
         worst = max(sticky["assessment"]["flags"], key=lambda f: ("low", "medium", "high").index(severities[f]))
         assert sticky["reason"] == sticky["assessment"]["reasons"][worst] and sticky["severity"] == severities[worst]
+
+        # the overview stream: each new assessment as a health event (the status's summary, with the loop's id)
+        with httpx.stream("GET", f"{daemon.base}/events", headers=daemon.headers, timeout=30) as stream:
+            event = ""
+            for line in stream.iter_lines():
+                if line.startswith("event: "):
+                    event = line[7:]
+                elif line.startswith("data: ") and event == "health":
+                    health_event = json.loads(line[6:])
+                    break
+        assert health_event["loop"] in LOOPS and health_event["state"] == "ok"
+        assert set(health_event) == {"loop", "state", "severity", "rank", "flags", "recommendation", "reason", "time"}
 
         # the list: every loop, worst first (rank descending, then id), as its status says
         rows = get(daemon, "/loop-health")
