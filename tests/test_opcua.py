@@ -110,8 +110,13 @@ def test_each_loop_has_a_health_object_showing_the_summary_rest_shows(daemon):
                 summary = rest.get(f"{API}/loops/TIC-3", headers=viewer).json()["health"]
                 if summary["state"] != "ok":
                     return False
-                shown = {name: await value(c, "TIC-3", f"Health.{name}") for name in (
-                    "State", "Severity", "Rank", "Flags", "Recommendation", "Reason", "Time")}
+                shown = {}
+                for name in ("State", "Severity", "Rank", "Flags", "Recommendation", "Reason", "Time"):
+                    data = await c.get_node(ua.NodeId(f"TIC-3.Health.{name}", idx)).read_data_value(
+                        raise_on_bad_status=False)
+                    if not data.StatusCode.is_good():  # not published yet (every monitor period)
+                        return False
+                    shown[name] = data.Value.Value
                 return shown == {"State": "ok", "Severity": summary["severity"], "Rank": summary["rank"],
                                  "Flags": ",".join(summary["flags"]), "Recommendation": summary["recommendation"],
                                  "Reason": summary["reason"], "Time": summary["time"]}
