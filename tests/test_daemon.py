@@ -87,7 +87,8 @@ def test_tune_busy_ite_counts_down_then_success_with_gains_applied():
     assert len(record["trace"]["t"]) == record["result"].experiment.samples
     assert 10 < len(record["trace"]["t"]) <= TRACE_POINTS
     kinds = {e["event"] for e in samples}
-    assert kinds == {"sample", "state"}
+    # health: pending from the start of the tuning (an old event, which a full queue may have dropped)
+    assert {"sample", "state"} <= kinds <= {"sample", "state", "health"}
     sample = next(e["data"] for e in samples if e["event"] == "sample" and e["data"].get("stage") == "relay")
     assert {"t", "time", "pv", "sp", "mv", "relay", "filter_phase_deg", "ite"} <= sample.keys()
     assert sample["sp"] == record["saved"]["sp"]

@@ -52,16 +52,21 @@ class WorkerPool:
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """``fn(*args)`` in a worker (``fn`` and its arguments and result are pickled); in a thread if a worker
-        was killed."""
+        was killed. Its CPU seconds count in :attr:`cpu`."""
+        result, cpu = await self.timed(fn, *args)
+        self.cpu += cpu
+        return result
+
+    async def timed(self, fn: Callable[..., T], *args: Any) -> tuple[T, float]:
+        """``fn(*args)`` as :meth:`run`, and the CPU seconds it took (not counted in :attr:`cpu`)."""
         fresh = self._pool is None
         try:
-            result, cpu = await self._submit(_timed, fn, *args)
+            result = await self._submit(_timed, fn, *args)
         except BrokenProcessPool:
             self._pool = None
-            return await asyncio.to_thread(fn, *args)
+            return await asyncio.to_thread(_thread_timed, fn, *args)
         if fresh:
             _threads_like_this()
-        self.cpu += cpu
         return result
 
     def close(self) -> None:
@@ -130,6 +135,11 @@ def _started() -> bool:
 def _timed(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
     cpu0 = time.process_time()
     return fn(*args), time.process_time() - cpu0
+
+
+def _thread_timed(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
+    cpu0 = time.thread_time()
+    return fn(*args), time.thread_time() - cpu0
 
 
 def _worker_start(parent: int, setup: Callable[[], None] | None) -> None:
