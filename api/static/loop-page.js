@@ -1,9 +1,10 @@
-// The loop page (#/loop/ID): the head with the live readouts, the tuning state, the actions, the trend and the
-// last session's result — one view per card, each redrawn from one record of the page's state when it changes.
+// The loop page (#/loop/ID): the head with the live readouts, the tuning state, the actions, the trend, the loop's
+// health and the last session's result — one view per card, each redrawn from one record of the page's state when it changes.
 
 import { eventStream, get } from "./api.js";
 import { actionsCard } from "./actions-card.js";
 import { esc, fill, h, main } from "./dom.js";
+import { healthCard } from "./health-card.js";
 import { banner, notify } from "./notices.js";
 import { resultCard } from "./result-card.js";
 import { loopHead, statusCard } from "./status-card.js";
@@ -22,11 +23,13 @@ export function loopView(id) {
   });
   const trend = trendCard(page);
   const result = resultCard(page);
-  fill(main(), head.node, h("div", { class: "row" }, status.node, actions.node), trend.node, result.node);
+  const health = healthCard(page, actions);
+  fill(main(), head.node, h("div", { class: "row" }, status.node, actions.node), trend.node, health.node, result.node);
 
   function update() {
     if (!page.loop || page.closed) return;
-    for (const view of [head, status, actions, result]) view.update(page.loop);
+    // (health after actions: its "tune now" follows the TUNE button's state)
+    for (const view of [head, status, actions, health, result]) view.update(page.loop);
   }
 
   // Samples come many a second: the trend and the live readouts are redrawn at most every 0.2 s.

@@ -160,9 +160,10 @@ export function timeChart(svg, opts) {
     if (panel.marks) {
       const m = panel.marks;
       const marks = el("g", { class: `marks ${m.cls}`, "data-marks": m.name, "data-count": m.x.length }, lines);
+      const sparse = m.x.length <= plotW / 8; // lines across the panel only where they leave the data visible
       for (const x of m.x) {
         const px = sx(x);
-        el("line", { class: "mark-line", x1: px, x2: px, y1: y, y2: y + h }, marks);
+        if (sparse) el("line", { class: "mark-line", x1: px, x2: px, y1: y, y2: y + h }, marks);
         el("path", { class: "mark-tick", d: `M${px - 4},${y}h8l-4,6zM${px - 4},${y + h}h8l-4,-6z` }, marks);
       }
     }
