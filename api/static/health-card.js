@@ -54,7 +54,12 @@ export function healthCard(page, actions) {
   function update(loop) {
     const s = loop.health ?? null;
     const key = JSON.stringify([s?.state, s?.time, s?.severity, s?.flags, loop.session]);
-    if (key !== shown && !loading) { shown = key; loading = load().finally(() => { loading = null; if (!page.closed) update(page.loop); }); }
+    if (key !== shown && !loading) {
+      shown = key;
+      // Never assessed (null; or a daemon without health monitoring): nothing to fetch.
+      if (!s) render({ state: null, severity: null, assessment: null, before_tuning: null, evidence: null, reason: "" });
+      else loading = load().finally(() => { loading = null; if (!page.closed) update(page.loop); });
+    }
     // "Tune now" runs the TUNE form's request: enabled when TUNE is (operator token, loop idle and handed back).
     tuneNow.disabled = !actions.tunable();
     tuneNow.title = !canOperate() ? "needs an operator token" : tuneNow.disabled ? "the loop cannot be tuned now"
@@ -80,7 +85,7 @@ export function healthCard(page, actions) {
     fill(node,
       h("div", { class: "card-head" }, h("h2", {}, "Loop health"),
         h("span", { class: "muted small", id: "health-time" }, a?.time ? `assessed ${clock(a.time)}` : "")),
-      h("div", { class: "summary", id: "health-summary" }, healthBadge(body),
+      h("div", { class: "summary", id: "health-summary" }, healthBadge(body.state ? body : null),
         a ? advice(a.recommendation) : h("span", { class: "muted" }, body.reason || stateWords(body.state)),
         a?.recommendation === "retune" ? tuneNow : null),
       a ? flagList(a) : null,
@@ -110,10 +115,11 @@ function evidence(ev, a, u) {
     ? ` · oscillation period ${fmt(ev.period, 3)} s, amplitude ${fmt(ev.amplitude, 3)}${u.pv ? ` ${u.pv}` : ""}` : "";
   const trend = svgNode("trend health-trend", "the assessed window");
   trend.id = "health-trend";
-  const boxes = [h("div", { class: "panel-box" }, h("h3", {}, `The assessed window${osc}`), trend)];
+  const boxes = [h("div", { class: "panel-box" }, h("h3", {}, `The assessed window${osc}`), trend,
+    h("p", { class: "muted small" }, `▼ ${ev.crossings.length} zero crossings of the control error SP − PV, as the oscillation detector counted them.`))];
   const span = [ev.t[0] ?? 0, Math.max(ev.t[ev.t.length - 1] ?? 1, (ev.t[0] ?? 0) + 1)];
   fitted(trend, (w) => timeChart(trend, { width: w, xRange: span, panels: [
-    { height: 150, label: axis("PV, SP", u.pv), marks: { name: "zero crossings of SP − PV", cls: "crossings", x: ev.crossings },
+    { height: 150, label: axis("PV, SP", u.pv), marks: { name: "zero crossings", cls: "crossings", x: ev.crossings },
       series: [{ name: "SP", cls: "s-sp", x: ev.t, y: ev.sp, step: true }, { name: "PV", cls: "s-pv", x: ev.t, y: ev.pv }] },
     { height: 90, label: axis("MV", u.mv), series: [{ name: "MV", cls: "s-mv", x: ev.t, y: ev.mv, step: true }] },
   ], xLabel: "plant seconds from the window's start" }), 700);
@@ -166,6 +172,6 @@ function windowInfo(body, a) {
   const w = a?.window;
   return h("dl", { class: "kv small", id: "health-window" },
     h("dt", {}, "window"), h("dd", {}, w ? `${fmt(w.end - w.start, 4)} plant s (${w.samples} samples at ${fmt(w.ts, 3)} s)` : "—",
-      ` · configured ${fmt(body.window_setting, 4)} s`),
+      body.window_setting ? ` · configured ${fmt(body.window_setting, 4)} s` : ""),
     a?.dead_time_source ? [h("dt", {}, "dead time"), h("dd", {}, DEAD_TIME_SOURCE[a.dead_time_source] || a.dead_time_source)] : null);
 }
