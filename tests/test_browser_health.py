@@ -19,6 +19,7 @@ import yaml
 from api.auth import token_hash
 from autotuner.service.demo import demo_config
 from helpers import Daemon, logged_in_page
+from test_browser import legible, no_horizontal_scroll, usable
 
 OPERATOR, VIEWER = "health-operator-secret", "health-viewer-secret"
 SPEED = 20.0
@@ -133,6 +134,29 @@ def test_the_sticky_valves_card_shows_stiction_and_check_valve_with_its_evidence
         assert page.inner_text("#health-indices tr[data-index=oscillation_period] td.unit") == "s"
         assert page.inner_text("#health-indices tr[data-index=stiction_band] td.unit") == "%"
         assert page.inner_text("#health-window").startswith("window")
+
+
+@pytest.mark.parametrize("width,height", [(390, 844), (820, 1180), (1920, 1080), (3840, 2160)])
+def test_every_screen_size_shows_the_health_column_and_card(daemon, width, height):
+    assessed(daemon, STICKY, "check_valve")
+    assessed(daemon, RETUNE, "retune")
+    with page_of(daemon) as page:
+        page.set_viewport_size({"width": width, "height": height})
+        page.wait_for_selector(f"#loops tr[data-loop={STICKY}] [data-hflag=stiction]")
+        no_horizontal_scroll(page)
+        usable(page, "#sort-health", 44)
+        page.click("#sort-health")
+        no_horizontal_scroll(page)
+        page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{STICKY}")
+        page.wait_for_selector("#health-mvpv path[data-series='PV(MV)']")
+        no_horizontal_scroll(page)
+        legible(page, "#health-trend")
+        legible(page, "#health-mvpv")
+        page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{RETUNE}")
+        page.wait_for_selector("#tune-now:enabled")
+        no_horizontal_scroll(page)
+        usable(page, "#tune-now", 44)
+        legible(page, "#health-trend")
 
 
 def test_a_loop_recommended_for_retuning_shows_tune_now_which_tunes_it_and_then_its_health_before_and_after(daemon):
