@@ -41,24 +41,35 @@ const INDICES = [
   ["frozen_share", "longest frozen PV", "share of window"],
 ];
 
-const DEAD_TIME_SOURCE = { model: "the last tuning's model's", "one sample": "one sample (no model: the Harris index is a lower bound)" };
+const REFRESH_MS = 5000;
+
+const DEAD_TIME_SOURCE = { model: "from the last tuning's model", "one sample": "one sample (no model: the Harris index is a lower bound)" };
 
 // `page`: the loop page's record; `actions`: the actions card, whose TUNE flow "tune now" uses.
 export function healthCard(page, actions) {
   const node = h("section", { class: "card wide health", id: "health" }, h("h2", {}, "Loop health"),
     h("p", { class: "muted" }, "loading…"));
   const tuneNow = h("button", { type: "button", class: "primary", id: "tune-now", onclick: () => actions.tune() }, "Tune now");
-  let shown = null; // the summary the card was drawn for: drawn again when it changes
+  // What the card shows: the verdict (state, severity, flags, the loop's session) and the assessment's time it was
+  // drawn for, and when. A new verdict is fetched at once; a newer assessment of the same verdict at most every
+  // REFRESH_MS (the daemon may assess every second of wall time at a demo's speed).
+  let drawn = { verdict: null, time: null, at: 0 };
   let loading = null;
+  let timer = null;
+  const view = { indicesOpen: true }; // kept across redraws: the operator folded the indices, or not
 
   function update(loop) {
     const s = loop.health ?? null;
-    const key = JSON.stringify([s?.state, s?.time, s?.severity, s?.flags, loop.session]);
-    if (key !== shown && !loading) {
-      shown = key;
+    const verdict = JSON.stringify([s?.state, s?.severity, s?.flags, loop.session]);
+    const newer = s?.time !== drawn.time;
+    const wait = REFRESH_MS - (Date.now() - drawn.at);
+    if (!loading && (verdict !== drawn.verdict || (newer && wait <= 0))) {
+      drawn = { verdict, time: s?.time, at: Date.now() };
       // Never assessed (null; or a daemon without health monitoring): nothing to fetch.
       if (!s) render({ state: null, severity: null, assessment: null, before_tuning: null, evidence: null, reason: "" });
       else loading = load().finally(() => { loading = null; if (!page.closed) update(page.loop); });
+    } else if (!loading && newer && !timer) {
+      timer = setTimeout(() => { timer = null; if (!page.closed) update(page.loop); }, wait);
     }
     // "Tune now" runs the TUNE form's request: enabled when TUNE is (operator token, loop idle and handed back).
     tuneNow.disabled = !actions.tunable();
@@ -71,7 +82,7 @@ export function healthCard(page, actions) {
       const body = await get(`/loops/${esc(page.id)}/health`);
       if (!page.closed) render(body);
     } catch (err) {
-      shown = null;
+      drawn.time = null; // tried again after REFRESH_MS
       if (!page.closed) notify(err, node);
     }
   }
@@ -90,11 +101,11 @@ export function healthCard(page, actions) {
         a?.recommendation === "retune" ? tuneNow : null),
       a ? flagList(a) : null,
       body.evidence ? evidence(body.evidence, a, u) : null,
-      h("div", { class: "health-details" }, a ? indicesTable(a, before, u) : null,
+      h("div", { class: "health-details" }, a ? indicesTable(a, before, u, view) : null,
         h("div", {}, before ? beforeAfter(before, a) : null, windowInfo(body, a))));
   }
 
-  return { node, update };
+  return { node, update, close: () => clearTimeout(timer) };
 }
 
 function stateWords(state) {
@@ -137,11 +148,13 @@ function evidence(ev, a, u) {
 }
 
 // Every index with its unit, now and (after a tuning) before it.
-function indicesTable(a, before, u) {
+// `view.indicesOpen`: whether the table is unfolded (the operator's choice, kept across redraws).
+function indicesTable(a, before, u, view) {
   const known = new Set(INDICES.map(([name]) => name));
   const rows = [...INDICES, ...Object.keys(a.indices).filter((k) => !known.has(k)).map((k) => [k, k, ""])];
   const value = (v) => (typeof v === "number" ? fmt(v) : "—");
-  return h("details", { class: "health-indices", open: true },
+  const box = h("details", { class: "health-indices", open: view.indicesOpen,
+                             ontoggle: () => { view.indicesOpen = box.open; } },
     h("summary", {}, "Indices"),
     h("div", { class: "scroll-x" }, h("table", { class: "indices", id: "health-indices" },
       h("thead", {}, h("tr", {}, h("th", {}, "index"), h("th", { class: "num" }, "now"),
@@ -150,6 +163,7 @@ function indicesTable(a, before, u) {
         h("th", {}, label), h("td", { class: "num now" }, value(a.indices[name])),
         before ? h("td", { class: "num before" }, value(before.indices?.[name])) : null,
         h("td", { class: "unit" }, unitText(unit, u))))))));
+  return box;
 }
 
 // An index's unit in the loop's units: "°C" for PV, "%/h" for MV/h; as written where the loop names none.
@@ -173,5 +187,5 @@ function windowInfo(body, a) {
   return h("dl", { class: "kv small", id: "health-window" },
     h("dt", {}, "window"), h("dd", {}, w ? `${fmt(w.end - w.start, 4)} plant s (${w.samples} samples at ${fmt(w.ts, 3)} s)` : "—",
       body.window_setting ? ` · configured ${fmt(body.window_setting, 4)} s` : ""),
-    a?.dead_time_source ? [h("dt", {}, "dead time"), h("dd", {}, DEAD_TIME_SOURCE[a.dead_time_source] || a.dead_time_source)] : null);
+    a?.dead_time_source ? [h("dt", {}, "Harris dead time"), h("dd", {}, DEAD_TIME_SOURCE[a.dead_time_source] || a.dead_time_source)] : null);
 }

@@ -103,6 +103,7 @@ export function loopView(id) {
   return () => {
     page.closed = true;
     trend.close();
+    health.close();
     stream?.close();
     clearTimeout(redraw);
     banner("stream", null);
