@@ -100,9 +100,9 @@ export function healthCard(page, actions) {
         a ? advice(a.recommendation) : h("span", { class: "muted" }, body.reason || stateWords(body.state)),
         a?.recommendation === "retune" ? tuneNow : null),
       a ? flagList(a) : null,
+      before ? beforeAfter(before, a) : null,
       body.evidence ? evidence(body.evidence, a, u) : null,
-      h("div", { class: "health-details" }, a ? indicesTable(a, before, u, view) : null,
-        h("div", {}, before ? beforeAfter(before, a) : null, windowInfo(body, a))));
+      h("div", { class: "health-details" }, a ? indicesTable(a, before, u, view) : null, windowInfo(body, a)));
   }
 
   return { node, update, close: () => clearTimeout(timer) };
