@@ -93,6 +93,12 @@ export function loopView(id) {
       state,
       sample,
       replay,
+      // The loop's health summary changed (when the stream sends it apart from the state).
+      health({ loop: _, ...summary }) {
+        if (!page.loop) return;
+        page.loop = { ...page.loop, health: summary };
+        update();
+      },
       status(connected, detail) {
         if (connected) trend.gap();
         banner("stream", connected ? null : `Live stream lost — reconnecting… (${detail || "connection closed"})`);
