@@ -43,7 +43,7 @@ from .events import LIVE_PERIOD, OpenStreams, Overview, overview, stream
 from .metrics import CONTENT_TYPE, exposition, registry_of
 from .gate import RequestGate
 from .models import (Accepted, Analysis, Applied, ApplyRequest, CodeOut, DrainRequest, FleetStatus, Health,
-                     LoopStatus, Session, SessionSummary, Whoami)
+                     HealthHistoryItem, LoopHealthDetail, LoopHealthRow, LoopStatus, Session, SessionSummary, Whoami)
 from .opcua import StartError, start_opcua
 
 PREFIX = "/api/v1"
@@ -182,6 +182,7 @@ _EVENTS_DOC = """Server-Sent Events of the loop (`text/event-stream`), one JSON 
 - `sample`: while tuning one per experiment sample: `t` (plant s), `time` (unix s), `pv`, `sp`, `mv`, `relay`,
   `filter_phase_deg` (degrees), `stage`, `progress` (0–1), `ite` (plant s left), `periods`; while idle one per
   monitor reading (every `monitor_period` wall seconds): `time`, `pv`, `sp`, `mv`, `mode`.
+- `health`: the loop's health summary changed (as on `/events`).
 
 A comment line (`: keep-alive`) every 15 s keeps an idle stream open. Non-finite numbers are sent as null."""
 
@@ -193,7 +194,7 @@ _EVENTS_EXAMPLE = ('event: state\ndata: {"id": "TIC-101", "tbsy": false, "te": f
 
 # One event of the stream: its type and its data (a JSON object, fields in the description above).
 _EVENT_SCHEMA = {"type": "object", "required": ["event", "data"], "properties": {
-    "event": {"type": "string", "enum": ["state", "replay", "sample"], "description": "the event's type"},
+    "event": {"type": "string", "enum": ["state", "replay", "sample", "health"], "description": "the event's type"},
     "data": {"type": "string", "description": "the event's JSON object"}}}
 
 
@@ -219,6 +220,9 @@ connection (the operator page's; a browser opens at most 6 connections per serve
 - `live`: a loop's newest `sample` (the fields of `/loops/{{id}}/events`' sample: an experiment sample while the
   loop tunes, a monitor reading while idle) with `loop`, its id — at most one per loop every {LIVE_PERIOD:g} s
   (the samples between are dropped; a `state` event carries the live values too).
+- `health`: a loop's health summary changed (a new assessment; pending again when a tuning starts): `loop`, its
+  id, and the summary's fields (`state`, `severity`, `rank`, `flags`, `recommendation`, `reason`, `time`), as the
+  status's `health` and `GET /loop-health` (docs/health.md, "Online").
 
 No `replay`: the trend is the loop's own stream. A comment line (`: keep-alive`) every 15 s keeps an idle stream
 open. Non-finite numbers are sent as null. The stream ends when the daemon stops, after every loop's last state."""
@@ -230,17 +234,17 @@ _OVERVIEW_EXAMPLE = ('event: state\ndata: {"id": "TIC-101", "tbsy": false, "te":
 
 _OVERVIEW_SCHEMA = {**_EVENT_SCHEMA, "properties": {
     **_EVENT_SCHEMA["properties"],
-    "event": {"type": "string", "enum": ["state", "live"], "description": "the event's type"}}}
+    "event": {"type": "string", "enum": ["state", "live", "health"], "description": "the event's type"}}}
 
 
 @router.get("/events", tags=["loops"], response_class=EventStream, description=_OVERVIEW_DOC,
             responses={200: {"content": {"text/event-stream": {"schema": _OVERVIEW_SCHEMA,
                                                               "example": _OVERVIEW_EXAMPLE}},
-                             "description": "state and live events of every loop"},
+                             "description": "state, live and health events of every loop"},
                        401: {"description": _ERROR_TEXT[401], "content": {"application/json": {
                            "schema": {"$ref": "#/components/schemas/ErrorBody"}}}}})
 async def all_events(request: Request, manager: Manager, _: Viewer) -> StreamingResponse:
-    """Server-Sent Events of every loop: ``state`` and ``live`` (the description lists their fields)."""
+    """Server-Sent Events of every loop: ``state``, ``live`` and ``health`` (the description lists their fields)."""
     return EventStream(overview(manager, request.app.state.overview, request.app.state.streams),
                        media_type="text/event-stream",
                        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
@@ -264,6 +268,38 @@ async def history(loop_id: LoopId, manager: Manager, _: Viewer,
     """Past sessions of the loop, newest first (without traces)."""
     manager.get(loop_id)
     return await _read_history(manager.history.of_loop, loop_id, limit)
+
+
+@router.get("/loop-health", response_model=list[LoopHealthRow], tags=["health"], responses=_errors(401))
+async def loop_health(manager: Manager, _: Viewer) -> list[dict[str, Any]]:
+    """Every configured loop's health summary, worst first (rank descending, then loop id): what the overview's
+    health column shows (docs/health.md, "Online"). ``GET /health`` is the daemon's liveness."""
+    rows = [{"loop": loop_id, "description": loop.config.description, **loop.health.summary()}
+            for loop_id, loop in manager.loops.items() if loop.health is not None]
+    return sorted(rows, key=lambda row: (-row["rank"], row["loop"]))
+
+
+@router.get("/loops/{loop_id}/health", response_model=LoopHealthDetail, tags=["health"],
+            responses=_errors(401, 404))
+async def loop_health_detail(loop_id: LoopId, manager: Manager, _: Viewer) -> dict[str, Any]:
+    """One loop's health in full: the newest assessment for its current gains (indices, flags, reasons,
+    recommendation, window), the one before its newest tuning, and the evidence (the assessed window's samples,
+    downsampled, with the oscillation's crossings) the page draws."""
+    health = manager.get(loop_id).health
+    assert health is not None
+    return health.detail()
+
+
+@router.get("/loops/{loop_id}/health/history", response_model=list[HealthHistoryItem], tags=["health"],
+            responses=_errors(401, 404, 422, 503))
+async def loop_health_history(loop_id: LoopId, manager: Manager, _: Viewer,
+                              limit: Annotated[int, Query(ge=1, le=1000, description="most assessments returned")]
+                              = 100) -> list[dict[str, Any]]:
+    """The loop's stored health assessments, newest first (the history keeps the newest 1000 per loop)."""
+    manager.get(loop_id)
+    rows = await _read_history(manager.history.health_of, loop_id, limit)
+    return [{key: row[key] for key in ("time", "state", "severity", "flags", "recommendation", "session")}
+            for row in rows]
 
 
 @router.get("/sessions/{sid}", response_model=Session, tags=["history"], responses=_errors(401, 404, 503))

@@ -15,10 +15,13 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from autotuner.engine.described import described
+from autotuner.engine.health.indices import Indices
 from autotuner.engine.result import GainsRecord, PointRecord, ResultRecord
-from autotuner.service.daemon.status import LoopStatus, OwnerRecord, RestoreStatus, UnitsRecord
+from autotuner.service.daemon.status import (FlagName, HealthSummary, LoopStatus, OwnerRecord, Recommendation,
+                                             RestoreStatus, UnitsRecord)
 
-__all__ = ["LoopStatus", "OwnerRecord", "RestoreStatus", "UnitsRecord"]  # the loop's status: the daemon's own record
+__all__ = ["HealthSummary", "LoopStatus", "OwnerRecord", "RestoreStatus", "UnitsRecord"]  # the loop's status: the daemon's own record
 
 SID = "3f2c9a7e5b1d4c6a8e0f2b4d6a8c0e1f"
 WHEN = "2026-12-01T20:57:36.412Z"
@@ -254,3 +257,82 @@ class Analysis(BaseModel):
     ms_circle: Circle = _d("the Ms circle")
     old: LoopResponse | None = _d("the gains before (null: not known)")
     new: LoopResponse = _d("the designed gains")
+
+
+@dataclass(frozen=True)
+class LoopHealthRow(HealthSummary):
+    """One loop in the health list (``GET /loop-health``): its id and description with its health summary."""
+
+    loop: str = described("loop id", example="TIC-102")
+    description: str = described("free text from the config", example="temperature loop with a sticky valve")
+
+
+class HealthWindow(BaseModel):
+    """The window an assessment read."""
+
+    start: float = _f("its first sample, plant s (the loop's record clock)", 120.0)
+    end: float = _f("its last sample, plant s", 3719.0)
+    samples: int = _f("samples assessed (on an even grid)", 3600)
+    ts: float = _f("the grid's sample time, plant s", 1.0)
+
+
+class AssessmentOut(BaseModel):
+    """One health assessment (the engine's ``Assessment.to_json()``, docs/health.md) and when it was made."""
+
+    flags: list[FlagName] = _f("what is wrong (empty: healthy)", ["oscillating", "stiction"])
+    recommendation: Recommendation = _f("the one thing to do first", "check_valve")
+    reasons: dict[str, str] = _f("each flag's one-line reason", {"stiction": "a sticking valve keeps the loop in a "
+                                                                 "limit cycle"})
+    severities: dict[str, Literal["low", "medium", "high"]] = _f("each flag's severity", {"stiction": "medium"})
+    indices: Indices = _d("every index, with its unit (docs/health.md, \"The indices\"); null where not computed")
+    dead_time_source: Literal["model", "one sample"] | None = _f(
+        "the dead time the Harris index used: the newest successful tuning's model, or one sample (no model: the "
+        "index a lower bound); null: no index", "model")
+    window: HealthWindow = _d("the window assessed")
+    time: float = _f("when it was made, unix s", 1796161110.8)
+
+
+class BeforeTuning(AssessmentOut):
+    """The last assessment made before the loop's newest tuning session started."""
+
+    session: str = _f("that tuning session's id", SID)
+
+
+class HealthEvidence(BaseModel):
+    """The assessed window's samples (downsampled by the server to at most 1000 points) and the oscillation
+    found in it: what the page draws, computing nothing."""
+
+    t: list[float] = _f("plant seconds from the window's start", [0.0, 1.0, 2.0])
+    sp: list[float] = _f("set point, PV units", [50.0, 50.0, 50.0])
+    pv: list[float] = _f("process value, PV units", [50.2, 50.6, 50.9])
+    mv: list[float] = _f("controller output, MV units", [48.0, 48.0, 47.1])
+    crossings: list[float] = _f("the control error's zero crossings the oscillation detector counted, plant s "
+                                "from the window's start", [12.0, 75.5, 141.0])
+    period: float | None = _f("the oscillation's mean period, s (null: none found)", 128.6)
+    amplitude: float | None = _f("its mean amplitude, PV units (null: none found)", 0.87)
+
+
+class LoopHealthDetail(BaseModel):
+    """A loop's health in full (``GET /loops/{id}/health``)."""
+
+    loop: str = _f("loop id", "TIC-102")
+    state: Literal["ok", "pending", "off"] = _f("ok: assessed for the current gains; pending: collecting samples "
+                                                "since the start or the last tuning; off: disabled", "ok")
+    severity: Literal["none", "low", "medium", "high"] = _f("the worst flag's severity", "low")
+    rank: int = _f("orders loops worst first (higher: worse), as in the summary", 12)
+    reason: str = _f("the worst flag's reason; while pending, what it waits for", "a sticking valve ...")
+    assessment: AssessmentOut | None = _d("the newest assessment for the current gains (null: pending or off)")
+    window_setting: float = _f("the configured window, plant s", 3600.0)
+    before_tuning: BeforeTuning | None = _d("the last assessment before the loop's newest tuning (null: none)")
+    evidence: HealthEvidence | None = _d("the assessed window's samples and oscillation (null: no assessment)")
+
+
+class HealthHistoryItem(BaseModel):
+    """One stored assessment of a loop (``GET /loops/{id}/health/history``)."""
+
+    time: float = _f("when it was made, unix s", 1796161110.8)
+    state: Literal["ok"] = _f("always ok (only assessments are stored)", "ok")
+    severity: Literal["none", "low", "medium", "high"] = _f("its worst flag's severity", "low")
+    flags: list[FlagName] = _f("its flags", ["oscillating", "stiction"])
+    recommendation: Recommendation = _f("its recommendation", "check_valve")
+    session: str | None = _f("the newest tuning session before it (null: none)", SID)

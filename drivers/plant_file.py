@@ -21,7 +21,8 @@ noise and faults (docs/health.md, "Plant file").
 
 Every loop starts steady at PV = MV = SP = 50 with MV limits 0–100, as the single simulated PLC does.
 :func:`load_plant` reads a file, :func:`plant_from_dict` its parsed YAML; both raise :class:`PlantFileError`
-naming the file, the loop and the key.
+naming the file, the loop and the key. :func:`simulated_plc` builds one loop's PLC from its keys: the plant
+file's loops and a daemon config's ``sim:`` loops (docs/daemon.md) are validated by it alike.
 """
 
 from __future__ import annotations
@@ -98,44 +99,60 @@ def _faults(where: str, data: Any) -> Faults:
 
 
 def _gains(where: str, loop: dict[str, Any], start: Gains) -> Gains:
-    given = _mapping(f"{where}.gains", loop.get("gains", {}), {"k", "ti", "b"})
-    factors = _mapping(f"{where}.detune", loop.get("detune", {}), {"k", "ti"})
-    values = {key: _number(f"{where}.gains.{key}", given[key], positive=key == "ti") for key in given}
-    k = values.get("k", start.k) * _number(f"{where}.detune.k", factors.get("k", 1.0), positive=True)
-    ti = values.get("ti", start.ti) * _number(f"{where}.detune.ti", factors.get("ti", 1.0), positive=True)
+    given = _mapping(_at(where, "gains"), loop.get("gains", {}), {"k", "ti", "b"})
+    factors = _mapping(_at(where, "detune"), loop.get("detune", {}), {"k", "ti"})
+    values = {key: _number(_at(where, f"gains.{key}"), given[key], positive=key == "ti") for key in given}
+    k = values.get("k", start.k) * _number(_at(where, "detune.k"), factors.get("k", 1.0), positive=True)
+    ti = values.get("ti", start.ti) * _number(_at(where, "detune.ti"), factors.get("ti", 1.0), positive=True)
     try:
         return Gains(k=k, ti=ti, b=values.get("b", start.b))
     except ValueError as exc:
-        raise PlantFileError(f"{where}.gains: {exc}") from None
+        raise PlantFileError(f"{_at(where, 'gains')}: {exc}") from None
+
+
+def _at(where: str, key: str) -> str:
+    """Where ``key`` is: ``where.key`` (``key`` alone at the top of what is validated)."""
+    return f"{where}.{key}" if where else key
+
+
+def simulated_plc(where: str, data: Any, ts: float | None = None) -> SimulatedPlc:
+    """The simulated PLC of one loop's keys (a plant file's loop without its ``id`` and ``description``, or a
+    daemon config's ``sim:``): ``plant``, ``ts``, ``noise``, ``seed``, ``mode``, ``gains``, ``detune``,
+    ``faults``. ``where`` names the keys in errors (a :class:`PlantFileError`, "" at the top); ``ts``: the
+    plant seconds per tick when ``data`` gives none (None: ~100 per period at 135°)."""
+    loop = _mapping(where or "the simulated plant", data, _LOOP_KEYS - {"id", "description"})
+    if "plant" not in loop:
+        raise PlantFileError(f"{where or 'the simulated plant'}: missing key 'plant'")
+    try:
+        process = parse_process(str(loop["plant"]))
+    except ValueError as exc:
+        raise PlantFileError(f"{_at(where, 'plant')}: {exc}") from None
+    mode = str(loop.get("mode", "AUTO")).upper()
+    if mode not in ("AUTO", "MAN"):
+        raise PlantFileError(f"{_at(where, 'mode')}: must be AUTO or MAN, got {loop['mode']!r}")
+    seed = loop.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise PlantFileError(f"{_at(where, 'seed')}: must be an integer, got {seed!r}")
+    tick = _number(_at(where, "ts"), loop["ts"], positive=True) if "ts" in loop else (ts or 0.0)
+    try:
+        plc = SimulatedPlc(process, ts=tick, noise_std=_number(_at(where, "noise"), loop.get("noise", 0.0), 0.0),
+                           seed=seed, faults=_faults(_at(where, "faults"), loop.get("faults", {})))
+    except ValueError as exc:
+        if isinstance(exc, PlantFileError):
+            raise
+        raise PlantFileError(f"{where or 'the simulated plant'}: {exc}") from None
+    plc.set_gains(_gains(where, loop, plc.gains))
+    plc.mode = Mode.MAN if mode == "MAN" else Mode.AUTO
+    return plc
 
 
 def _loop(where: str, data: Any) -> PlantLoop:
     loop = _mapping(where, data, _LOOP_KEYS)
-    for key in ("id", "plant"):
-        if key not in loop:
-            raise PlantFileError(f"{where}: missing key {key!r}")
+    if "id" not in loop:
+        raise PlantFileError(f"{where}: missing key 'id'")
     if not isinstance(loop["id"], str) or not _ID.match(loop["id"]):
         raise PlantFileError(f"{where}.id: {loop['id']!r} is not a loop id ([A-Za-z0-9][A-Za-z0-9_.-]*)")
-    try:
-        process = parse_process(str(loop["plant"]))
-    except ValueError as exc:
-        raise PlantFileError(f"{where}.plant: {exc}") from None
-    mode = str(loop.get("mode", "AUTO")).upper()
-    if mode not in ("AUTO", "MAN"):
-        raise PlantFileError(f"{where}.mode: must be AUTO or MAN, got {loop['mode']!r}")
-    seed = loop.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise PlantFileError(f"{where}.seed: must be an integer, got {seed!r}")
-    try:
-        plc = SimulatedPlc(process, ts=_number(f"{where}.ts", loop["ts"], positive=True) if "ts" in loop else 0.0,
-                           noise_std=_number(f"{where}.noise", loop.get("noise", 0.0), 0.0), seed=seed,
-                           faults=_faults(f"{where}.faults", loop.get("faults", {})))
-    except ValueError as exc:
-        if isinstance(exc, PlantFileError):
-            raise
-        raise PlantFileError(f"{where}: {exc}") from None
-    plc.set_gains(_gains(where, loop, plc.gains))
-    plc.mode = Mode.MAN if mode == "MAN" else Mode.AUTO
+    plc = simulated_plc(where, {key: value for key, value in loop.items() if key not in ("id", "description")})
     return PlantLoop(loop["id"], str(loop.get("description", "")), plc)
 
 

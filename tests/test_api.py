@@ -35,6 +35,8 @@ OPERATOR, VIEWER, ADMIN = "op-secret", "view-secret", "admin-secret"
 # 25 ms of wall time per sample: converges on a busy CI machine too.
 SPEED = 12.0
 API = "/api/v1"
+# The demo plant's loops (drivers/data/demo_plant.yaml): the three healthy ones first, then the faulty ones.
+DEMO = ["TIC-101", "LIC-201", "FIC-301", "TIC-102", "FIC-302", "TIC-103", "LIC-202"]
 
 
 # samplers 0: the simulated plants in this process, where the tests read them (tests/test_sampler.py runs the
@@ -66,7 +68,7 @@ def wait_idle(client: TestClient, loop_id: str, timeout: float = 60.0, token: st
 
 
 def test_health_needs_no_token_and_everything_else_does(client):
-    assert client.get(f"{API}/health").json() == {"status": "ok", "loops": 3}
+    assert client.get(f"{API}/health").json() == {"status": "ok", "loops": len(DEMO)}
     for method, path in (("GET", "/loops"), ("GET", "/loops/TIC-101"), ("POST", "/loops/TIC-101/tune"),
                          ("POST", "/loops/TIC-101/break"), ("GET", "/loops/TIC-101/history"),
                          ("GET", "/sessions/x"), ("GET", "/loops/TIC-101/events"), ("GET", "/events")):
@@ -79,7 +81,7 @@ def test_health_needs_no_token_and_everything_else_does(client):
 
 def test_viewer_reads_but_cannot_write(client):
     loops = client.get(f"{API}/loops", headers=auth(VIEWER)).json()
-    assert [loop["id"] for loop in loops] == ["TIC-101", "LIC-201", "FIC-301"]
+    assert [loop["id"] for loop in loops] == DEMO
     assert loops[0]["tbsy"] is False and loops[0]["te"] is False and loops[0]["ite"] == 0
     for path in ("/loops/TIC-101/tune", "/loops/TIC-101/break"):
         r = client.post(API + path, headers=auth(VIEWER))
@@ -206,11 +208,14 @@ def test_events_stream_samples_and_state_changes():
                     break
         assert http.post("/loops/TIC-101/break").status_code == 202
     # The stream opens with the state and the replay of the trend kept (here the monitor's readings so far); then
-    # state, sample (monitor or experiment) events only.
+    # state, sample (monitor or experiment) events, and the health summary's change the tuning makes (pending: the
+    # samples before it were another loop's).
     assert events[0][0] == "state" and events[0][1]["tbsy"] is False
     assert events[1][0] == "replay" and events[1][1]["session"] is None
     assert set(events[1][1]) == {"session", "time", "t", "pv", "sp", "mv", "relay"}
-    assert {k for k, _ in events[2:]} == {"state", "sample"}
+    assert {k for k, _ in events[2:]} == {"state", "sample", "health"}
+    health = [d for k, d in events if k == "health"]
+    assert health[-1]["loop"] == "TIC-101" and health[-1]["state"] == "pending" and health[-1]["flags"] == []
     assert next(d for k, d in events[2:] if k == "state")["tbsy"] is True
     samples = [d for k, d in events if k == "sample"]
     assert {"t", "pv", "mv", "relay", "filter_phase_deg", "ite", "stage", "progress"} <= samples[-1].keys()
@@ -229,7 +234,7 @@ def test_the_overview_stream_carries_every_loops_state_and_throttled_live_values
         with http.stream("GET", "/events") as stream:
             for kind, data in sse(stream):
                 events.append((kind, data))
-                if len(events) == 3:
+                if len(events) == len(DEMO):
                     assert httpx.post(f"{url}{API}/loops/TIC-101/tune", headers=auth(OPERATOR)).status_code == 202
                 if kind == "state" and data["id"] == "TIC-101" and data["tbsy"]:
                     tuning_since = tuning_since or time.monotonic()
@@ -238,12 +243,12 @@ def test_the_overview_stream_carries_every_loops_state_and_throttled_live_values
                     break
         assert httpx.post(f"{url}{API}/loops/TIC-101/break", headers=auth(OPERATOR)).status_code == 202
     # Opens with every loop's state in the config's order (the status of GET /loops/{id}); then state and live only.
-    assert [k for k, _ in events[:3]] == ["state"] * 3
-    assert [d["id"] for _, d in events[:3]] == ["TIC-101", "LIC-201", "FIC-301"]
+    assert [k for k, _ in events[:len(DEMO)]] == ["state"] * len(DEMO)
+    assert [d["id"] for _, d in events[:len(DEMO)]] == DEMO
     assert set(events[0][1]) == {f.name for f in dataclasses.fields(LoopStatus)}
-    assert {k for k, _ in events[3:]} == {"state", "live"}
+    assert {"state", "live"} <= {k for k, _ in events[len(DEMO):]} <= {"state", "live", "health"}
     live = [d for k, d in events if k == "live"]
-    assert {d["loop"] for d in live} == {"TIC-101", "LIC-201", "FIC-301"}  # the idle loops' monitor readings too
+    assert {d["loop"] for d in live} == set(DEMO)  # the idle loops' monitor readings too
     tuning = [d for d in live if d["loop"] == "TIC-101" and "relay" in d]
     assert tuning and {"time", "pv", "sp", "mv", "relay", "ite", "stage", "progress"} <= tuning[-1].keys()
     idle = [d for d in live if d["loop"] == "LIC-201"]

@@ -104,3 +104,36 @@ def test_the_demo_plant_shows_what_it_says() -> None:
         assert result.recommendation == recommendation, (loop.id, result.to_json())
         if not flags:
             assert not result.flags, (loop.id, result.to_json())
+
+
+def test_a_daemon_configs_sim_loop_takes_a_plant_files_keys() -> None:
+    """A config's ``sim:`` is a plant file's loop without its id and description, checked by the same reader."""
+    from autotuner.service.config import parse_config
+    from autotuner.service.daemon import simulated_plc
+
+    sim = {"plant": "1.5*exp(-0.7*s)/(4*s+1)^2", "noise": 0.05, "seed": 4, "mode": "MAN",
+           "gains": {"k": 0.4, "ti": 6.9}, "detune": {"k": 2.0}, "faults": {"stiction": {"s": 3, "j": 1}}}
+    config = parse_config({"loops": [{"id": "TIC-102", "ts": 0.3, "sim": sim},
+                                     {"id": "TIC-103", "ts": 0.3, "sim": {**sim, "ts": 0.25}}]}, "daemon.yaml")
+    plc, ticked = simulated_plc(config.loops[0]), simulated_plc(config.loops[1])
+    file_plc = plant_from_dict({"loops": [{"id": "TIC-102", **sim}]}).pop().plc
+    assert plc.faults == file_plc.faults == Faults(stiction_s=3.0, stiction_j=1.0)
+    assert plc.gains == file_plc.gains and (plc.gains.k, plc.gains.ti) == (0.8, 6.9)
+    assert plc.mode is Mode.MAN and plc.noise_std == 0.05 and plc.seed == 4
+    assert math.isclose(plc.ts, 0.3 / 5) and ticked.ts == 0.25  # the loop's ts over 5 ticks, unless given
+
+
+@pytest.mark.parametrize("sim, message", [
+    ({"plant": "1/(s+1)", "faults": {"stiction": {"s": "x", "j": 1}}},
+     r"daemon.yaml: loops\[0\]\.sim: faults\.stiction\.s: must be a finite number, got 'x'"),
+    ({"plant": "1/(s+1)", "faults": {"load": {"std": 1}}}, r"loops\[0\]\.sim: faults\.load: missing key 'tau'"),
+    ({"plant": "1/(s+1)", "mode": "CAS"}, r"loops\[0\]\.sim: mode: must be AUTO or MAN"),
+    ({"plant": "1/(s+1)", "detune": {"k": 0}}, r"loops\[0\]\.sim: detune\.k: must be > 0"),
+    ({"plant": "1/(s+1)", "noise": -1}, r"loops\[0\]\.sim: noise: must be ≥ 0"),
+    ({"plant": "1/(s+1)", "valve": 1}, r"loops\[0\]\.sim\.valve: Extra inputs are not permitted"),
+])
+def test_a_bad_sim_loop_in_a_daemon_config_is_refused_naming_the_key(sim: dict[str, object], message: str) -> None:
+    from autotuner.service.config import ConfigError, parse_config
+
+    with pytest.raises(ConfigError, match=message):
+        parse_config({"loops": [{"id": "A", "ts": 0.3, "sim": sim}]}, "daemon.yaml")

@@ -18,7 +18,7 @@ from drivers.modbus_map import DEFAULT_MAP
 from helpers import free_port
 
 
-def test_demo_serves_three_loops_with_a_generated_token_and_stops_on_sigterm():
+def test_demo_serves_the_demo_plants_loops_with_a_generated_token_and_stops_on_sigterm():
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "AUTOTUNER_TOKEN"}
     proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--port", str(port)], env=env,
@@ -37,7 +37,11 @@ def test_demo_serves_three_loops_with_a_generated_token_and_stops_on_sigterm():
                 time.sleep(0.1)
         headers = {"Authorization": f"Bearer {token}"}
         loops = httpx.get(f"{base}/loops", headers=headers).json()
-        assert len(loops) == 3 and len({loop["link"] for loop in loops}) == 3
+        # the demo plant's (drivers/data/demo_plant.yaml): its three healthy loops first, then the faulty ones
+        assert [loop["id"] for loop in loops] == ["TIC-101", "LIC-201", "FIC-301", "TIC-102", "FIC-302", "TIC-103",
+                                                  "LIC-202"]
+        assert len({loop["link"] for loop in loops[:3]}) == 3
+        assert [loop["mode"] for loop in loops if loop["mode"] is not None] <= ["AUTO"] * 6 + ["MAN"]
         assert httpx.post(f"{base}/loops/LIC-201/tune", headers=headers).status_code == 202
         assert httpx.post(f"{base}/loops/LIC-201/tune").status_code == 401
         proc.send_signal(signal.SIGTERM)
@@ -100,7 +104,7 @@ def test_a_good_config_resolves_paths_next_to_the_file(tmp_path):
     (("    ts: 0.5\n", "    ts: 0.5\n    tss: 1\n"), "loops[0].tss", "Extra inputs"),
     (("id: SIM-1", "id: TIC-101"), "(top level)", "used twice"),
     (("role: viewer", "role: boss"), "tokens[0].role", "viewer"),
-    (("exp(-s)/(2*s+1)", "exp(-s)/(2*s+"), "loops[1].sim.plant", ""),
+    (("exp(-s)/(2*s+1)", "exp(-s)/(2*s+"), "loops[1].sim", "plant: unexpected end"),
     (("    link: modbus", "    sim: {plant: 1/(s+1)}\n    link: modbus"), "loops[0]", "exactly one of"),
     (("link: modbus://", "link: http://"), "loops[0]", "must be modbus://"),
     # Links and maps are opened (not connected) at load: what can never work stops the daemon at start.
@@ -117,6 +121,11 @@ def test_a_good_config_resolves_paths_next_to_the_file(tmp_path):
     (("link: modbus://127.0.0.1:5020/1\n    map: maps/tic.yaml", "link: can://virtual/x\n    speed: 1000"),
      "loops[0].speed", "is more than the DBC's WdTime can carry (6553.5 s)"),
     (("    ts: 0.1\n", ""), "loops[1].ts", "Field required"),
+    (("sim: {plant: ", "sim: {faults: {stiction: {s: 3}}, plant: "), "loops[1].sim",
+     "faults.stiction: missing key 'j'"),
+    (("    ts: 0.1\n", "    ts: 0.1\n    health: {window: 30}\n"), "loops[1].health.window", "greater than or equal to 60"),
+    (("    ts: 0.1\n", "    ts: 0.1\n    health: {window: 600, every: 900}\n"), "loops[1].health",
+     "must not exceed the window"),
     (("decimals: 1", "decimals: 7"), "loops[0].units.decimals", "less than or equal to 6"),
     (("decimals: 1", "decimals: 1.5"), "loops[0].units.decimals", "valid integer"),
     (("decimals: 1", "decimals: '1'"), "loops[0].units.decimals", "valid integer"),

@@ -18,9 +18,9 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from autotuner.engine.plant.expression import parse_process
-
 if TYPE_CHECKING:  # the session's module is loaded only when a session's hand-back is made
+    from drivers.simplc import SimulatedPlc
+
     from autotuner.service.link_session import HandBack
 
 
@@ -182,17 +182,57 @@ class Units(Strict):
 
 
 class SimPlant(Strict):
-    """A simulated PLC run inside the daemon: ``plant`` under a PID unit, with white PV noise (σ, PV units)."""
+    """A simulated PLC run inside the daemon: what a plant file's loop gives (docs/health.md, "The plant file"),
+    without its id and description, which are the loop's own: ``plant`` under a PID unit, white PV noise
+    (``noise``, σ PV units; ``seed``), its ``mode`` (AUTO or MAN), its PI ``gains`` and ``detune`` factors, its
+    ``faults`` (a sticky valve, a deadband, loads, a sinusoid, a frozen PV sensor) and ``ts``, the plant seconds
+    per tick (None: the loop's ``ts`` over ``PLANT_TICKS_PER_SAMPLE``).
+
+    Validated by the plant file's own reader (:func:`drivers.plant_file.simulated_plc`): one set of rules, and
+    its messages name the key (``faults.stiction.j: must be a finite number``).
+    """
 
     plant: str
-    noise: Annotated[float, Field(ge=0.0)] = 0.0
+    ts: float | None = None
+    noise: float = 0.0
     seed: int = 0
+    mode: str = "AUTO"
+    gains: dict[str, Any] = {}
+    detune: dict[str, Any] = {}
+    faults: dict[str, Any] = {}
 
-    @field_validator("plant")
-    @classmethod
-    def _parses(cls, value: str) -> str:
-        parse_process(value)  # its ValueError names the token and position
-        return value
+    @model_validator(mode="after")
+    def _builds(self) -> SimPlant:
+        self.plc(1.0)  # the plant file's checks; the PlantFileError (a ValueError) names the key
+        return self
+
+    def plc(self, tick: float) -> SimulatedPlc:
+        """A new simulated PLC of this plant, ticking every ``ts`` plant seconds (else every ``tick``)."""
+        from drivers.plant_file import simulated_plc
+
+        data = self.model_dump(exclude_defaults=True)
+        return simulated_plc("", data, ts=tick)
+
+
+# Bounds of a loop's health monitoring, plant seconds: a window from a minute to a day; an assessment at most
+# every hour and at least every second (each costs a few ms of a worker's CPU).
+HEALTH_WINDOW = (60.0, 86400.0)
+HEALTH_EVERY = (1.0, 3600.0)
+
+
+class HealthConfig(Strict):
+    """A loop's health monitoring (docs/health.md, "Online"): while idle, its monitor's readings over the last
+    ``window`` plant seconds are assessed every ``every`` plant seconds (``enabled`` false: never)."""
+
+    enabled: bool = True
+    window: Annotated[float, Field(ge=HEALTH_WINDOW[0], le=HEALTH_WINDOW[1])] = 3600.0
+    every: Annotated[float, Field(ge=HEALTH_EVERY[0], le=HEALTH_EVERY[1])] = 60.0
+
+    @model_validator(mode="after")
+    def _within_window(self) -> HealthConfig:
+        if self.every > self.window:
+            raise ValueError(f"every ({self.every:g} s) must not exceed the window ({self.window:g} s)")
+        return self
 
 
 class LoopConfig(Strict):
@@ -209,6 +249,7 @@ class LoopConfig(Strict):
     are read this often, wall seconds (the live values of the status and the
     ``sample`` events). units: engineering units and display of its values
     (:class:`Units`; absent: no unit, 4 significant digits, axes fit the data).
+    health: its health monitoring (:class:`HealthConfig`).
     """
 
     id: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
@@ -227,6 +268,7 @@ class LoopConfig(Strict):
     handshake: bool = False
     handshake_poll: Annotated[float, Field(ge=0.02, le=60.0)] = 0.5
     monitor_period: Annotated[float, Field(ge=0.05, le=60.0)] = 1.0
+    health: HealthConfig = HealthConfig()
 
     @property
     def max_amp(self) -> float:

@@ -6,19 +6,25 @@ every other loop's sampling; so it runs in a :class:`WorkerPool` of cores − 1
 spawned worker processes (one core left for the sampling), started on first
 use. A worker gets a :class:`~autotuner.engine.simulated_tuning.DesignJob` —
 the identification and the settings, under 1 KB — never the experiment or
-its trace.
+its trace. The loops' health assessments run in the same workers
+(:func:`pooled`): a few ms each, at most a few at a time, so a design waits
+behind them for milliseconds at most.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 from autotuner.engine.design.point_design import Design
 from autotuner.engine.outcome import Code
 from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.worker_pool import PARENT_CHECK, WorkerPool
 
-__all__ = ["PARENT_CHECK", "Outcome", "close_design_pool", "design_cpu", "designed", "worker_pids"]
+__all__ = ["PARENT_CHECK", "Outcome", "close_design_pool", "design_cpu", "designed", "pooled", "worker_pids"]
+
+T = TypeVar("T")
 
 _pool = WorkerPool(max(1, (os.cpu_count() or 2) - 1))
 
@@ -31,6 +37,13 @@ async def designed(job: DesignJob) -> Outcome:
     if job.identification is None:  # nothing identified, nothing to design: no worker needed
         return job.run()
     return await _pool.run(DesignJob.run, job)
+
+
+async def pooled(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
+    """``fn(*args)`` in the design's workers, and its CPU seconds (not counted as the design's): the daemon's
+    other work that must stay off the process that samples and off the API's event loop (a loop's health
+    assessment, a few ms). ``fn`` is a module-level function; it and ``args`` are pickled."""
+    return await _pool.timed(fn, *args)
 
 
 def close_design_pool() -> None:

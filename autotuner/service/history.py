@@ -85,6 +85,21 @@ _SESSIONS = sa.Table(
     sa.Column("seq", sa.BigInteger),
     sa.Index("sessions_by_loop", "loop", "started_at"),
 )
+# Each loop's health assessments (docs/health.md, "Online"), the newest HEALTH_KEPT per loop: when (unix s), the
+# summary's fields, the newest tuning session before it and the assessment's JSON (Assessment.to_json()).
+_HEALTH = sa.Table(
+    "health", _META,
+    sa.Column("id", sa.BigInteger().with_variant(sa.Integer, "sqlite"), primary_key=True, autoincrement=True),
+    sa.Column("loop", sa.String(64), nullable=False),
+    sa.Column("time", sa.Float, nullable=False),
+    sa.Column("severity", sa.String(8), nullable=False),
+    sa.Column("recommendation", sa.String(16), nullable=False),
+    sa.Column("flags", sa.Text, nullable=False),
+    sa.Column("session", sa.String(64)),
+    sa.Column("assessment", sa.Text, nullable=False),
+    sa.Index("health_by_loop", "loop", "id"),
+)
+HEALTH_KEPT = 1000
 # Indexes of the order, created on an older database too (create_all makes a table's indexes only with the table).
 _SEQ_INDEXES = (sa.Index("sessions_seq", _SESSIONS.c.seq, unique=True),
                 sa.Index("sessions_by_loop_seq", _SESSIONS.c.loop, _SESSIONS.c.seq))
@@ -458,6 +473,32 @@ class History:
         """Session ``sid`` in full, or None."""
         rows = self._read(sa.select(_SESSIONS).where(_SESSIONS.c.id == sid))
         return _record(rows[0], with_trace=True) if rows else None
+
+
+    def add_health(self, loop: str, assessment: dict[str, Any], severity: str, session: str | None) -> None:
+        """Record an assessment of ``loop`` (its JSON with ``time``, unix s), its worst ``severity`` and the
+        newest tuning ``session`` before it; the loop's assessments beyond the newest :data:`HEALTH_KEPT` go."""
+        def write(db: sa.Connection) -> None:
+            db.execute(_HEALTH.insert().values(
+                loop=loop, time=assessment["time"], severity=severity, recommendation=assessment["recommendation"],
+                flags=json.dumps(assessment["flags"]), session=session,
+                assessment=json.dumps(assessment, allow_nan=False)))
+            oldest_kept = (sa.select(_HEALTH.c.id).where(_HEALTH.c.loop == loop).order_by(_HEALTH.c.id.desc())
+                           .offset(HEALTH_KEPT - 1).limit(1).scalar_subquery())
+            db.execute(_HEALTH.delete().where(_HEALTH.c.loop == loop, _HEALTH.c.id < oldest_kept))
+
+        self._retried(f"loop {loop}: health", write)
+
+    def health_of(self, loop: str, limit: int = 100, before: float | None = None) -> list[dict[str, Any]]:
+        """The newest ``limit`` assessments of ``loop`` (made before unix time ``before``, if given), newest
+        first: ``{"time", "state", "severity", "flags", "recommendation", "session", "assessment"}``."""
+        query = sa.select(_HEALTH).where(_HEALTH.c.loop == loop)
+        if before is not None:
+            query = query.where(_HEALTH.c.time < before)
+        rows = self._read(query.order_by(_HEALTH.c.id.desc()).limit(limit))
+        return [{"time": row["time"], "state": "ok", "severity": row["severity"], "flags": json.loads(row["flags"]),
+                 "recommendation": row["recommendation"], "session": row["session"],
+                 "assessment": json.loads(row["assessment"])} for row in rows]
 
 
 class Unavailable(Exception):

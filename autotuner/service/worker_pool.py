@@ -47,14 +47,18 @@ class WorkerPool:
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """``fn(*args)`` in a worker (``fn`` and its arguments and result are pickled); in a thread if a worker
-        was killed."""
-        try:
-            result, cpu = await asyncio.get_running_loop().run_in_executor(self._executor(), _timed, fn, *args)
-        except BrokenProcessPool:
-            self._pool = None
-            return await asyncio.to_thread(fn, *args)
+        was killed. Its CPU seconds count in :attr:`cpu`."""
+        result, cpu = await self.timed(fn, *args)
         self.cpu += cpu
         return result
+
+    async def timed(self, fn: Callable[..., T], *args: Any) -> tuple[T, float]:
+        """``fn(*args)`` as :meth:`run`, and the CPU seconds it took (not counted in :attr:`cpu`)."""
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self._executor(), _timed, fn, *args)
+        except BrokenProcessPool:
+            self._pool = None
+            return await asyncio.to_thread(_thread_timed, fn, *args)
 
     def close(self) -> None:
         """Stop the workers (the next call starts them again)."""
@@ -80,6 +84,11 @@ def _started() -> bool:
 def _timed(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
     cpu0 = time.process_time()
     return fn(*args), time.process_time() - cpu0
+
+
+def _thread_timed(fn: Callable[..., T], *args: Any) -> tuple[T, float]:
+    cpu0 = time.thread_time()
+    return fn(*args), time.thread_time() - cpu0
 
 
 def _worker_start(parent: int, setup: Callable[[], None] | None) -> None:

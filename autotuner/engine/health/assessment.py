@@ -103,6 +103,20 @@ def _control(stretch: LoopRecord, model: Process | None, a: float, tu: float | N
     return found, osc
 
 
+@dataclass(frozen=True)
+class Detail:
+    """An ``assessment`` with what it read: ``record`` the window as assessed (on its even grid), ``crossings`` the
+    times of the control error's zero crossings Hägglund's detector counted (the half-cycles' bounds, s, the
+    record's clock; empty without control-performance indices), ``period`` and ``amplitude`` the oscillation's
+    (s, PV units; None: none found) — the evidence a page draws."""
+
+    assessment: Assessment
+    record: LoopRecord
+    crossings: np.ndarray
+    period: float | None
+    amplitude: float | None
+
+
 def assess(record: LoopRecord, limits: LoopLimits = LoopLimits(), model: Process | None = None,
            window: float = DEFAULT_WINDOW, ts: float | None = None, pv_unit: str = "") -> Assessment:
     """The health of the loop of ``record`` over its last ``window`` seconds.
@@ -113,6 +127,13 @@ def assess(record: LoopRecord, limits: LoopLimits = LoopLimits(), model: Process
     (None: the record's median spacing; an uneven record is resampled). ``pv_unit``: the PV's unit, for the
     reasons. ValueError when fewer than 20 samples remain.
     """
+    return assess_detail(record, limits, model, window, ts, pv_unit).assessment
+
+
+def assess_detail(record: LoopRecord, limits: LoopLimits = LoopLimits(), model: Process | None = None,
+                  window: float = DEFAULT_WINDOW, ts: float | None = None, pv_unit: str = "") -> Detail:
+    """:func:`assess` (the same parameters: ``record``, ``limits``, ``model``, ``window`` s, ``ts`` s,
+    ``pv_unit``) with the window as assessed and the oscillation's crossings (:class:`Detail`)."""
     rec = record.last(window).uniform(ts)
     if len(rec) < MIN_SAMPLES:
         raise ValueError(f"{len(rec)} samples in the window: an assessment needs at least {MIN_SAMPLES}")
@@ -130,16 +151,20 @@ def assess(record: LoopRecord, limits: LoopLimits = LoopLimits(), model: Process
     stretch = rec.longest_auto()
     a = _significant(span, limits, rec.pv, rec.mv, pv_noise)
     osc = None
+    crossings = np.zeros(0)
     if stretch is not None and len(stretch) >= MIN_AUTO_SAMPLES:
         control, osc = _control(stretch, model, a, tu, pv_noise)
         found.update(control)
+        if len(osc.cycles):
+            crossings = stretch.t[np.append(osc.cycles.start, osc.cycles.end[-1])]
     ind = Indices(**found)
     ctx = Context(a, span, limits.mv_span, tu, None if model is None else model.is_integrating, rec.duration,
                   pv_unit)
     found_flags = flags(ind, osc, ctx)
     source = None if ind.harris is None else ("model" if model is not None else "one sample")
-    return Assessment(tuple(found_flags), recommendation(found_flags, ind.utilization), ind, source,
-                      float(rec.t[0]), float(rec.t[-1]), len(rec), rec.ts)
+    result = Assessment(tuple(found_flags), recommendation(found_flags, ind.utilization), ind, source,
+                        float(rec.t[0]), float(rec.t[-1]), len(rec), rec.ts)
+    return Detail(result, rec, crossings, None if osc is None else osc.period, None if osc is None else osc.amplitude)
 
 
-__all__ = ["Assessment", "LoopLimits", "LoopRecord", "assess"]
+__all__ = ["Assessment", "Detail", "LoopLimits", "LoopRecord", "assess", "assess_detail"]

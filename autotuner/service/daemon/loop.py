@@ -18,10 +18,11 @@ from autotuner.engine.result import GainsRecord, ResultRecord
 from autotuner.service.config import LoopConfig, TuneRequest
 from autotuner.service.daemon.events import LoopEvents
 from autotuner.service.daemon.field import Reach
+from autotuner.service.daemon.health import LoopHealth
 from autotuner.service.daemon.recorder import HistoryHealth
 from autotuner.service.daemon.restore import Pending
 from autotuner.service.daemon.settings import settings_of
-from autotuner.service.daemon.status import BoundsRecord, LoopStatus, OwnerRecord, UnitsRecord
+from autotuner.service.daemon.status import BoundsRecord, HealthSummary, LoopStatus, OwnerRecord, UnitsRecord
 from autotuner.service.link_session import not_restored
 
 
@@ -77,6 +78,7 @@ class Loop:
     events: LoopEvents = field(default_factory=LoopEvents)
     link_errors: int = 0  # failures of its watch's link and sessions ended by a link fault, since the start
     history: HistoryHealth = field(default_factory=HistoryHealth)  # the daemon's history, shared by every loop
+    health: LoopHealth | None = None  # its online health (set by the manager)
 
     @property
     def busy(self) -> bool:
@@ -141,7 +143,8 @@ class Loop:
             last_outcome=None if self.latest is None else self.latest["outcome"],
             pending_gains=self.pending_gains, monitor_error=self.monitor_error, history_error=self.history.error,
             defaults=settings_of(c, TuneRequest()), bounds=BoundsRecord(c.max_amp, c.max_hysteresis),
-            units=_units(c), restore=None if p is None else p.status(), owner=self.owner)
+            units=_units(c), restore=None if p is None else p.status(), owner=self.owner,
+            health=None if self.health is None else HealthSummary(**self.health.summary()))
 
     def as_json(self) -> dict[str, Any]:
         """The status as JSON (:meth:`status_record`)."""

@@ -46,18 +46,21 @@ import time
 import uuid
 from collections import Counter
 from dataclasses import dataclass, field, replace
+from datetime import datetime
 from typing import Any
 
 from drivers.link import LinkError, Mode, TuneFlags
 
 from autotuner.engine.control.gains import Gains
-from autotuner.engine.design.analysis import usable_gains
+from autotuner.engine.design.analysis import model_of, usable_gains
+from autotuner.engine.plant.process import Process
 from autotuner.engine.experiment.relay import Stage, Status
 from autotuner.engine.outcome import Code
 from autotuner.engine.result import TuneResult
 from autotuner.engine.simulated_tuning import DesignJob
 from autotuner.service.config import DaemonConfig, HandBackConfig, TuneRequest
 from autotuner.service.daemon.field import Field, Lease, LocalField
+from autotuner.service.daemon.health import HealthJob, LoopHealth, run_job
 from autotuner.service.daemon.fleet import Fleet
 from autotuner.service.daemon.loop import Loop, Session
 from autotuner.service.daemon.recorder import HISTORY_WAIT, Recorder
@@ -67,7 +70,7 @@ from autotuner.service.daemon.restore import Pending
 from autotuner.service.daemon.settings import Settings, plan_of, settings_of
 from autotuner.service.daemon.timing import Histogram, TimingBatch
 from autotuner.service.daemon.watch import Reading
-from autotuner.service.design_pool import Outcome, close_design_pool, designed
+from autotuner.service.design_pool import Outcome, close_design_pool, designed, pooled
 from autotuner.service.history import History, Unavailable, downsample, state_of
 from autotuner.service.link_session import NotTracking, SessionPlan
 from autotuner.service.session_record import mv_hull, same_gains, waited
@@ -83,6 +86,12 @@ PLC_USER = "plc"
 OVERLOAD_HOLD = 10.0
 # Longest pause between two tries of a gains write to reconcile, wall seconds.
 RECONCILE_RETRY_MAX = 5.0
+# How often the loops due for a health assessment are looked for, wall seconds; how many assessments may be in
+# the workers at once (the others wait for the next look: a design never queues behind many).
+HEALTH_TICK = 0.5
+HEALTH_IN_FLIGHT = 2
+# Sessions read at a start to find a loop's newest successful one (the model its health assessment uses).
+MODEL_SEARCH = 50
 log = logging.getLogger("autotuner.service.daemon")
 
 
@@ -132,6 +141,13 @@ class LoopManager:
         self.sampling = Sampling()
         self.outcomes: Counter[int] = Counter()  # sessions ended since the start, by code
         self._overloaded_until = -math.inf
+        origin = time.time()  # plant time 0 of every loop's health record
+        for i, loop in enumerate(self.loops.values()):
+            loop.health = LoopHealth(loop.config, origin, phase=i / len(self.loops))
+        self.health_cpu = 0.0  # CPU seconds of the health assessments in the workers, since the start
+        self.health_assessed = 0  # assessments made since the start
+        self._health_task: asyncio.Task[None] | None = None
+        self._health_jobs: set[asyncio.Task[None]] = set()
         self.field.bind(self)
 
     # -- life cycle ---------------------------------------------------------------------------------------------
@@ -146,6 +162,7 @@ class LoopManager:
         never waits for a device.
         """
         await self.field.start()
+        self._health_task = asyncio.create_task(self._health_rounds())
         if self.fleet is None:
             await self._take_over(set(self.loops), orphans=True)
             self.field.watch()  # after the restores: a watch never reads a loop a restore is still putting back
@@ -175,6 +192,7 @@ class LoopManager:
                 record = await self.recorder.record(self.history.get, loop.latest["id"])
                 if record is not None:
                     loop.events.trend.seed(record, loop.config.speed)
+            await self._restore_health(loop)
 
     async def _fleet_rounds(self) -> None:
         """A fleet round every ``renew`` seconds until the daemon stops (a round that fails is logged and retried:
@@ -303,6 +321,10 @@ class LoopManager:
         await self.shutdown()
         if self._fleet_task is not None:
             self._fleet_task.cancel()
+        if self._health_task is not None:
+            self._health_task.cancel()
+        for job in list(self._health_jobs):
+            job.cancel()
         if self.fleet is not None:
             try:
                 await self.fleet.leave()
@@ -401,6 +423,9 @@ class LoopManager:
         self.recorder.record(self.history.begin, sid, loop_id, user, settings.as_json())  # before the session's
         loop.session, loop.status, loop.result = sid, None, None
         loop.events.trend.start(sid)
+        assert loop.health is not None
+        loop.health.restart(sid)  # new gains make the samples before it another loop's
+        self._publish(loop, "health", {"loop": loop_id, **loop.health.summary()})
         loop.running = Session(sid, start=time.monotonic())
         loop.running.task = asyncio.create_task(self._session(loop, loop.running, user, settings))
         self._publish(loop, "state", loop.as_json())
@@ -520,10 +545,74 @@ class LoopManager:
         def done(f: asyncio.Future[Any]) -> None:
             if not f.cancelled() and f.exception() is None:
                 loop.latest = f.result()
+                assert loop.health is not None
+                loop.health.model = _model(loop.latest) or loop.health.model
                 self._publish(loop, "state", loop.as_json())
 
         future.add_done_callback(done)
         return future
+
+    # -- health -------------------------------------------------------------------------------------------------
+
+    async def _restore_health(self, loop: Loop) -> None:
+        """At a start (or a take-over): the loop's newest successful session's model, its newest stored health
+        assessment (current unless the loop was tuned after it) and the newest stored before its newest tuning."""
+        health, loop_id = loop.health, loop.config.id
+        assert health is not None
+        sessions = await self.recorder.record(self.history.of_loop, loop_id, MODEL_SEARCH)
+        health.model = next((model for record in sessions if (model := _model(record)) is not None), None)
+        health.session = None if loop.latest is None else loop.latest["id"]
+        latest = await self.recorder.record(self.history.health_of, loop_id, 1)
+        before = None
+        if loop.latest is not None:
+            started = datetime.fromisoformat(loop.latest["started_at"]).timestamp()
+            before = await self.recorder.record(self.history.health_of, loop_id, 1, started)
+        health.restore(_stored(latest), _stored(before))
+
+    async def _health_rounds(self) -> None:
+        """Every :data:`HEALTH_TICK` s: the idle loops due for a health assessment (their record ready, their
+        grid's time reached) go to the workers, at most :data:`HEALTH_IN_FLIGHT` at once, in turn from where the
+        last look stopped."""
+        order = list(self.loops.values())
+        cursor = 0
+        while not self._stopping:
+            await asyncio.sleep(HEALTH_TICK)
+            wall = time.time()
+            for k in range(len(order)):
+                if len(self._health_jobs) >= HEALTH_IN_FLIGHT:
+                    break
+                loop = order[(cursor + k) % len(order)]
+                assert loop.health is not None
+                served = self.fleet is None or self.fleet.valid(loop.config.id)
+                if served and not loop.busy and loop.health.is_due(wall):
+                    job = asyncio.create_task(self._assess(loop, loop.health.job(wall), loop.health.generation))
+                    self._health_jobs.add(job)
+                    job.add_done_callback(self._health_jobs.discard)
+                    cursor = (cursor + k + 1) % len(order)
+
+    async def _assess(self, loop: Loop, job: HealthJob, generation: int) -> None:
+        """Assess ``job`` in a worker; keep, record and publish the result (dropped if the loop's record restarted
+        meanwhile: a tuning began)."""
+        health = loop.health
+        assert health is not None
+        try:
+            result, cpu = await pooled(run_job, job)
+        except Exception as exc:  # a worker's failure: the loop is tried again at its next time
+            health.busy = False
+            log.warning("loop %s: health assessment failed (%s: %s)", loop.config.id, type(exc).__name__, exc)
+            return
+        self.health_cpu += cpu
+        if not health.done(result, time.time(), generation):
+            if "error" in result:
+                log.debug("loop %s: not assessed: %s", loop.config.id, result["error"])
+            return
+        self.health_assessed += 1
+        summary = health.summary()
+        assert health.assessment is not None
+        self.recorder.record(self.history.add_health, loop.config.id, health.assessment, summary["severity"],
+                             health.session)
+        self._publish(loop, "health", {"loop": loop.config.id, **summary})
+        self._publish(loop, "state", loop.as_json())
 
     # -- the session --------------------------------------------------------------------------------------------
 
@@ -676,6 +765,8 @@ class LoopManager:
         changed = (loop.mode, loop.gains) != (sample.mode, gains)
         loop.mode, loop.gains = Mode(sample.mode), gains
         loop.pv, loop.sp, loop.mv = sample.pv, sample.sp, sample.mv
+        assert loop.health is not None
+        loop.health.add(reading.time, sample.sp, sample.pv, sample.mv, loop.mode is Mode.AUTO)
         self._publish(loop, "sample", {"time": reading.time, "pv": sample.pv, "sp": sample.sp, "mv": sample.mv,
                                        "mode": loop.mode.name})
         if changed:
@@ -824,6 +915,23 @@ class LoopManager:
             self._refresh_latest(loop)
             self._publish(loop, "state", loop.as_json())
         return True
+
+
+def _model(record: dict[str, Any] | None) -> Process | None:
+    """The process model a session identified, if it succeeded (None otherwise)."""
+    if record is None or record["outcome"] != "success" or record["result"] is None or record["result"].point is None:
+        return None
+    try:
+        return model_of(record["result"])
+    except ValueError:
+        return None
+
+
+def _stored(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """A stored assessment (the newest of ``rows``) as the loop keeps it: its JSON with ``time`` and ``session``."""
+    if not rows:
+        return None
+    return {**rows[0]["assessment"], "time": rows[0]["time"], "session": rows[0]["session"]}
 
 
 def _watching(loop: Loop) -> str:

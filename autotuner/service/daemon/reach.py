@@ -10,18 +10,17 @@ from drivers.simlink import SimLink
 from drivers.simplc import SimulatedPlc
 
 from autotuner.engine.outcome import Code
-from autotuner.engine.plant.expression import parse_process
 from autotuner.service.config import LoopConfig
 from autotuner.service.daemon.refused import Refused
 from autotuner.service.remote_tuning import PLANT_TICKS_PER_SAMPLE, open_link
 
 
 def simulated_plc(loop: LoopConfig) -> SimulatedPlc | None:
-    """The simulated PLC of a ``sim:`` loop (its plant ticks ``PLANT_TICKS_PER_SAMPLE`` times per sample), else None."""
+    """The simulated PLC of a ``sim:`` loop (its gains, mode and faults as configured; its plant ticks its
+    ``sim.ts``, else ``PLANT_TICKS_PER_SAMPLE`` times per sample), else None."""
     if loop.sim is None:
         return None
-    return SimulatedPlc(parse_process(loop.sim.plant), ts=loop.ts / PLANT_TICKS_PER_SAMPLE,
-                        noise_std=loop.sim.noise, seed=loop.sim.seed)
+    return loop.sim.plc(loop.ts / PLANT_TICKS_PER_SAMPLE)
 
 
 def connector(loop: LoopConfig, plc: SimulatedPlc | None) -> Callable[[], Link]:

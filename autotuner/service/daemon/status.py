@@ -69,6 +69,31 @@ class OwnerRecord:
                            example=3)
 
 
+FlagName = Literal["manual", "saturated", "oscillating", "stiction", "sluggish", "noisy", "frozen_pv",
+                   "poor_tracking"]
+Recommendation = Literal["retune", "check_valve", "check_sensor", "put_in_auto", "none"]
+SeverityName = Literal["none", "low", "medium", "high"]
+
+
+@dataclass(frozen=True)
+class HealthSummary:
+    """A loop's health in short (docs/health.md, "Online"): what the overview shows and sorts by."""
+
+    state: Literal["ok", "pending", "off"] = described(
+        "ok: assessed for the loop's current gains; pending: not enough samples yet since the start or the loop's "
+        "last tuning (flags empty, reason says what it waits for); off: monitoring disabled in its config",
+        example="ok")
+    severity: SeverityName = described("the worst flag's severity (none without flags)", example="medium")
+    rank: int = described("orders loops worst first (higher: worse): 10 × the worst severity (low 1, medium 2, "
+                          "high 3) + the number of flags; 0 without flags", example=22)
+    flags: list[FlagName] = described("what is wrong (empty: healthy, or not assessed)",
+                                      example=["oscillating", "stiction"])
+    recommendation: Recommendation = described("the one thing to do first", example="check_valve")
+    reason: str = described("the worst flag's one-line reason; while pending, what it waits for; '' when healthy",
+                            example="a sticking valve keeps the loop in a limit cycle")
+    time: float | None = described("when the assessment was made, unix s (null: none yet)", example=1796161110.8)
+
+
 @dataclass(frozen=True)
 class LoopStatus:
     """A loop: the PIDAT outputs (tbsy, te, ite), the stage and progress, the last session's point and gains, and
@@ -126,6 +151,8 @@ class LoopStatus:
                                               "null when it is", None)
     owner: OwnerRecord | None = described("the daemon of the fleet that serves the loop (docs/fleet.md); null "
                                           "without a fleet, or while no daemon holds the loop's lease", None)
+    health: HealthSummary | None = described("the loop's health in short (GET /loops/{id}/health has it in full); "
+                                             "null: not monitored by this daemon", None)
 
     def to_json(self) -> dict[str, Any]:
         """The status as JSON (nested records as objects, ranges as lists)."""
