@@ -177,5 +177,5 @@ def test_a_loop_recommended_for_retuning_shows_tune_now_which_tunes_it_and_then_
         page.wait_for_selector("#health-before [data-recommendation=retune]")
         before = api(daemon, f"/loops/{RETUNE}/health")["before_tuning"]
         assert before["session"] == status["session"] and before["recommendation"] == "retune"
-        assert status["session"][:8] in page.inner_text("#health-before h3")
+        assert status["session"][:8] in page.text_content("#health-before h3")
         assert page.locator("#health-now").count() == 1
