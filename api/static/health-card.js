@@ -93,6 +93,7 @@ export function healthCard(page, actions) {
     const before = body.before_tuning;
     node.dataset.state = body.state;
     node.dataset.severity = body.severity;
+    node.dataset.time = a?.time ?? ""; // the assessment shown (unix s), as the daemon stamped it
     fill(node,
       h("div", { class: "card-head" }, h("h2", {}, "Loop health"),
         h("span", { class: "muted small", id: "health-time" }, a?.time ? `assessed ${clock(a.time)}` : "")),

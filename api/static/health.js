@@ -49,5 +49,5 @@ export function healthCell(summary) {
   }
   return [h("div", { class: "status-line" }, healthBadge(summary), ...summary.flags.map((f) => flagChip(f))),
     summary.recommendation !== "none" ? h("div", { class: "small" }, advice(summary.recommendation)) : null,
-    summary.reason ? h("div", { class: "small muted reason" }, summary.reason) : null];
+    summary.reason ? h("div", { class: "small muted reason", title: summary.reason }, summary.reason) : null];
 }
