@@ -131,7 +131,9 @@ function evidence(ev, a, u) {
     h("p", { class: "muted small" }, `▼ ${ev.crossings.length} zero crossings of the control error SP − PV, as the oscillation detector counted them.`))];
   const span = [ev.t[0] ?? 0, Math.max(ev.t[ev.t.length - 1] ?? 1, (ev.t[0] ?? 0) + 1)];
   fitted(trend, (w) => timeChart(trend, { width: w, xRange: span, panels: [
-    { height: 150, label: axis("PV, SP", u.pv), marks: { name: "zero crossings", cls: "crossings", x: ev.crossings },
+    { height: 150, label: axis("PV, SP", u.pv),
+      // the crossings in the legend where it has room (the caption below says what they are in any case)
+      marks: { name: w >= 600 ? "zero crossings" : "", cls: "crossings", x: ev.crossings },
       series: [{ name: "SP", cls: "s-sp", x: ev.t, y: ev.sp, step: true }, { name: "PV", cls: "s-pv", x: ev.t, y: ev.pv }] },
     { height: 90, label: axis("MV", u.mv), series: [{ name: "MV", cls: "s-mv", x: ev.t, y: ev.mv, step: true }] },
   ], xLabel: "plant seconds from the window's start" }), 700);

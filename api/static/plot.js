@@ -116,7 +116,7 @@ function pathOf(points, sx, sy, step) {
 // Stacked panels sharing the x axis.
 // opts: {width, xRange:[a,b]?, xLabel, xTick(v)→text,
 //        panels:[{height, label, yRange?, yAtLeast?, series:[{name, cls, x:[], y:[], step?}],
-//                 marks?:{name, cls, x:[]}}]}
+//                 marks?:{name (none: not in the legend), cls, x:[]}}]}
 // marks draws a short tick at each of its x on the panel's top and bottom edges and a faint line between (events
 // such as the zero crossings of the control error), with its name in the legend. yRange fixes a panel's y axis; yAtLeast ([low, high], a loop's configured display range) is covered whatever the
 // data, and widened to data outside it (a value is never drawn off the panel).
@@ -159,7 +159,7 @@ export function timeChart(svg, opts) {
     const lines = el("g", { "clip-path": `url(#${cid})` }, g);
     if (panel.marks) {
       const m = panel.marks;
-      const marks = el("g", { class: `marks ${m.cls}`, "data-marks": m.name, "data-count": m.x.length }, lines);
+      const marks = el("g", { class: `marks ${m.cls}`, "data-marks": m.cls, "data-count": m.x.length }, lines);
       const sparse = m.x.length <= plotW / 8; // lines across the panel only where they leave the data visible
       for (const x of m.x) {
         const px = sx(x);
@@ -174,7 +174,7 @@ export function timeChart(svg, opts) {
     }
     // Legend, above the panel on the right: a short line of the series' style and its name.
     let lx = left + plotW;
-    const legend = panel.marks ? [...panel.series, { name: panel.marks.name, cls: `mark ${panel.marks.cls}` }] : panel.series;
+    const legend = panel.marks?.name ? [...panel.series, { name: panel.marks.name, cls: `mark ${panel.marks.cls}` }] : panel.series;
     for (const s of [...legend].reverse()) {
       if (!s.name) continue;
       el("text", { class: `legend ${s.cls}`, x: lx, y: y - 4, "text-anchor": "end" }, g, s.name);
