@@ -67,6 +67,13 @@ class DaemonCollector(Collector):
         for loop_id, loop in m.loops.items():
             errors.add_metric([loop_id], loop.link_errors)
         yield errors
+        health = CounterMetricFamily("autotuner_health_assessments", "Loop health assessments made (docs/health.md)")
+        health.add_metric([], m.health_assessed)
+        yield health
+        health_cpu = CounterMetricFamily("autotuner_health_cpu_seconds", "CPU seconds of the health assessments in "
+                                         "the worker processes")
+        health_cpu.add_metric([], m.health_cpu)
+        yield health_cpu
         yield _gauge("autotuner_loops", "Loops configured", len(m.loops))
         yield _gauge("autotuner_loops_tuning", "Loops tuning now", sum(loop.busy for loop in m.loops.values()))
         yield _gauge("autotuner_loops_not_restored", "Loops whose hand-back is still pending",

@@ -1,5 +1,5 @@
 """The operator page in a real headless browser (Debian's Chromium driven by Playwright) against a real
-``autotuner serve``: the built-in demo's three loops (at 12× real time for margin on a busy machine, with a viewer
+``autotuner serve``: the built-in demo's loops (the demo plant) (at 12× real time for margin on a busy machine, with a viewer
 token and LIC-201/FIC-301 in one exclusion group), the operator's token from $AUTOTUNER_TOKEN.
 
 Between the browser and the daemon sits a small TCP proxy of this module, so a test can cut the network and check
@@ -222,7 +222,7 @@ def test_operator_tunes_from_the_page_applies_the_gains_and_finds_the_session_in
     login(page, daemon, OPERATOR, "operator")
     # The overview: every loop, its description and live PV/SP/MV from the monitor.
     rows = page.locator("#loops tbody tr")
-    assert rows.count() == 3
+    assert rows.count() == len(demo_config(SPEED).loops)  # the demo plant's
     assert "two lags with dead time" in page.inner_text("tr[data-loop=TIC-101]")
     page.wait_for_function("() => /\\d/.test(document.querySelector('tr[data-loop=TIC-101] [data-col=pv]').textContent)")
     # The token stays in the tab's session storage, nowhere else.
@@ -391,7 +391,7 @@ def test_the_overview_updates_from_one_event_stream_without_polling(page, daemon
 
 def test_viewer_sees_everything_and_can_press_nothing(page, daemon):
     login(page, daemon, VIEWER, "viewer")
-    assert page.locator("#loops tbody tr").count() == 3
+    assert page.locator("#loops tbody tr").count() == len(demo_config(SPEED).loops)
     page.click("tr[data-loop=LIC-201] a.loop-id")
     page.wait_for_selector("#trend[data-samples]")  # live values stream to a viewer too
     for button in ("#tune", "#tbrk", "#apply"):

@@ -177,3 +177,34 @@ def test_an_older_history_gets_its_order_from_the_start_times(database):
         assert [r["id"] for r in reopened.of_loop("A")] == ["d", "c", "b", "a"]
     finally:
         reopened.close()
+
+
+def test_health_assessments_round_trip_newest_first_bounded_per_loop(database, monkeypatch):
+    import autotuner.service.history as history_module
+
+    monkeypatch.setattr(history_module, "HEALTH_KEPT", 5)
+    history = History(database)
+    for i in range(8):  # A's eight, B's one between: each loop keeps its own newest five
+        flags = ["oscillating", "stiction"] if i % 2 else []
+        history.add_health("A", {"time": 1000.0 + i, "flags": flags, "recommendation": "check_valve" if flags
+                                 else "none", "reasons": {}, "severities": {}, "indices": {"harris": 0.5 + i}},
+                           "medium" if flags else "none", "s1" if i < 4 else "s2")
+        if i == 3:
+            history.add_health("B", {"time": 5.0, "flags": ["manual"], "recommendation": "put_in_auto"}, "high",
+                               None)
+    history.close()
+
+    history = History(database)  # another process's view: committed
+    try:
+        rows = history.health_of("A")
+        assert [r["time"] for r in rows] == [1007.0, 1006.0, 1005.0, 1004.0, 1003.0]
+        assert rows[0] == {"time": 1007.0, "state": "ok", "severity": "medium", "flags": ["oscillating", "stiction"],
+                           "recommendation": "check_valve", "session": "s2", "assessment": {
+                               "time": 1007.0, "flags": ["oscillating", "stiction"], "recommendation": "check_valve",
+                               "reasons": {}, "severities": {}, "indices": {"harris": 7.5}}}
+        assert [r["time"] for r in history.health_of("A", limit=2)] == [1007.0, 1006.0]
+        assert [r["time"] for r in history.health_of("A", before=1005.0)] == [1004.0, 1003.0]
+        assert [(r["severity"], r["session"]) for r in history.health_of("B")] == [("high", None)]
+        assert history.health_of("C") == []
+    finally:
+        history.close()

@@ -32,7 +32,9 @@ def client():
 def test_metrics_need_a_token_and_say_what_the_daemon_holds(client):
     assert client.get("/metrics").status_code == 401
     m = scrape(client)
-    assert m["autotuner_loops"][()] == 3.0 and m["autotuner_loops_tuning"][()] == 0.0
+    assert m["autotuner_loops"][()] == len(CONFIG.loops) and m["autotuner_loops_tuning"][()] == 0.0
+    assert m["autotuner_health_assessments_total"][()] == client.app.state.manager.health_assessed
+    assert m["autotuner_health_cpu_seconds_total"][()] >= 0.0
     assert m["autotuner_history_queue"][()] >= 0.0
     assert m["autotuner_history_failing"][()] == 0.0
     assert "process_resident_memory_bytes" in m  # the process's own figures too

@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.auth import token_hash
-from api.opcua.address_space import NAMESPACE, PID_PARAMETERS, VARIABLES
+from api.opcua.address_space import HEALTH, NAMESPACE, PID_PARAMETERS, VARIABLES
 from api.opcua.passwords import hash_password
 from autotuner.service.config import DaemonConfig
 from tests import opcua_client
@@ -39,6 +39,7 @@ def config(tmp_path, port: int) -> DaemonConfig:
              for loop_id in LOOPS]
     loops[0]["units"] = UNITS  # TIC-2 and TIC-3 have none
     loops[1]["group"] = loops[2]["group"] = "reactor"  # an exclusion group: never tuned together
+    loops[2]["health"] = {"window": 60.0, "every": 5.0}  # assessed within seconds; the others pending for long
     return DaemonConfig.model_validate({
         "history": str(tmp_path / "history.sqlite"),
         "tokens": [{"name": "hmi", "role": "viewer", "sha256": token_hash(VIEWER_TOKEN)}],
@@ -83,6 +84,39 @@ def test_browse_the_address_space_with_units_and_stable_ids(daemon):
             tune = c.get_node(ua.NodeId("TIC-1.Tune", idx))
             args = await (await tune.get_child(["0:InputArguments"])).read_value()
             assert [a.Name for a in args] == ["controller", "amp", "hysteresis", "phase", "ms", "apply"]
+
+    run(main())
+
+
+def test_each_loop_has_a_health_object_showing_the_summary_rest_shows(daemon):
+    rest, url, _ = daemon
+    viewer = {"Authorization": f"Bearer {VIEWER_TOKEN}"}
+
+    async def main() -> None:
+        async with client(url, "viewer", VIEWER_PASSWORD) as c:
+            idx = await c.get_namespace_index(NAMESPACE)
+            for loop_id in LOOPS:
+                health = c.get_node(ua.NodeId(f"{loop_id}.Health", idx))
+                assert {(await n.read_browse_name()).Name for n in await health.get_children()} == \
+                    {v.name for v in HEALTH}
+            # TIC-1 keeps the default hour's window: pending while it collects its samples
+            assert await value(c, "TIC-1", "Health.State") == "pending"
+            assert (await value(c, "TIC-1", "Health.Reason")).startswith("collecting: ")
+            assert await value(c, "TIC-1", "Health.Flags") == "" and await value(c, "TIC-1", "Health.Rank") == 0
+            time_node = c.get_node(ua.NodeId("TIC-1.Health.Time", idx))
+            assert (await time_node.read_data_value(raise_on_bad_status=False)).StatusCode.is_bad()  # none yet
+
+            async def same_as_rest() -> bool:  # the OPC UA values of one assessment are REST's summary of it
+                summary = rest.get(f"{API}/loops/TIC-3", headers=viewer).json()["health"]
+                if summary["state"] != "ok":
+                    return False
+                shown = {name: await value(c, "TIC-3", f"Health.{name}") for name in (
+                    "State", "Severity", "Rank", "Flags", "Recommendation", "Reason", "Time")}
+                return shown == {"State": "ok", "Severity": summary["severity"], "Rank": summary["rank"],
+                                 "Flags": ",".join(summary["flags"]), "Recommendation": summary["recommendation"],
+                                 "Reason": summary["reason"], "Time": summary["time"]}
+
+            await until(same_as_rest, 60, "TIC-3's health assessed and published over OPC UA")
 
     run(main())
 

@@ -12,6 +12,9 @@ sees a data change only when there is one. A value the daemon does not know
 ``BadWaitingForInitialData``, or ``BadNoCommunication`` while the monitor's
 link is down.
 
+The loop's health summary (docs/health.md, "Online") is the object ``LOOP.Health`` with ``State``,
+``Severity``, ``Rank``, ``Flags`` (comma-separated), ``Recommendation``, ``Reason`` and ``Time`` (unix s).
+
 OPC 40083 (Plastics and Rubber Machinery, ``ClosedLoopControlType``) names
 are offered beside ours: ``AutoTuningActive`` (= TBSY) and ``PIDParameters``
 with ``P`` = k (proportional gain), ``I`` = ti (integral time, s; +Inf
@@ -174,6 +177,32 @@ PID_PARAMETERS: tuple[Var, ...] = (
     Var("D", _gain("current_gains", "ptd"), D, "s", "OPC 40083 D = td, the derivative time, s"),
 )
 
+
+
+def _health(key: str, shown: Callable[[Any], Any] = lambda value: value) -> Callable[[dict[str, Any]], Any]:
+    """A getter of ``status['health'][key]`` (None while the loop has no health summary)."""
+    def get(status: dict[str, Any]) -> Any:
+        health = status.get("health")
+        value = None if health is None else health.get(key)
+        return None if value is None else shown(value)
+
+    return get
+
+
+# The loop's health (docs/health.md, "Online"), children of ``LOOP.Health``: its summary, as REST's.
+HEALTH: tuple[Var, ...] = (
+    Var("State", _health("state"), S, None, "ok (assessed for the current gains), pending (collecting samples "
+        "since the start or the last tuning) or off (disabled in the config)"),
+    Var("Severity", _health("severity"), S, None, "the worst flag's severity: none, low, medium or high"),
+    Var("Rank", _health("rank"), D, None, "orders loops worst first (higher: worse; as REST's rank)"),
+    Var("Flags", _health("flags", ",".join), S, None, "what is wrong, comma-separated (manual, saturated, "
+        "oscillating, stiction, sluggish, noisy, frozen_pv, poor_tracking); empty: nothing"),
+    Var("Recommendation", _health("recommendation"), S, None, "the one thing to do first: retune, check_valve, "
+        "check_sensor, put_in_auto or none"),
+    Var("Reason", _health("reason"), S, None, "the worst flag's one-line reason; while pending, what it waits for"),
+    Var("Time", _health("time"), D, "s", "when the assessment was made, unix seconds (NaN: none yet)"),
+)
+
 # Written after every other variable of an update.
 LAST = frozenset({"TBSY", "AutoTuningActive"})
 
@@ -262,6 +291,12 @@ class LoopNodes:
         pid = await obj.add_object(node_id(idx, loop_id, "PIDParameters"), ua.QualifiedName("PIDParameters", idx))
         for var in PID_PARAMETERS:
             nodes[var] = await _add_variable(pid, idx, (loop_id, "PIDParameters"), var, period, units)
+        health = await obj.add_object(node_id(idx, loop_id, "Health"), ua.QualifiedName("Health", idx))
+        await health.write_attribute(ua.AttributeIds.Description, ua.DataValue(ua.Variant(
+            ua.LocalizedText("the loop's health: its newest assessment's summary (docs/health.md)"),
+            ua.VariantType.LocalizedText)))
+        for var in HEALTH:
+            nodes[var] = await _add_variable(health, idx, (loop_id, "Health"), var, period, units)
         events: dict[str, list[Any]] = {}
         for name, etype in event_types.items():  # to the loop's subscribers and to the Server object's
             events[name] = [await server.get_event_generator(etype, obj),

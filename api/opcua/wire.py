@@ -27,7 +27,7 @@ __all__ = ["Channel", "Init", "SNAPSHOT_KEYS", "snapshot"]
 # The members of a loop's REST status (Loop.as_json) the address space reads after the first one (which is whole:
 # description and units too); the rest never change while the daemon runs or are not published.
 SNAPSHOT_KEYS = ("id", "pv", "sp", "mv", "mode", "current_gains", "tbsy", "te", "ite", "stage", "progress", "message",
-                 "session", "controller", "point", "static_gain", "gains", "pending_gains", "monitor_error")
+                 "session", "controller", "point", "static_gain", "gains", "pending_gains", "monitor_error", "health")
 
 
 @dataclass(frozen=True)

@@ -64,7 +64,8 @@ class LoadSpec:
     ``speed`` plant seconds per wall second, measurement ``noise`` σ in PV units, ``loads`` (T, SIZE) steps at
     the process input T plant seconds after a tuner takes the loop, MV units); the relay ``amp`` (MV units),
     the experiments' ``time_limit`` (plant seconds), the loops' ``monitor_period`` (wall seconds), the
-    daemon's ``samplers`` (0: in its own process) and each sampler's ``analysis_workers`` (0: threads)."""
+    daemon's ``samplers`` (0: in its own process) and each sampler's ``analysis_workers`` (0: threads); the
+    loops' ``health_window`` and ``health_every`` (plant seconds; None: the config's defaults)."""
 
     loops: int
     idle: int = 0
@@ -80,6 +81,8 @@ class LoadSpec:
     monitor_period: float = 1.0
     samplers: int = 1
     analysis_workers: int = 2
+    health_window: float | None = None
+    health_every: float | None = None
 
 
 @dataclass(frozen=True)
@@ -106,6 +109,8 @@ class LoadResult:
     events: int | None = None
     opcua_changes: int | None = None
     cpu_opcua: float | None = None
+    assessed: int = 0  # health assessments made during the run
+    health_cpu: float = 0.0  # their CPU in the workers, s (counted in cpu_daemon)
 
 
 def _receive(conn: Any, child: Any, what: str) -> Any:
@@ -253,8 +258,10 @@ def config_of(spec: LoadSpec, urls: list[str], viewer: str) -> DaemonConfig:
     """The daemon's config for ``spec``: the tuned loops L000…, the idle ones I000…, a viewer token."""
     from api.auth import token_hash
 
+    health = {key: value for key, value in (("window", spec.health_window), ("every", spec.health_every))
+              if value is not None}
     loops = [{"id": f"L{i:03d}" if i < spec.loops else f"I{i - spec.loops:03d}", "link": url, "ts": spec.ts,
-              "speed": spec.speed, "apply": True, "monitor_period": spec.monitor_period,
+              "speed": spec.speed, "apply": True, "monitor_period": spec.monitor_period, "health": health,
               "tuning": {"amp": spec.amp, "time_limit": spec.time_limit}} for i, url in enumerate(urls)]
     return DaemonConfig.model_validate({"history": ":memory:", "loops": loops, "samplers": spec.samplers,
                                         "tokens": [{"name": VIEWER_NAME, "role": "viewer",
@@ -313,7 +320,8 @@ async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: 
                                              spec.monitor_period), "OPC UA client")
         await loop.run_in_executor(None, _receive, *scada, "OPC UA client")
     pids = getattr(manager.field, "pids", [])
-    cpu0 = time.process_time() + design_cpu() + sum(tree_cpu_seconds(pid) or 0.0 for pid in pids)
+    health0 = (manager.health_assessed, manager.health_cpu)
+    cpu0 = time.process_time() + design_cpu() + manager.health_cpu + sum(tree_cpu_seconds(pid) or 0.0 for pid in pids)
     wall0 = time.monotonic()
     opcua = getattr(app.state, "opcua", None)
     opcua0 = None if opcua is None else opcua.cpu_time()
@@ -321,7 +329,9 @@ async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: 
                                    return_exceptions=True)
     await asyncio.gather(*(manager.wait(loop_id) for loop_id in tuned))
     wall = time.monotonic() - wall0
-    cpu = 100.0 * (time.process_time() + design_cpu() + sum(tree_cpu_seconds(pid) or 0.0 for pid in pids) - cpu0) / wall
+    cpu = 100.0 * (time.process_time() + design_cpu() + manager.health_cpu
+                   + sum(tree_cpu_seconds(pid) or 0.0 for pid in pids) - cpu0) / wall
+    assessed, health_cpu = manager.health_assessed - health0[0], manager.health_cpu - health0[1]
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0 + sum(_peak_rss_mb(p) for pid in pids for p in (pid, *descendants(pid)))
     out: dict[str, Any] = {}
     if opcua is not None and opcua0 is not None:
@@ -347,11 +357,13 @@ async def _measured(spec: LoadSpec, app: Any, port: int, viewer: str, operator: 
             "wall": wall, "samples": s.late.count, "late_p50": 1e3 * s.late.quantile(0.5),
             "late_p99": 1e3 * s.late.quantile(0.99), "late_max": 1e3 * s.late.largest,
             "analysis_p50": 1e3 * s.analysis.quantile(0.5), "analysis_p99": 1e3 * s.analysis.quantile(0.99),
-            "analysis_max": 1e3 * s.analysis.largest, "cpu_daemon": cpu, "rss_daemon": rss}
+            "analysis_max": 1e3 * s.analysis.largest, "cpu_daemon": cpu, "rss_daemon": rss, "assessed": assessed,
+            "health_cpu": health_cpu}
 
 
 HEADERS = ["loops", "idle", "clients", "tuned", "codes of the rest", "wall s", "samples", "p50 ms", "p99 ms",
-           "max ms", "analysis p50/p99/max ms", "CPU daemon %", "RSS MB", "CPU plant %"]
+           "max ms", "analysis p50/p99/max ms", "CPU daemon %", "RSS MB", "CPU plant %", "health assessed",
+           "health CPU ms each"]
 CLIENT_HEADERS = ["events read", "CPU clients %"]
 OPCUA_HEADERS = ["OPC UA changes", "CPU OPC UA %"]
 
@@ -372,7 +384,8 @@ def table_rows(results: list[LoadResult]) -> list[list[str]]:
         row = [str(r.spec.loops), str(r.spec.idle), str(r.spec.clients), f"{r.tuned}/{r.spec.loops}", codes,
                f"{r.wall:.1f}", str(r.samples), f"{r.late_p50:.2f}", f"{r.late_p99:.2f}", f"{r.late_max:.1f}",
                f"{r.analysis_p50:.2f} / {r.analysis_p99:.2f} / {r.analysis_max:.2f}", f"{r.cpu_daemon:.0f}",
-               f"{r.rss_daemon:.0f}", f"{r.cpu_plant:.0f}"]
+               f"{r.rss_daemon:.0f}", f"{r.cpu_plant:.0f}", str(r.assessed),
+               f"{1e3 * r.health_cpu / r.assessed:.2f}" if r.assessed else "-"]
         if clients:
             row += ["-" if r.events is None else str(r.events),
                     "-" if r.cpu_clients is None else f"{r.cpu_clients:.0f}"]

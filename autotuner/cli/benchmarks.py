@@ -110,6 +110,10 @@ def loadbench_command(
                                         "to all their variables (docs/opcua.md). Needs the opcua extra.")] = False,
     monitor_period: Annotated[float, typer.Option(min=0.05, max=60.0, help="The loops' monitor period (and OPC UA "
                                                   "publishing interval), wall seconds.")] = 1.0,
+    health_window: Annotated[float | None, typer.Option(min=60.0, max=86400.0, help="The loops' health window, "
+                                                        "plant seconds (default: the config's, 3600).")] = None,
+    health_every: Annotated[float | None, typer.Option(min=1.0, max=3600.0, help="How often each loop's health is "
+                                                       "assessed, plant seconds (default: the config's, 60).")] = None,
 ) -> None:
     """Benchmark: N simulated loops tuned at once (and M monitored) over Modbus TCP on localhost, with clients
     watching; sampling lateness, analysis CPU, the daemon's CPU and memory.
@@ -130,8 +134,8 @@ def loadbench_command(
     results = []
     for n in loops or [1, 10, 25, 50]:
         spec = LoadSpec(n, idle, clients, opcua, noise, steps, plant, ts, speed, samplers=samplers,
-                        analysis_workers=analysis_workers,
-                        monitor_period=monitor_period)
+                        analysis_workers=analysis_workers, monitor_period=monitor_period,
+                        health_window=health_window, health_every=health_every)
         result = asyncio.run(run_load(spec))
         results.append(result)
         for loop_id, message in result.failures.items():

@@ -63,6 +63,14 @@ class Readings:
         """Plant time of the newest reading kept (-inf: none)."""
         return float(self._data[0, (self._n - 1) % self.capacity]) if self._n else -math.inf
 
+    @property
+    def span(self) -> float:
+        """Plant seconds from the oldest reading kept to the newest (0: fewer than two)."""
+        if self._n < 2:
+            return 0.0
+        oldest = 0 if self._n <= self.capacity else self._n % self.capacity
+        return self.last_t - float(self._data[0, oldest])
+
     def add(self, t: float, sp: float, pv: float, mv: float, auto: bool) -> None:
         """Keep a reading (``t`` plant s, SP and PV PV units, MV MV units, ``auto`` in AUTO) unless the stride
         skips it; one whose time does not increase (a wall clock stepped back) or whose values are not finite
@@ -201,10 +209,7 @@ class LoopHealth:
     def ready(self) -> bool:
         """The record holds enough readings to be assessed."""
         n = len(self.readings)
-        if n < MIN_READINGS:
-            return False
-        columns_t = self.readings.columns()[0]
-        return n >= self.needed() or columns_t[-1] - columns_t[0] >= MIN_SHARE * self.config.health.window
+        return n >= MIN_READINGS and (n >= self.needed() or self.readings.span >= MIN_SHARE * self.config.health.window)
 
     def is_due(self, wall: float) -> bool:
         """An assessment is due at unix time ``wall``: enabled, no job out, the record ready and the grid's next
