@@ -60,7 +60,7 @@ def health_shots(page, base: str, api: httpx.Client, outdir: Path) -> None:
     page.goto(f"{base}/#/")
     page.wait_for_selector("tr[data-loop=TIC-102] [data-hflag=stiction]")
     page.click("#sort-health")
-    # (over a window this short the sticky valve's verdict can change from one assessment to the next: each shot
+    # (while the window fills, the sticky valve's verdict can change from one assessment to the next: each shot
     # waits for the stiction to show)
     page.wait_for_selector("tr[data-loop=TIC-102] [data-hflag=stiction]")
     page.screenshot(path=outdir / "health-overview.png", full_page=True)

@@ -24,8 +24,8 @@ from test_browser import close, legible, no_horizontal_scroll, number, usable
 OPERATOR, VIEWER = "health-operator-secret", "health-viewer-secret"
 SPEED = 20.0
 # Plant seconds: long enough for about ten periods of the sticky valve's limit cycle (100-130 s), short enough that
-# the window fills within a minute of wall time at SPEED; a new assessment every 5 wall seconds. (Over so short a
-# window the sticky valve's verdict is not the same in every assessment: the tests wait for it.)
+# the window fills within a minute of wall time at SPEED; a new assessment every 5 wall seconds. (While the window
+# fills, the sticky valve's verdict can change from one assessment to the next: the tests wait for it.)
 WINDOW, EVERY = 1200.0, 100.0
 # Generous: the demo plant's seven loops run on a machine shared with the rest of the suite.
 ASSESSED_S = 300.0
