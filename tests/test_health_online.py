@@ -10,6 +10,7 @@ deadlines far beyond what an idle machine needs.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from tests.helpers import Daemon
 
 LOOPS = ("TIC-101", "TIC-102", "LIC-202")
 SPEED = 40.0
-WINDOW, EVERY = 1200.0, 30.0  # plant s: 30 and 0.75 wall seconds at 40×
+WINDOW, EVERY = 1800.0, 30.0  # plant s: 45 and 0.75 wall seconds at 40× (a dozen of TIC-102's cycles)
 
 
 def write_config(tmp: Path, window: float = WINDOW) -> Path:
@@ -51,9 +52,21 @@ def summary(daemon: Daemon, loop_id: str) -> dict[str, Any]:
     return get(daemon, f"/loops/{loop_id}")["health"]
 
 
-def verdict_is(daemon: Daemon, loop_id: str, flags: set[str], recommendation: str) -> bool:
-    health = summary(daemon, loop_id)
-    return health["state"] == "ok" and flags <= set(health["flags"]) and health["recommendation"] == recommendation
+def assessed(daemon: Daemon, loop_id: str, flags: set[str], recommendation: str, timeout: float) -> dict[str, Any]:
+    """The loop's health (``GET /loops/{id}/health``) once an assessment has ``flags`` (at least) and
+    ``recommendation``; AssertionError after ``timeout`` wall seconds."""
+    found: list[dict[str, Any]] = []
+
+    def seen() -> bool:
+        detail = get(daemon, f"/loops/{loop_id}/health")
+        assessment = detail["assessment"]
+        if assessment is None or not flags <= set(assessment["flags"]):
+            return False
+        found.append(detail)
+        return assessment["recommendation"] == recommendation
+
+    daemon.wait_until(seen, timeout, f"{loop_id} assessed {sorted(flags)} → {recommendation}")
+    return found[-1]
 
 
 def test_the_demo_plants_loops_are_told_apart_online_kept_and_pending_again_after_a_tuning(tmp_path: Path) -> None:
@@ -63,16 +76,27 @@ def test_the_demo_plants_loops_are_told_apart_online_kept_and_pending_again_afte
         assert {row["loop"] for row in first} == set(LOOPS)
         assert all(row["flags"] == [] and row["state"] in ("pending", "ok") for row in first)
 
-        daemon.wait_until(lambda: verdict_is(daemon, "LIC-202", {"manual"}, "put_in_auto"), 240, "LIC-202 manual")
-        daemon.wait_until(lambda: verdict_is(daemon, "TIC-102", {"oscillating", "stiction"}, "check_valve"), 240,
-                          "TIC-102's sticky valve found")
-        daemon.wait_until(lambda: summary(daemon, "TIC-101")["state"] == "ok", 240, "TIC-101 assessed")
-        healthy = summary(daemon, "TIC-101")
-        assert healthy["flags"] == [] and healthy["recommendation"] == "none" and healthy["severity"] == "none"
-        sticky = get(daemon, "/loops/TIC-102/health")  # its reason: the worst flag's (the first of the worst)
+        manual = assessed(daemon, "LIC-202", {"manual"}, "put_in_auto", 240)
+        assert manual["assessment"]["indices"]["utilization"] == 0.0 and manual["severity"] == "high"
+        sticky = assessed(daemon, "TIC-102", {"oscillating", "stiction"}, "check_valve", 240)
+        healthy = assessed(daemon, "TIC-101", set(), "none", 240)
+        assert healthy["assessment"]["flags"] == [] and healthy["severity"] == "none" and healthy["rank"] == 0
+        # the sticky valve's reason: its worst flag's (the first of the worst)
         severities = sticky["assessment"]["severities"]
         worst = max(sticky["assessment"]["flags"], key=lambda f: ("low", "medium", "high").index(severities[f]))
         assert sticky["reason"] == sticky["assessment"]["reasons"][worst] and sticky["severity"] == severities[worst]
+
+        # the overview stream: each new assessment as a health event (the status's summary, with the loop's id)
+        with httpx.stream("GET", f"{daemon.base}/events", headers=daemon.headers, timeout=30) as stream:
+            event = ""
+            for line in stream.iter_lines():
+                if line.startswith("event: "):
+                    event = line[7:]
+                elif line.startswith("data: ") and event == "health":
+                    health_event = json.loads(line[6:])
+                    break
+        assert health_event["loop"] in LOOPS and health_event["state"] == "ok"
+        assert set(health_event) == {"loop", "state", "severity", "rank", "flags", "recommendation", "reason", "time"}
 
         # the list: every loop, worst first (rank descending, then id), as its status says
         rows = get(daemon, "/loop-health")
@@ -81,14 +105,12 @@ def test_the_demo_plants_loops_are_told_apart_online_kept_and_pending_again_afte
         for row in rows:  # the rank: 10 × the worst severity + the number of flags (docs/health.md, "Online")
             level = ("none", "low", "medium", "high").index(row["severity"])
             assert row["rank"] == (10 * level + len(row["flags"]) if row["flags"] else 0), row
-        assert {row["loop"] for row in rows if row["rank"] > 0} >= {"TIC-102", "LIC-202"}
+        assert next(row for row in rows if row["loop"] == "LIC-202")["rank"] == 31  # manual, high: 10·3 + 1
 
         # the detail: the assessment, the window, the evidence the page draws
-        detail = get(daemon, "/loops/TIC-102/health")
-        assessment, evidence = detail["assessment"], detail["evidence"]
-        assert detail["state"] == "ok" and detail["window_setting"] == WINDOW and detail["before_tuning"] is None
-        assert {"oscillating", "stiction"} <= set(assessment["flags"]) and assessment["dead_time_source"] in (
-            "model", "one sample")
+        assessment, evidence = sticky["assessment"], sticky["evidence"]
+        assert sticky["state"] == "ok" and sticky["window_setting"] == WINDOW and sticky["before_tuning"] is None
+        assert assessment["dead_time_source"] == "one sample"  # never tuned: no model
         window = assessment["window"]
         assert window["end"] - window["start"] <= WINDOW + window["ts"] and window["samples"] >= 0.1 * WINDOW / 2
         assert 2 <= len(evidence["t"]) <= 1000 and evidence["t"][0] == 0.0
@@ -188,9 +210,10 @@ def test_a_loops_assessments_are_due_on_its_own_staggered_grid() -> None:
         health.add(1000.0 + k, 50.0, 50.0, 50.0, True)
     assert not health.is_due(1059.0) and health.summary()["reason"] == "collecting: 59 of 60 samples"
     health.add(1059.0, 50.0, 50.0, 50.0, True)
-    assert health.is_due(1059.5)  # ready: at once
-    job = health.job(1059.5)
+    assert not health.is_due(1059.5)  # ready, but the grid's next time is 60·(0 + 0.25) + 60 = 75 plant s
+    assert health.due == 75.0 and not health.is_due(1074.9) and health.is_due(1075.0)
+    job = health.job(1075.0)
     assert job.columns.shape == (5, 60) and job.window == 600.0 and job.limits.mv == (0.0, 100.0)
-    assert health.due == 75.0 and not health.is_due(1070.0)  # then at 60·(k + 0.25): 15, 75, 135, ... plant s
-    health.done({"error": "no"}, 1060.0, health.generation)
-    assert not health.is_due(1074.0) and health.is_due(1075.0)
+    assert health.due == 135.0 and not health.is_due(1080.0)  # then at 60·(k + 0.25): 135, 195, ... plant s
+    health.done({"error": "no"}, 1076.0, health.generation)
+    assert not health.is_due(1134.0) and health.is_due(1135.0)

@@ -20,6 +20,8 @@ Its rooms, each a module:
 ``sampler``         the field in sampler processes of its own (:class:`SamplerField`)
 ``watch``           a loop's monitor and handshake
 ``reach``           how a loop is reached (its link or simulated PLC) and the fresh check before a TUNE
+``health``          a loop's online health: its readings over the window, the job a worker assesses, the
+                    summary and detail REST, the streams and OPC UA show
 ==================  =================================================================================
 """
 

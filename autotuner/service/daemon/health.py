@@ -115,9 +115,9 @@ def run_job(job: HealthJob) -> dict[str, Any]:
     rec = detail.record
     keep = np.unique(np.linspace(0, len(rec) - 1, min(len(rec), EVIDENCE_POINTS)).round().astype(int))
     start = float(rec.t[0])
-    evidence = {"t": (rec.t[keep] - start).tolist(), "sp": rec.sp[keep].tolist(), "pv": rec.pv[keep].tolist(),
-                "mv": rec.mv[keep].tolist(), "crossings": (detail.crossings - start).tolist(),
-                "period": detail.period, "amplitude": detail.amplitude}
+    # arrays, not lists: they come back to the API's process pickled as buffers; made lists when asked for
+    evidence = {"t": rec.t[keep] - start, "sp": rec.sp[keep], "pv": rec.pv[keep], "mv": rec.mv[keep],
+                "crossings": detail.crossings - start, "period": detail.period, "amplitude": detail.amplitude}
     return {"assessment": detail.assessment.to_json(), "evidence": evidence}
 
 
@@ -212,13 +212,14 @@ class LoopHealth:
         return n >= MIN_READINGS and (n >= self.needed() or self.readings.span >= MIN_SHARE * self.config.health.window)
 
     def is_due(self, wall: float) -> bool:
-        """An assessment is due at unix time ``wall``: enabled, no job out, the record ready and the grid's next
-        time reached (the first then fixed on the loop's staggered grid)."""
+        """An assessment is due at unix time ``wall``: enabled, no job out, the record ready and the loop's grid's
+        next time reached (the first: the grid's first time once the record is ready)."""
         if not self.enabled or self.busy or not self.ready():
             return False
         now = self.plant_time(wall)
-        if self.due == -math.inf:  # the first: at once, then on the loop's grid
-            self.due = now
+        if self.due == -math.inf:  # the first on the loop's grid too: loops ready together are not assessed together
+            every = self.config.health.every
+            self.due = (math.ceil(now / every - self.phase) + self.phase) * every
         return now >= self.due
 
     def job(self, wall: float) -> HealthJob:
@@ -255,7 +256,9 @@ class LoopHealth:
         return {"loop": self.config.id, "state": summary["state"], "severity": summary["severity"],
                 "rank": summary["rank"], "reason": summary["reason"], "assessment": self.assessment,
                 "window_setting": self.config.health.window, "before_tuning": self.before,
-                "evidence": self.evidence if self.assessment is not None else None}
+                "evidence": None if self.assessment is None or self.evidence is None else {
+                    key: value.tolist() if isinstance(value, np.ndarray) else value
+                    for key, value in self.evidence.items()}}
 
     def restore(self, latest: dict[str, Any] | None, before: dict[str, Any] | None) -> None:
         """After a restart: the newest stored assessment (``latest``, with its ``session``: the newest tuning

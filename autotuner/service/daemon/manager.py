@@ -148,6 +148,8 @@ class LoopManager:
         self.health_assessed = 0  # assessments made since the start
         self._health_task: asyncio.Task[None] | None = None
         self._health_jobs: set[asyncio.Task[None]] = set()
+        self._health_order = list(self.loops.values())
+        self._health_cursor = 0
         self.field.bind(self)
 
     # -- life cycle ---------------------------------------------------------------------------------------------
@@ -570,25 +572,34 @@ class LoopManager:
         health.restore(_stored(latest), _stored(before))
 
     async def _health_rounds(self) -> None:
-        """Every :data:`HEALTH_TICK` s: the idle loops due for a health assessment (their record ready, their
-        grid's time reached) go to the workers, at most :data:`HEALTH_IN_FLIGHT` at once, in turn from where the
-        last look stopped."""
-        order = list(self.loops.values())
-        cursor = 0
+        """Every :data:`HEALTH_TICK` s: the idle loops due for a health assessment go to the workers
+        (:meth:`_submit_due`; also whenever an assessment comes back)."""
         while not self._stopping:
             await asyncio.sleep(HEALTH_TICK)
-            wall = time.time()
-            for k in range(len(order)):
-                if len(self._health_jobs) >= HEALTH_IN_FLIGHT:
-                    break
-                loop = order[(cursor + k) % len(order)]
-                assert loop.health is not None
-                served = self.fleet is None or self.fleet.valid(loop.config.id)
-                if served and not loop.busy and loop.health.is_due(wall):
-                    job = asyncio.create_task(self._assess(loop, loop.health.job(wall), loop.health.generation))
-                    self._health_jobs.add(job)
-                    job.add_done_callback(self._health_jobs.discard)
-                    cursor = (cursor + k + 1) % len(order)
+            self._submit_due()
+
+    def _submit_due(self) -> None:
+        """The idle loops due for a health assessment (their record ready, their grid's time reached) to the
+        workers, at most :data:`HEALTH_IN_FLIGHT` at once, in turn from where the last look stopped."""
+        order = self._health_order
+        wall = time.time()
+        for k in range(len(order)):
+            if len(self._health_jobs) >= HEALTH_IN_FLIGHT or self._stopping:
+                return
+            loop = order[(self._health_cursor + k) % len(order)]
+            assert loop.health is not None
+            served = self.fleet is None or self.fleet.valid(loop.config.id)
+            if served and not loop.busy and loop.health.is_due(wall):
+                job = asyncio.create_task(self._assess(loop, loop.health.job(wall), loop.health.generation))
+                self._health_jobs.add(job)
+                job.add_done_callback(self._health_done)
+                self._health_cursor = (self._health_cursor + k + 1) % len(order)
+
+    def _health_done(self, job: asyncio.Task[None]) -> None:
+        """An assessment came back: the next due one goes to the workers at once."""
+        self._health_jobs.discard(job)
+        if not job.cancelled():
+            self._submit_due()
 
     async def _assess(self, loop: Loop, job: HealthJob, generation: int) -> None:
         """Assess ``job`` in a worker; keep, record and publish the result (dropped if the loop's record restarted
