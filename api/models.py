@@ -193,6 +193,37 @@ class Nyquist(BaseModel):
     im: list[float] = _f("Im L(jω), dimensionless", [-40.0, -3.1, -0.2])
 
 
+class Complex(BaseModel):
+    """A point of the Nyquist plane."""
+
+    re: float = _f("real part, dimensionless", -0.6)
+    im: float = _f("imaginary part, dimensionless", -0.35)
+
+
+class ParallelForm(BaseModel):
+    """The gains in the parallel form Kp + Ki/s + Kd·s."""
+
+    kp: float = _f("Kp, MV units per PV unit", 0.8)
+    ki: float = _f("Ki, MV units per PV unit and second", 0.09)
+    kd: float = _f("Kd, MV units × seconds per PV unit", 0.0)
+
+
+class SeriesForm(BaseModel):
+    """The gains in the series (interacting) form K′(1 + 1/(Ti′·s))(1 + Td′·s)."""
+
+    k: float = _f("K′, MV units per PV unit", 0.8)
+    ti: float | None = _f("Ti′, seconds (null: no integral action)", 8.8)
+    td: float = _f("Td′, seconds", 0.0)
+
+
+class Forms(BaseModel):
+    """The same gains in the parallel and series forms (autotuner/engine/control/gains.py)."""
+
+    parallel: ParallelForm = _d("the parallel form")
+    series: SeriesForm | None = _d("the series form (null: none exists, Ti < 4·Td)")
+    series_reason: str | None = Field(None, description="why there is no series form (absent when there is one)")
+
+
 class StepOut(BaseModel):
     """A simulated unit step response of the closed loop on the model."""
 
@@ -205,9 +236,11 @@ class LoopResponse(BaseModel):
     """What one set of gains does on the model."""
 
     gains: GainsRecord = _d("the gains analysed")
+    forms: Forms = _d("the gains in the parallel and series forms")
     ms: float | None = _f("maximum sensitivity reached, dimensionless (null: the closed loop is unstable)", 1.4)
     stable: bool = _f("whether the closed loop is stable on the model", True)
     nyquist: Nyquist = _d("open loop L(jω)")
+    at_point: Complex = _d("L(jω₀) = C(jω₀)·F(jω₀): the controller times the identified point")
     setpoint: StepOut = _d("unit set-point step")
     load: StepOut = _d("unit load step at the process input (an unstable loop's steps are clipped)")
 

@@ -4,7 +4,10 @@ Starts the real built-in demo (``autotuner serve``, 20× real time) with a known
 headless Chromium (Playwright): tunes TIC-101 from its loop page and saves ``loop-page.png`` when it has finished;
 saves the same page at every viewport of :data:`VIEWPORTS` (``screens/loop-WxH.png``, a phone of 360 px to a
 4K wall screen); then aborts a tuning of FIC-301 (TBRK), starts one of LIC-201 and saves ``overview.png`` (and
-``screens/overview-WxH.png``) while it runs. About 60 s. Needs Chromium (Debian: ``apt-get install chromium``; elsewhere set AUTOTUNER_CHROMIUM).
+``screens/overview-WxH.png``) while it runs; then, once the daemon has assessed the demo plant's loops (a health
+window of 1200 plant seconds here, instead of the hour of the default), the overview sorted by health
+(``health-overview.png``) and the sticky valve's health card (``health-card.png``, and ``screens/health-card-390x844.png``).
+About 2 min. Needs Chromium (Debian: ``apt-get install chromium``; elsewhere set AUTOTUNER_CHROMIUM).
 """
 
 from __future__ import annotations
@@ -12,12 +15,15 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import httpx
+import yaml
 from playwright.sync_api import sync_playwright
 
+from autotuner.service.demo import demo_config
 from tests.helpers import CHROMIUM_ARGS, chromium_path, free_port
 
 TOKEN = "screenshot-operator"
@@ -33,9 +39,44 @@ def at_viewport(page, width: int, height: int) -> None:
                            " || Number(t.dataset.width) === Math.round(t.getBoundingClientRect().width / (t.currentCSSZoom || 1)); }")
 
 
+def demo_with_short_health_window(path: Path) -> Path:
+    """The built-in demo's config (20×) with a health window of 1200 plant s, assessed every 100 plant s."""
+    config = demo_config(20.0).model_dump(mode="json", exclude_defaults=True)
+    for loop in config["loops"]:
+        loop["health"] = {"window": 1200.0, "every": 100.0}
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def health_shots(page, base: str, api: httpx.Client, outdir: Path) -> None:
+    """The overview sorted by health and the sticky valve's (TIC-102's) health card, once it is assessed."""
+    deadline = time.monotonic() + 300
+    while not ((h := api.get("/loops/TIC-102/health").json())["state"] == "ok"
+               and "stiction" in h["assessment"]["flags"]):
+        if time.monotonic() > deadline:
+            raise SystemExit(f"TIC-102 not assessed with stiction: {h}")
+        time.sleep(1)
+    page.set_viewport_size({"width": 1360, "height": 700})
+    page.goto(f"{base}/#/")
+    page.wait_for_selector("tr[data-loop=TIC-102] [data-hflag=stiction]")
+    page.click("#sort-health")
+    # (while the window fills, the sticky valve's verdict can change from one assessment to the next: each shot
+    # waits for the stiction to show)
+    page.wait_for_selector("tr[data-loop=TIC-102] [data-hflag=stiction]")
+    page.screenshot(path=outdir / "health-overview.png", full_page=True)
+    page.goto(f"{base}/#/loop/TIC-102")
+    page.wait_for_selector("#health-mvpv path[data-series='PV(MV)']")
+    page.locator("#health").screenshot(path=outdir / "health-card.png")
+    at_viewport(page, 390, 844)
+    page.wait_for_selector("#health-mvpv path[data-series='PV(MV)']")
+    page.locator("#health").screenshot(path=outdir / "screens" / "health-card-390x844.png")
+
+
 def main(outdir: Path) -> None:
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--port", str(port)],
+    config = demo_with_short_health_window(Path(tempfile.mkdtemp(prefix="screenshots-")) / "demo.yaml")
+    proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "serve", "--config", str(config),
+                             "--port", str(port)],
                             env={**os.environ, "AUTOTUNER_TOKEN": TOKEN}, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     base = f"http://127.0.0.1:{port}"
@@ -86,12 +127,14 @@ def main(outdir: Path) -> None:
             for width, height in VIEWPORTS:
                 at_viewport(page, width, height)
                 page.screenshot(path=outdir / "screens" / f"overview-{width}x{height}.png", full_page=False)
+            health_shots(page, base, api, outdir)
             browser.close()
     finally:
         api.close()
         proc.terminate()
         proc.wait(60)
-    print(f"wrote {outdir / 'overview.png'}, {outdir / 'loop-page.png'} and {outdir / 'screens'}/")
+    print(f"wrote {outdir / 'overview.png'}, {outdir / 'loop-page.png'}, {outdir / 'health-overview.png'}, "
+          f"{outdir / 'health-card.png'} and {outdir / 'screens'}/")
 
 
 if __name__ == "__main__":

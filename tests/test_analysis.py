@@ -146,6 +146,43 @@ def test_analysis_agrees_with_an_independent_computation(plant, kind):
             assert new["mv"][-1] == pytest.approx(-1.0, abs=0.03)
 
 
+def series_form(g: dict) -> tuple[float, float | None, float] | None:
+    """K′(1 + 1/(Ti′s))(1 + Td′s) with the same zeros as K(1 + 1/(Ti s) + Td s): Ti′ + Td′ = Ti, Ti′·Td′ = Ti·Td
+    (the roots of x² − Ti·x + Ti·Td, the larger one Ti′), K′ = K·Ti′/Ti; None when the roots are complex."""
+    if g["pti"] is None:
+        return g["pk"], None, g["ptd"]
+    roots = np.roots([1.0, -g["pti"], g["pti"] * g["ptd"]])
+    if np.any(np.abs(roots.imag) > 1e-9 * g["pti"]):
+        return None
+    ti, td = sorted(roots.real, reverse=True)
+    return g["pk"] * ti / g["pti"], ti, td
+
+
+@pytest.mark.parametrize("plant, controller, ms", [(TIC, "PI", 1.4), (TIC, "PID", 1.6), (LIC, "PID", 1.4)])
+def test_the_page_draws_the_open_loop_at_the_point_and_the_gain_forms_from_the_analysis(plant, controller, ms):
+    """L(jω₀) = C(jω₀)·F(jω₀) on the identified point and the parallel and series forms of old and new gains
+    come with the analysis (the page derives none of them), equal to their definitions computed here."""
+    result, old = result_for(plant, controller, ms)
+    a = analyse(result, ms, old.as_json())
+    w0, f0 = a["point"]["omega"], complex(a["point"]["re"], a["point"]["im"])
+    for loop in (a["new"], a["old"]):
+        g = loop["gains"]
+        expected = complex(controller_response(g, np.array([w0]))[0]) * f0
+        assert complex(loop["at_point"]["re"], loop["at_point"]["im"]) == pytest.approx(expected, rel=1e-12)
+        parallel = loop["forms"]["parallel"]
+        ki = 0.0 if g["pti"] is None else g["pk"] / g["pti"]
+        assert parallel == pytest.approx({"kp": g["pk"], "ki": ki, "kd": g["pk"] * g["ptd"]}, rel=1e-12)
+        series = series_form(g)
+        if series is None:
+            assert loop["forms"]["series"] is None and "4" in loop["forms"]["series_reason"]
+        else:
+            got = loop["forms"]["series"]
+            assert (got["k"], got["ti"], got["td"]) == pytest.approx(series, rel=1e-9, abs=1e-12)
+    # The designed PID has a derivative: its series form differs from the standard one.
+    if controller == "PID":
+        assert a["new"]["gains"]["ptd"] > 0.0 and a["new"]["forms"]["series"]["td"] > 0.0
+
+
 def test_the_stored_model_is_analysed_and_old_results_are_fitted_again():
     """A result with ``design.model`` is analysed on that model, not on one refitted through its point; a result
     stored before the design key existed gets the refitted one."""
@@ -217,6 +254,11 @@ def test_analysis_endpoint():
     assert body["model"]["kind"] == "FOPDT" and "exp(-" in body["model"]["text"]
     assert body["new"]["gains"] == record["result"]["gains"] and body["old"]["gains"] == record["gains_before"]
     assert body["new"]["ms"] <= 1.4 * 1.001 and body["new"]["setpoint"]["pv"][-1] == pytest.approx(1.0, abs=0.02)
+    # What the page draws besides the curves: the open loop at the point, the gains' other forms (the result's own
+    # forms for the new gains).
+    assert body["new"]["forms"]["parallel"] == record["result"]["forms"]["parallel"]
+    assert body["new"]["forms"]["series"] == record["result"]["forms"]["series"]
+    assert set(body["old"]["at_point"]) == {"re", "im"} and body["old"]["forms"]["parallel"]["kp"] == body["old"]["gains"]["pk"]
     assert no_result.status_code == 409 and no_result.json()["code"] == "no_result"
     assert unknown.status_code == 404 and unknown.json()["code"] == "not_found"
     assert anonymous.status_code == 401

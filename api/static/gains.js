@@ -1,29 +1,7 @@
-// PID gain forms, computed here the same way as autotuner/gains.py does from the standard (ISA) form the API
-// gives: {pk, pti (null: no integral), ptd, pnd, pb, pc}.
-//   series (interacting, ideal) K'(1 + 1/(Ti' s))(1 + Td' s): exists only when Ti >= 4 Td;
-//     K' = K (1 + r)/2, Ti' = Ti (1 + r)/2, Td' = Ti (1 − r)/2 with r = sqrt(1 − 4 Td/Ti)
-//   parallel Kp = K, Ki = K/Ti, Kd = K·Td.
-// N, b and c do not take part in the conversions.
-
-const SERIES_TOL = 1e-12;
-
-export function series(g) {
-  if (!g) return null;
-  if (g.pti === null || g.pti === undefined) return { k: g.pk, ti: null, td: g.ptd };
-  let disc = 1 - (4 * g.ptd) / g.pti;
-  if (disc < 0) {
-    if (disc < -SERIES_TOL) return { error: `needs Ti ≥ 4·Td (Ti = ${fmt(g.pti)} s, Td = ${fmt(g.ptd)} s)` };
-    disc = 0;
-  }
-  const r = Math.sqrt(disc);
-  return { k: 0.5 * g.pk * (1 + r), ti: 0.5 * g.pti * (1 + r), td: 0.5 * g.pti * (1 - r) };
-}
-
-export function parallel(g) {
-  if (!g) return null;
-  const ki = g.pti === null || g.pti === undefined ? 0 : g.pk / g.pti;
-  return { kp: g.pk, ki, kd: g.pk * g.ptd };
-}
+// PID gains as the page shows them: numbers as text, the rows of the side-by-side table and the parameters that an
+// apply changes. The gains come in the standard (ISA) form {pk, pti (null: no integral), ptd, pnd, pb, pc}; their
+// series and parallel forms come computed by the daemon (the analysis's and the result's `forms`:
+// autotuner/engine/control/gains.py), never here.
 
 // A number with 4 significant digits, no exponent for ordinary magnitudes; "—" for missing.
 export function fmt(x, digits = 4) {
@@ -36,38 +14,36 @@ export function fmt(x, digits = 4) {
   return s.replace("-", "−");
 }
 
-// Rows of the side-by-side table: [label, unit, value(g)] per form.
+// Rows of the side-by-side table, per form: [label, unit, value of one side, key]. A side is {gains, forms} (forms:
+// the daemon's {parallel, series}; null when it was not given: the series and parallel cells show "—").
+const series = (key) => (side) => (side.forms ? (side.forms.series ? side.forms.series[key] ?? Infinity : "n/a") : null);
+const parallel = (key) => (side) => side.forms?.parallel?.[key] ?? null;
 export const ROWS = [
   { form: "standard (ISA)", rows: [
-    ["K", "MV/PV", (g) => g.pk, "pk"],
-    ["Ti", "s", (g) => (g.pti === null ? Infinity : g.pti), "pti"],
-    ["Td", "s", (g) => g.ptd, "ptd"],
-    ["N", "", (g) => g.pnd, "pnd"],
-    ["b", "", (g) => g.pb, "pb"],
-    ["c", "", (g) => g.pc, "pc"],
+    ["K", "MV/PV", (s) => s.gains.pk, "pk"],
+    ["Ti", "s", (s) => (s.gains.pti === null ? Infinity : s.gains.pti), "pti"],
+    ["Td", "s", (s) => s.gains.ptd, "ptd"],
+    ["N", "", (s) => s.gains.pnd, "pnd"],
+    ["b", "", (s) => s.gains.pb, "pb"],
+    ["c", "", (s) => s.gains.pc, "pc"],
   ] },
   { form: "series (interacting)", rows: [
-    ["K′", "MV/PV", (g) => series(g), "k"],
-    ["Ti′", "s", (g) => series(g), "ti"],
-    ["Td′", "s", (g) => series(g), "td"],
+    ["K′", "MV/PV", series("k")],
+    ["Ti′", "s", series("ti")],
+    ["Td′", "s", series("td")],
   ] },
   { form: "parallel", rows: [
-    ["Kp", "MV/PV", (g) => parallel(g).kp],
-    ["Ki", "MV/(PV·s)", (g) => parallel(g).ki],
-    ["Kd", "MV·s/PV", (g) => parallel(g).kd],
+    ["Kp", "MV/PV", parallel("kp")],
+    ["Ki", "MV/(PV·s)", parallel("ki")],
+    ["Kd", "MV·s/PV", parallel("kd")],
   ] },
 ];
 
-// The text of one cell.
-export function cell(row, g, form) {
-  if (!g) return "—";
-  const v = row[2](g);
-  if (form === "series (interacting)") {
-    if (v.error) return "n/a";
-    const x = v[row[3]];
-    return x === null ? "∞" : fmt(x);
-  }
-  return fmt(v);
+// The text of one cell; `side` null: "—". A series form that does not exist (Ti < 4·Td) is "n/a".
+export function cell(row, side) {
+  if (!side?.gains) return "—";
+  const v = row[2](side);
+  return v === "n/a" ? v : fmt(v);
 }
 
 // The controller's parameters in the standard form, as the API names them: [key, label, unit].

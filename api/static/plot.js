@@ -115,8 +115,10 @@ function pathOf(points, sx, sy, step) {
 
 // Stacked panels sharing the x axis.
 // opts: {width, xRange:[a,b]?, xLabel, xTick(v)→text,
-//        panels:[{height, label, yRange?, yAtLeast?, series:[{name, cls, x:[], y:[], step?}]}]}
-// yRange fixes a panel's y axis; yAtLeast ([low, high], a loop's configured display range) is covered whatever the
+//        panels:[{height, label, yRange?, yAtLeast?, series:[{name, cls, x:[], y:[], step?}],
+//                 marks?:{name (none: not in the legend), cls, x:[]}}]}
+// marks draws a short tick at each of its x on the panel's top and bottom edges and a faint line between (events
+// such as the zero crossings of the control error), with its name in the legend. yRange fixes a panel's y axis; yAtLeast ([low, high], a loop's configured display range) is covered whatever the
 // data, and widened to data outside it (a value is never drawn off the panel).
 export function timeChart(svg, opts) {
   clear(svg);
@@ -155,6 +157,16 @@ export function timeChart(svg, opts) {
     for (const v of xt) el("line", { class: "grid", x1: sx(v), x2: sx(v), y1: y, y2: y + h }, g);
     el("text", { class: "axis-label", x: left, y: y - 4 }, g, panel.label);
     const lines = el("g", { "clip-path": `url(#${cid})` }, g);
+    if (panel.marks) {
+      const m = panel.marks;
+      const marks = el("g", { class: `marks ${m.cls}`, "data-marks": m.cls, "data-count": m.x.length }, lines);
+      const sparse = m.x.length <= plotW / 8; // lines across the panel only where they leave the data visible
+      for (const x of m.x) {
+        const px = sx(x);
+        if (sparse) el("line", { class: "mark-line", x1: px, x2: px, y1: y, y2: y + h }, marks);
+        el("path", { class: "mark-tick", d: `M${px - 4},${y}h8l-4,6zM${px - 4},${y + h}h8l-4,-6z` }, marks);
+      }
+    }
     for (const s of panel.series) {
       const pts = decimate(s.x, s.y, x0, x1, plotW);
       const d = pathOf(pts, sx, sy, s.step);
@@ -162,7 +174,8 @@ export function timeChart(svg, opts) {
     }
     // Legend, above the panel on the right: a short line of the series' style and its name.
     let lx = left + plotW;
-    for (const s of [...panel.series].reverse()) {
+    const legend = panel.marks?.name ? [...panel.series, { name: panel.marks.name, cls: `mark ${panel.marks.cls}` }] : panel.series;
+    for (const s of [...legend].reverse()) {
       if (!s.name) continue;
       el("text", { class: `legend ${s.cls}`, x: lx, y: y - 4, "text-anchor": "end" }, g, s.name);
       lx -= 7.6 * s.name.length + 6;
@@ -179,6 +192,36 @@ export function timeChart(svg, opts) {
     el("text", { class: "tick", x, y: axisY + 15, "text-anchor": "middle" }, svg, text);
   }
   if (opts.xLabel) el("text", { class: "axis-label", x: left + plotW, y: axisY + 30, "text-anchor": "end" }, svg, opts.xLabel);
+}
+
+// One signal against another (x and y in time order), as points joined by a thin line: the MV–PV figure of a
+// sticking valve. opts: {width, height, xLabel, yLabel, x:[], y:[], name, cls}.
+export function xyPlot(svg, opts) {
+  clear(svg);
+  const width = opts.width || 420;
+  const height = opts.height || Math.round(width * 0.75);
+  const [left, right, top, bottom] = [56, 12, 22, 34];
+  svg.setAttribute("viewBox", `0 0 ${width} ${height}`);
+  const pts = { x: opts.x, y: opts.y };
+  const [x0, x1] = extent([{ v: pts.x }], "v", [0, 1]);
+  const [y0, y1] = extent([{ v: pts.y }], "v", [0, 1]);
+  const plotW = width - left - right;
+  const plotH = height - top - bottom;
+  const sx = (v) => left + ((v - x0) / (x1 - x0 || 1)) * plotW;
+  const sy = (v) => top + plotH - ((v - y0) / (y1 - y0 || 1)) * plotH;
+  el("rect", { class: "plot-bg", x: left, y: top, width: plotW, height: plotH }, svg);
+  for (const v of enoughTicks(x0, x1, Math.max(2, Math.round(plotW / 90)))) {
+    el("line", { class: "grid", x1: sx(v), x2: sx(v), y1: top, y2: top + plotH }, svg);
+    el("text", { class: "tick", x: sx(v), y: top + plotH + 15, "text-anchor": "middle" }, svg, label(v));
+  }
+  for (const v of enoughTicks(y0, y1, Math.max(2, Math.round(plotH / 40)))) {
+    el("line", { class: "grid", x1: left, x2: left + plotW, y1: sy(v), y2: sy(v) }, svg);
+    el("text", { class: "tick", x: left - 6, y: sy(v) + 4, "text-anchor": "end" }, svg, label(v));
+  }
+  el("text", { class: "axis-label", x: left, y: top - 8 }, svg, opts.yLabel);
+  el("text", { class: "axis-label", x: left + plotW, y: top + plotH + 30, "text-anchor": "end" }, svg, opts.xLabel);
+  const path = pathOf(pts.x.map((x, i) => [x, pts.y[i]]), sx, sy, false);
+  if (path) el("path", { class: `line xy ${opts.cls}`, d: path, "data-series": opts.name, "data-points": pts.x.length }, svg);
 }
 
 // Nyquist plot of open loops with the identified point, the critical point and the Ms circle.

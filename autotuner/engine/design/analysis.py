@@ -8,7 +8,10 @@ gains on that model and reports, for the operator page:
 
 * the maximum sensitivity ``Ms`` and the closed loop's stability (Nyquist,
   :func:`autotuner.engine.design.robustness.check_loop`);
-* the Nyquist curve ``L(jω) = C(jω)·F(jω)`` near the point's frequency;
+* the Nyquist curve ``L(jω) = C(jω)·F(jω)`` near the point's frequency, and ``L(jω₀) = C(jω₀)·F(jω₀)`` at
+  the identified point itself;
+* the gains in the series and parallel forms (:func:`autotuner.engine.control.gains.forms_json`), so the page
+  draws them and derives nothing;
 * the unit set-point step and the unit load step (at the process input),
   simulated with the project's ZOH plant (:class:`autotuner.engine.plant.simulation.PlantSim`)
   in feedback with its PID unit (:class:`autotuner.engine.control.pid.PidUnit`), with the
@@ -34,7 +37,7 @@ import numpy as np
 from autotuner.engine.design.closed_loop import check_gains, closed_loop_step, controller_response
 from autotuner.engine.design.point_design import fit_model
 from autotuner.engine.plant.expression import parse_process
-from autotuner.engine.control.gains import Gains
+from autotuner.engine.control.gains import Gains, forms_json
 from autotuner.engine.plant.process import Process
 from autotuner.engine.result import GainsRecord, ResultRecord
 from autotuner.engine.design.robustness import log_grid
@@ -116,6 +119,17 @@ def nyquist(model: Process, gains: Gains, omega: float) -> dict[str, list[float]
     keep = np.abs(loop) <= NYQUIST_RADIUS
     keep[np.searchsorted(w, omega)] = True
     return {"omega": w[keep].tolist(), "re": loop.real[keep].tolist(), "im": loop.imag[keep].tolist()}
+
+
+def at_point(gains: Gains, point: complex, omega: float) -> dict[str, float]:
+    """``L(jω₀) = C(jω₀)·F(jω₀)``: ``gains``' controller times the identified point itself (not the model), as
+    ``{"re", "im"}`` (dimensionless).
+
+    ``gains``: the controller; ``point``: F(jω₀), PV units per MV unit; ``omega``: ω₀ (rad/s).
+    """
+    # (a P-only controller's response is one number, not an array)
+    value = complex(np.ravel(controller_response(gains, np.array([omega])))[0]) * point
+    return {"re": value.real, "im": value.imag}
 
 
 def step_response(model: Process, gains: Gains, step: str, ts: float, samples: int) -> tuple[np.ndarray, np.ndarray]:
@@ -203,7 +217,8 @@ def analyse(result: ResultRecord, ms_target: float, gains_before: dict[str, Any]
     checks = [loop_check(model, g, point.omega) for g in gains]
     stable = [ok for ok, _ in checks]
     steps = responses(model, gains, stable, point.omega)
-    loops = [{"gains": g.as_json(), "ms": ms, "stable": ok, "nyquist": nyquist(model, g, point.omega), **s}
+    loops = [{"gains": g.as_json(), "forms": forms_json(g), "ms": ms, "stable": ok,
+              "nyquist": nyquist(model, g, point.omega), "at_point": at_point(g, point.value, point.omega), **s}
              for g, (ok, ms), s in zip(gains, checks, steps)]
     return {
         "controller": result.controller,

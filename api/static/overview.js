@@ -1,0 +1,120 @@
+// The loop overview (#/): every loop's values, health, tuning state, last tuning and gains, live from one event
+// stream; sorted as configured or by the daemon's health rank (worst first).
+
+import { eventStream } from "./api.js";
+import { clock, gainsBrief, modeBadge, outcomeBadge, progressBar, restoreBox, statusOf, tuningFlags,
+  when } from "./display.js";
+import { $, esc, fill, h, main } from "./dom.js";
+import { healthCell } from "./health.js";
+import { banner } from "./notices.js";
+import { mvText, pvText, unitsOf } from "./units.js";
+
+// Whether the overview is sorted by health: kept while the page is open (coming back from a loop keeps the order).
+let byHealth = false;
+
+export function overviewView() {
+  const tbody = h("tbody");
+  const table = h("table", { class: "loops", id: "loops" },
+    h("thead", {}, h("tr", {},
+      h("th", {}, "Loop"), h("th", {}, "Mode"), h("th", { class: "num" }, "PV"), h("th", { class: "num" }, "SP"),
+      h("th", { class: "num" }, "MV"), h("th", {}, "Health"), h("th", {}, "Tuning (TBSY / TE / ite)"), h("th", {}, "Last tuning"),
+      h("th", {}, "Gains"))),
+    tbody);
+  const sortButton = h("button", { type: "button", class: "ghost sort", id: "sort-health", onclick: () => {
+    byHealth = !byHealth;
+    sort();
+  } });
+  fill(main(), h("section", { class: "card wide" },
+    h("div", { class: "card-head" }, h("h1", {}, "Loops"),
+      h("div", { class: "head-tools" }, sortButton, h("span", { class: "muted", id: "updated" }, ""))), table));
+  const rows = new Map();
+  const order = []; // the loops' ids as the daemon lists them (the config's order)
+
+  // Worst first by the daemon's rank (then loop id, as GET /loop-health), or as configured.
+  function sort() {
+    sortButton.textContent = byHealth ? "Sorted: worst health first" : "Sort by health";
+    sortButton.setAttribute("aria-pressed", byHealth ? "true" : "false");
+    sortButton.title = byHealth ? "back to the configured order" : "the loops with the worst health first";
+    const rank = (id) => loops.get(id)?.health?.rank ?? -Infinity;
+    const ids = byHealth ? [...order].sort((a, b) => rank(b) - rank(a) || (a < b ? -1 : a > b ? 1 : 0)) : order;
+    // Moved only when out of place: a row being clicked is not taken from under the pointer for nothing.
+    ids.forEach((id, i) => { if (tbody.children[i] !== rows.get(id)) tbody.insertBefore(rows.get(id), tbody.children[i] || null); });
+  }
+
+  function row(loop) {
+    const st = statusOf(loop);
+    const u = unitsOf(loop);
+    const tr = h("tr", { "data-loop": loop.id, class: `st-${st.cls}` },
+      h("td", {}, h("a", { href: `#/loop/${esc(loop.id)}`, class: "loop-id" }, loop.id),
+        h("div", { class: "muted small" }, loop.description || ""),
+        loop.monitor_error ? h("div", { class: "bad small" }, `monitor: ${loop.monitor_error}`) : null),
+      h("td", { "data-col": "mode", "data-label": "Mode" }, modeBadge(loop.mode)),
+      h("td", { class: "num", "data-col": "pv", "data-label": "PV" }, pvText(loop.pv, u)),
+      h("td", { class: "num", "data-col": "sp", "data-label": "SP" }, pvText(loop.sp, u)),
+      h("td", { class: "num", "data-col": "mv", "data-label": "MV" }, mvText(loop.mv, u)),
+      h("td", { "data-col": "health", "data-label": "Health" }, healthCell(loop.health ?? null)),
+      h("td", { "data-col": "status", "data-label": "Tuning" }, statusCell(loop, st)),
+      h("td", { "data-col": "last", "data-label": "Last tuning" }, loop.last_tuned_at ? h("div", {}, when(loop.last_tuned_at)) : h("div", { class: "muted" }, "never"),
+        loop.last_outcome ? outcomeBadge(loop.last_outcome) : null),
+      h("td", { "data-col": "gains", "data-label": "Gains" }, gainsBrief(loop.current_gains || null, u),
+        loop.pending_gains ? h("div", {}, h("span", { class: "badge pending" }, "new gains to apply")) : null));
+    return tr;
+  }
+
+  function statusCell(loop, st) {
+    return [h("div", { class: "status-line" }, h("span", { class: `badge ${st.cls}` }, st.badge), tuningFlags(loop)),
+      loop.restore ? restoreBox(loop) : h("div", { class: "small" }, st.text), loop.tbsy ? progressBar(loop) : null];
+  }
+
+  // A live value in place (the row stays: a link being clicked is not replaced under the pointer).
+  function refresh(loop) {
+    const tr = rows.get(loop.id);
+    if (!tr) return;
+    const u = unitsOf(loop);
+    $("[data-col=pv]", tr).textContent = pvText(loop.pv, u);
+    $("[data-col=sp]", tr).textContent = pvText(loop.sp, u);
+    $("[data-col=mv]", tr).textContent = mvText(loop.mv, u);
+    fill($("[data-col=mode]", tr), modeBadge(loop.mode));
+    if (loop.tbsy) fill($("[data-col=status]", tr), statusCell(loop, statusOf(loop)));
+    $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
+  }
+
+  // One event stream for every loop (GET /events): each loop's state when it opens and on every change, its
+  // live values (the newest sample, at most one per loop every 0.5 s) in between. No polling.
+  const loops = new Map();
+  function show(loop) {
+    loops.set(loop.id, loop);
+    const tr = row(loop);
+    const old = rows.get(loop.id);
+    tr.dataset.rank = String(loop.health?.rank ?? "");
+    const rankChanged = old && tr.dataset.rank !== old.dataset.rank;
+    if (old) old.replaceWith(tr);
+    else { tbody.appendChild(tr); order.push(loop.id); }
+    rows.set(loop.id, tr);
+    if (byHealth && (!old || rankChanged)) sort();
+    $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
+  }
+  sort();
+  const stream = eventStream("/events", {
+    state: show,
+    // A loop's health summary changed (a new assessment, pending after a tuning, …).
+    health(summary) {
+      const loop = loops.get(summary.loop);
+      if (!loop) return;
+      const { loop: _, ...health } = summary;
+      show({ ...loop, health });
+    },
+    live(s) {
+      const loop = loops.get(s.loop);
+      if (!loop) return;
+      for (const k of ["pv", "sp", "mv", "mode"]) if (s[k] !== undefined) loop[k] = s[k];
+      if (loop.tbsy && s.stage) Object.assign(loop, { stage: s.stage, progress: s.progress, ite: s.ite });
+      refresh(loop);
+    },
+    status(connected, detail) {
+      banner("overview", connected ? null : `Live stream lost — reconnecting… (${detail || "connection closed"})`);
+      tbody.classList.toggle("stale", !connected);
+    },
+  });
+  return () => { stream.close(); banner("overview", null); };
+}

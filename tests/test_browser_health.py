@@ -1,0 +1,196 @@
+"""Loop health on the operator page, in a real headless Chromium against a real ``autotuner serve``: the built-in
+demo plant (healthy loops, a sticky valve, an over-tuned loop, a sluggish one, one in MAN; docs/health.md) with a
+short health window, so the daemon has assessed every loop within a minute or two.
+
+Every number the page shows is compared with the daemon's own answer (``GET /loop-health``,
+``GET /loops/{id}/health``): the page computes nothing of the health, it draws it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+import yaml
+
+from api.auth import token_hash
+from autotuner.service.demo import demo_config
+from helpers import Daemon, logged_in_page
+from test_browser import close, legible, no_horizontal_scroll, number, usable
+
+OPERATOR, VIEWER = "health-operator-secret", "health-viewer-secret"
+SPEED = 20.0
+# Plant seconds: long enough for about ten periods of the sticky valve's limit cycle (100-130 s), short enough that
+# the window fills within a minute of wall time at SPEED; a new assessment every 5 wall seconds. (While the window
+# fills, the sticky valve's verdict can change from one assessment to the next: the tests wait for it.)
+WINDOW, EVERY = 1200.0, 100.0
+# Generous: the demo plant's seven loops run on a machine shared with the rest of the suite.
+ASSESSED_S = 300.0
+TIMEOUT_MS = 300_000
+STICKY, RETUNE = "TIC-102", "FIC-302"
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory) -> Iterator[Daemon]:
+    tmp: Path = tmp_path_factory.mktemp("health-page")
+    config = demo_config(SPEED).model_dump(mode="json", exclude_defaults=True)
+    config["history"] = str(tmp / "history.sqlite")
+    config["tokens"] = [{"name": "hmi", "role": "viewer", "sha256": token_hash(VIEWER)}]
+    for loop in config["loops"]:
+        loop["health"] = {"window": WINDOW, "every": EVERY}
+    (tmp / "daemon.yaml").write_text(yaml.safe_dump(config))
+    with Daemon(tmp / "daemon.yaml", token=OPERATOR) as d:
+        yield d
+
+
+def api(d: Daemon, path: str):
+    r = httpx.get(d.base + path, headers=d.headers, timeout=30)
+    r.raise_for_status()
+    return r.json()
+
+
+def assessed(d: Daemon, loop_id: str, recommendation: str) -> dict:
+    """The loop's health once the daemon has assessed it with ``recommendation`` (AssertionError after
+    :data:`ASSESSED_S`)."""
+    out: dict = {}
+
+    def ready() -> bool:
+        out.update(api(d, f"/loops/{loop_id}/health"))
+        return out["state"] == "ok" and out["assessment"]["recommendation"] == recommendation
+
+    d.wait_until(ready, ASSESSED_S, f"{loop_id} assessed with {recommendation}")
+    return out
+
+
+def shown_time(page) -> float | None:
+    """The time (unix s) of the assessment the loop page's health card shows; None: none."""
+    text = page.get_attribute("#health", "data-time")
+    return float(text) if text else None
+
+
+def page_of(d: Daemon, token: str = OPERATOR):
+    return logged_in_page(f"http://127.0.0.1:{d.port}/", token, timeout_ms=TIMEOUT_MS)
+
+
+def test_the_overview_shows_each_loops_health_live_and_sorts_worst_first(daemon):
+    with page_of(daemon) as page:
+        # Opened before any assessment exists: what follows comes in on the overview's event stream.
+        ids = [loop["id"] for loop in api(daemon, "/loops")]
+        page.wait_for_selector(f"#loops tr[data-loop={STICKY}] td[data-col=health] [data-health]")
+        assessed(daemon, STICKY, "check_valve")
+        sticky = f"#loops tr[data-loop={STICKY}] td[data-col=health]"
+        page.wait_for_selector(f"{sticky} [data-hflag=stiction]")
+        assert page.locator(f"{sticky} [data-recommendation=check_valve]").count() == 1
+        assert page.get_attribute(f"{sticky} [data-health]", "data-health") in ("low", "medium", "high")
+        # The configured order until asked; then the daemon's order, worst first.
+        assert page.eval_on_selector_all("#loops tbody tr", "rs => rs.map(r => r.dataset.loop)") == ids
+        assessed(daemon, RETUNE, "retune")
+        page.click("#sort-health")
+        assert page.get_attribute("#sort-health", "aria-pressed") == "true"
+
+        def same_order() -> bool:
+            listed = [x["loop"] for x in api(daemon, "/loop-health")]
+            shown = page.eval_on_selector_all("#loops tbody tr", "rs => rs.map(r => r.dataset.loop)")
+            return shown == listed
+
+        daemon.wait_until(same_order, 60, "the page's order to be the daemon's /loop-health order")
+        ranks = [x["rank"] for x in api(daemon, "/loop-health")]
+        assert ranks == sorted(ranks, reverse=True) and ranks[0] > ranks[-1]
+        # Each row's badge and flags are the daemon's summary of that loop (the newest: the stream brings it).
+        for loop_id in ids:
+            cell = f"#loops tr[data-loop={loop_id}] td[data-col=health]"
+
+            def row_is_the_daemons() -> bool:
+                x = api(daemon, f"/loops/{loop_id}")["health"]
+                shown = page.eval_on_selector_all(f"{cell} [data-hflag]", "fs => fs.map(f => f.dataset.hflag)")
+                badge = page.get_attribute(f"{cell} [data-health]", "data-health")
+                return shown == x["flags"] and badge == (x["severity"] if x["state"] == "ok" else x["state"])
+
+            daemon.wait_until(row_is_the_daemons, 60, f"{loop_id}'s health on the page to be the daemon's")
+        page.click("#sort-health")
+        assert page.eval_on_selector_all("#loops tbody tr", "rs => rs.map(r => r.dataset.loop)") == ids
+
+
+def test_the_sticky_valves_card_shows_stiction_and_check_valve_with_its_evidence_and_no_tune_now(daemon):
+    with page_of(daemon) as page:
+        assessed(daemon, STICKY, "check_valve")
+        page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{STICKY}")
+        page.wait_for_selector("#health-flags [data-flag=stiction]")
+        assert page.locator("#tune-now").count() == 0  # a sticking valve is not to be retuned
+        # The card shows one assessment of the daemon's in full: wait until the API's newest is the one shown.
+        health: dict = {}
+
+        def card_is_the_daemons() -> bool:
+            health.update(api(daemon, f"/loops/{STICKY}/health"))
+            return shown_time(page) == health["assessment"]["time"]
+
+        daemon.wait_until(card_is_the_daemons, 60, "the card to show the daemon's newest assessment")
+        a = health["assessment"]
+        shown = page.eval_on_selector_all("#health-flags [data-flag]", "fs => fs.map(f => f.dataset.flag)")
+        assert shown == a["flags"]
+        for name in a["flags"]:
+            assert a["reasons"][name] in page.inner_text(f"#health-flags [data-flag={name}]")
+        assert page.locator(f"#health-summary [data-recommendation={a['recommendation']}]").count() == 1
+        for name, value in a["indices"].items():
+            text = page.inner_text(f"#health-indices tr[data-index={name}] td.now")
+            assert text == "—" if value is None else close(number(text), value), (name, text, value)
+        # The evidence: the window's trend with the crossings the detector counted, and the MV–PV figure.
+        page.wait_for_selector("#health-trend path[data-series=PV]")
+        page.wait_for_selector("#health-mvpv path[data-series='PV(MV)']")
+        ev = health["evidence"]
+        assert ev["crossings"] and len(ev["t"]) <= 1000
+        if shown_time(page) == a["time"]:  # still the same assessment shown
+            assert int(page.get_attribute("#health-trend [data-marks]", "data-count")) == len(ev["crossings"])
+            assert int(page.get_attribute("#health-mvpv path[data-series='PV(MV)']", "data-points")) == len(ev["mv"])
+        # The indices with their units, as the daemon computed them (4 significant digits).
+        assert page.inner_text("#health-indices tr[data-index=oscillation_period] td.unit") == "s"
+        assert page.inner_text("#health-indices tr[data-index=stiction_band] td.unit") == "%"
+        assert page.inner_text("#health-window").startswith("window")
+
+
+@pytest.mark.parametrize("width,height", [(390, 844), (820, 1180), (1920, 1080), (3840, 2160)])
+def test_every_screen_size_shows_the_health_column_and_card(daemon, width, height):
+    assessed(daemon, STICKY, "check_valve")
+    assessed(daemon, RETUNE, "retune")
+    with page_of(daemon) as page:
+        page.set_viewport_size({"width": width, "height": height})
+        page.wait_for_selector(f"#loops tr[data-loop={STICKY}] [data-hflag=stiction]")
+        no_horizontal_scroll(page)
+        usable(page, "#sort-health", 44)
+        page.click("#sort-health")
+        no_horizontal_scroll(page)
+        page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{STICKY}")
+        page.wait_for_selector("#health-mvpv path[data-series='PV(MV)']")
+        no_horizontal_scroll(page)
+        legible(page, "#health-trend")
+        legible(page, "#health-mvpv")
+        page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{RETUNE}")
+        page.wait_for_selector("#tune-now:enabled")
+        no_horizontal_scroll(page)
+        usable(page, "#tune-now", 44)
+        legible(page, "#health-trend")
+
+
+def test_a_loop_recommended_for_retuning_shows_tune_now_which_tunes_it_and_then_its_health_before_and_after(daemon):
+    assessed(daemon, RETUNE, "retune")
+    with page_of(daemon, VIEWER) as page:
+        page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{RETUNE}")
+        page.wait_for_selector("#tune-now")
+        assert page.is_disabled("#tune-now") and "operator" in page.get_attribute("#tune-now", "title")
+    with page_of(daemon) as page:
+        page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{RETUNE}")
+        page.wait_for_selector("#health-summary [data-recommendation=retune]")
+        page.click("#tune-now:enabled")  # the TUNE form's request, with the loop's defaults it holds
+        page.wait_for_selector("#badge:has-text('TUNING')")
+        status = api(daemon, f"/loops/{RETUNE}")
+        request = api(daemon, f"/sessions/{status['session']}")["request"]
+        assert request["controller"] == status["defaults"]["controller"] and request["amp"] == status["defaults"]["amp"]
+        # After the tuning: the assessment before it beside the one now (pending until the window fills again).
+        page.wait_for_selector("#health-before [data-recommendation=retune]")
+        before = api(daemon, f"/loops/{RETUNE}/health")["before_tuning"]
+        assert before["session"] == status["session"] and before["recommendation"] == "retune"
+        assert status["session"][:8] in page.text_content("#health-before h3")
+        assert page.locator("#health-now").count() == 1
