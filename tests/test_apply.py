@@ -139,7 +139,8 @@ def test_the_last_session_and_its_pending_gains_survive_a_restart(tmp_path):
     with TestClient(create_app(config, env_token=OPERATOR)) as client:
         second = client.get(f"{API}/loops/TIC-101", headers=auth(VIEWER)).json()
         newest = client.get(f"{API}/sessions/s-new", headers=auth(VIEWER)).json()
-    tic, lic, fic = first
+    by_id = {loop["id"]: loop for loop in first}
+    tic, lic, fic = by_id["TIC-101"], by_id["LIC-201"], by_id["FIC-301"]
     assert tic["pending_gains"] is True and tic["last_outcome"] == "success" and tic["last_tuned_at"]
     assert lic["pending_gains"] is False and lic["last_outcome"] == "failure"
     assert fic["last_tuned_at"] is None and fic["last_outcome"] is None and fic["pending_gains"] is False
