@@ -7,8 +7,9 @@ live values — with each field's description, unit and an example in its
 result's records). :meth:`LoopStatus.to_json` is its one encoder.
 """
 
-from __future__ import annotations
-
+# No ``from __future__ import annotations`` here: pydantic 2.6 (the lowest allowed) resolves the string
+# annotations of the stdlib dataclasses nested in a model (HealthSummary in LoopStatus in api/models.py) in the
+# namespace of the module that builds the model, where this module's Literal aliases are not defined.
 import functools
 from dataclasses import dataclass, fields, is_dataclass
 from enum import Enum
