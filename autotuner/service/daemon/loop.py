@@ -33,6 +33,7 @@ class Session:
     ended ('' or why the loop is not handed back)."""
 
     sid: str
+    plan: SessionPlan  # what it runs (its samples per second count in the admission)
     start: float = 0.0  # monotonic wall seconds
     task: asyncio.Task[None] | None = None
     pv: float = math.nan
@@ -42,7 +43,6 @@ class Session:
     mv_range: tuple[float, float] | None = None
     intended: Gains | None = None
     restore_error: str | None = None  # None: the hand-back has not reported yet
-    plan: SessionPlan | None = None  # what it runs (its samples per second count in the admission)
 
 
 @dataclass

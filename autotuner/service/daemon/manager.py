@@ -408,7 +408,7 @@ class LoopManager:
         # Every session started, the ones whose task has not reached its sampler yet too: a hundred TUNEs asked at
         # once are each judged with the others.
         sessions = {other.config.id: other.running.plan for other in self.loops.values()
-                    if other.running is not None and other.running.plan is not None}
+                    if other.running is not None}
         if (load := self.field.load(loop_id, {**sessions, loop_id: plan})) > self.sampler_load:
             raise Refused("overloaded", f"loop {loop_id!r} not tuned: with it, its sampler would need {load:.0%} of "
                           f"a core, beyond its sampler_load {self.sampler_load:.0%} ({tuning} loops tuning); retry "
@@ -432,8 +432,8 @@ class LoopManager:
         assert loop.health is not None
         loop.health.restart(sid)  # new gains make the samples before it another loop's
         self._publish(loop, "health", {"loop": loop_id, **loop.health.summary()})
-        loop.running = Session(sid, start=time.monotonic(),
-                               plan=plan_of(loop.config, settings, self.handback_config.session()))
+        loop.running = Session(sid, plan_of(loop.config, settings, self.handback_config.session()),
+                               start=time.monotonic())
         loop.running.task = asyncio.create_task(self._session(loop, loop.running, user, settings))
         self._publish(loop, "state", loop.as_json())
         return sid
@@ -636,7 +636,6 @@ class LoopManager:
         """Run the session in the field; record its end (:meth:`_ended`), whatever way it ends."""
         sid, loop_id = running.sid, loop.config.id
         plan = running.plan
-        assert plan is not None, "a session is started with its plan"
         outcome: SessionOutcome | None = None
         state, why_none = "finished", "aborted: the daemon stopped"
         try:
