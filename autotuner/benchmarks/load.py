@@ -382,7 +382,7 @@ def table_rows(results: list[LoadResult]) -> list[list[str]]:
     for r in results:
         codes = ", ".join(f"{code}: {n}" for code, n in sorted(r.codes.items())) or "-"
         row = [str(r.spec.loops), str(r.spec.idle), str(r.spec.clients), f"{r.tuned}/{r.spec.loops}", codes,
-               f"{r.wall:.1f}", str(r.samples), f"{r.late_p50:.2f}", f"{r.late_p99:.2f}", f"{r.late_max:.1f}",
+               f"{r.wall:.1f}", str(r.samples), f"{r.late_p50:.2f}", f"{r.late_p99:.2f}", f"{r.late_max:.2f}",
                f"{r.analysis_p50:.2f} / {r.analysis_p99:.2f} / {r.analysis_max:.2f}", f"{r.cpu_daemon:.0f}",
                f"{r.rss_daemon:.0f}", f"{r.cpu_plant:.0f}", str(r.assessed),
                f"{1e3 * r.health_cpu / r.assessed:.2f}" if r.assessed else "-"]
