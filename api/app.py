@@ -29,6 +29,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from autotuner import __version__
 from autotuner.engine.design.analysis import analyse
 from autotuner.engine.outcome import MESSAGES, WARNINGS, Code
+from autotuner.service import heap
 from autotuner.service.config import DaemonConfig, FleetConfig, Tuning, TuneRequest
 from autotuner.service.daemon import LoopManager, Refused
 from autotuner.service.daemon.recorder import HISTORY_WAIT, LATE_GRACE
@@ -483,6 +484,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
             raise
         app.state.manager = manager
         app.state.metrics = registry_of(manager, app.state)
+        heap.settle()
         opcua = None
         try:
             if config.opcua is not None:
@@ -498,6 +500,7 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
                 await opcua.stop()
             app.state.unrestored = await manager.shutdown()
             await manager.stop()
+            heap.release()
             store.close()
             if fleet is not None:
                 fleet.leases.close()

@@ -15,6 +15,7 @@ import cmath
 import json
 import math
 import os
+import re
 import signal
 import sqlite3
 import time
@@ -132,6 +133,8 @@ def test_analysis_workers_start_with_the_first_tuning_at_a_priority_just_below_t
         sampler = wait_for(lambda: samplers_of(d.proc.pid), WAIT, "the daemon's sampler")[0]
         wait_for(lambda: d.status()["mode"] == "AUTO", WAIT, "the monitor's first reading")
         assert analysis_workers_of(sampler) == []  # a sampler that has not tuned has started none
+        # Its start's objects (numpy, scipy, the loops) are out of the collector's full walks (autotuner/service/heap.py).
+        assert int(re.search(r"sampler 1: (\d+) objects of its start out of", d.output())[1]) > 50_000
         d.tune()
         workers = wait_for(lambda: len(w := analysis_workers_of(sampler)) == 2 and w, WAIT, "two analysis workers")
         policy, priority = os.sched_getscheduler(sampler), os.sched_getparam(sampler).sched_priority

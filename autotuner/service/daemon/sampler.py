@@ -44,6 +44,7 @@ from autotuner.engine.control.gains import Gains
 from autotuner.engine.experiment.relay import Status
 from autotuner.engine.outcome import Code
 from autotuner.engine.simulated_tuning import DesignJob
+from autotuner.service import heap
 from autotuner.service.channel import (Channel, Peer, PeerLost, child_start, log_levels, log_record, start_child,
                                        tree_cpu_seconds)
 from autotuner.service.config import LoopConfig
@@ -168,6 +169,7 @@ async def serve(fd: int) -> None:
     sampler = _Sampler(field)
     peer = Peer(channel, sampler, SAMPLER_CALLS, SAMPLER_NOTES)
     field.bind(_ToDaemon(peer))
+    log.info("sampler %d: %d objects of its start out of the garbage collector's walks", init.shard, heap.settle())
     channel.send("ready")
     await peer.serve()
     if not sampler.stopped.is_set():  # the daemon is gone: its sessions' loops are handed back before the end
