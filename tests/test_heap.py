@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import gc
+import subprocess
+import sys
 
 from fastapi.testclient import TestClient
 
@@ -31,3 +33,11 @@ def test_a_daemon_settles_its_heap_once_started_and_releases_it_when_it_stops():
     with TestClient(create_app(CONFIG, env_token=OPERATOR)):
         assert gc.get_freeze_count() > 50_000  # the imports, the app, the loops
     assert gc.get_freeze_count() == 0
+
+
+def test_an_analysis_worker_settles_its_heap_when_it_starts():
+    # In a fresh interpreter, as a spawned worker starts: the setup's module brings the engine in with it.
+    code = ("import gc; from autotuner.service.daemon.analyses import _worker_setup; _worker_setup(None); "
+            "print(gc.get_freeze_count())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert int(out.stdout) > 50_000  # numpy, scipy, the engine

@@ -20,6 +20,7 @@ import functools
 import logging
 import os
 
+from autotuner.service import heap
 from autotuner.service.link_session import Analyse, analysed
 from autotuner.service.worker_pool import WorkerPool
 
@@ -42,7 +43,7 @@ class AnalysisWorkers:
     they run at once started, None: an ordinary one."""
 
     def __init__(self, size: int, priority: int | None) -> None:
-        self.pool = WorkerPool(size, functools.partial(_priority, priority))
+        self.pool = WorkerPool(size, functools.partial(_worker_setup, priority))
         self._ready = False
         self._starting: asyncio.Task[None] | None = None
 
@@ -70,9 +71,11 @@ class AnalysisWorkers:
         self._ready = True
 
 
-def _priority(priority: int | None) -> None:
-    """In a worker, once started: real-time ``priority`` (SCHED_RR), or an ordinary priority when None or not
-    permitted."""
+def _worker_setup(priority: int | None) -> None:
+    """In a worker, once started (the engine imported with this module): its start's objects out of the garbage
+    collector's full walks (:func:`~autotuner.service.heap.settle`: an analysis is part of the experiment's
+    timing), then real-time ``priority`` (SCHED_RR), or an ordinary priority when None or not permitted."""
+    heap.settle()
     if priority is not None:
         with contextlib.suppress(PermissionError, OSError):
             os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
