@@ -73,6 +73,11 @@ def bias(loop: Loop, times: np.ndarray, measure: Callable[[np.ndarray], complex]
     since = bounds[0] - delay - (MEMORY * tc if math.isfinite(k0) else bounds[-1] - bounds[-2])
     history = loop.record.all()
     output = model_output(replace(history, u=history.u - loop.mv0), times, since, k0, tc, delay, rate)
+    return measure(output) - model_response(k0, tc, delay, rate, omega)
+
+
+def model_response(k0: float, tc: float, delay: float, rate: float, omega: float) -> complex:
+    """F(jω) at ``omega`` (rad/s) of the first-order model with gain ``k0`` (PV per MV unit), lag ``tc`` and
+    dead time ``delay`` (s); with ``k0`` infinite an integrator of ``rate`` (PV per MV unit per s)."""
     turn = complex(np.exp(-1j * omega * delay))
-    exact = k0 * turn / (1.0 + 1j * omega * tc) if math.isfinite(k0) else rate * turn / (1j * omega)
-    return measure(output) - exact
+    return k0 * turn / (1.0 + 1j * omega * tc) if math.isfinite(k0) else rate * turn / (1j * omega)
