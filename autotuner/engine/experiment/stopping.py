@@ -194,14 +194,16 @@ def _on_line(recent: list[tuple[Point, float]], target_deg: float, tol: Toleranc
 
 def _on_model(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances) -> Verdict | None:
     """The point at ``target_deg`` (degrees of lag) on the line in ln ω through the latest two ``estimates``,
-    when the latest lags within MODEL_GATE_DEG of it, their phases converge to it from one side or straddle
-    it, and the one before lies on the curve of the first-order model through the latest (MODEL_TOL of
-    ``tol.gain_tol``); else None. An unstable process's (|F|/K0 below −``tol.static_tol``) has no such model."""
+    when the latest lags within MODEL_GATE_DEG of it, their phases converge to it from one side, and the one
+    before lies on the curve of the first-order model through the latest (MODEL_TOL of ``tol.gain_tol``); else
+    None. An unstable process's (|F|/K0 below −``tol.static_tol``) has no such model."""
     (p1, _), (p2, x2) = recent = estimates[-2:]
     if x2 < -tol.static_tol or abs(math.log(p2.omega / p1.omega)) < LINE_SPACING:
         return None
     lags = _lags(recent, target_deg)
-    if abs(math.degrees(lags[1])) > MODEL_GATE_DEG or (abs(lags[0]) <= abs(lags[1]) and lags[0] * lags[1] > 0.0):
+    if abs(math.degrees(lags[1])) > MODEL_GATE_DEG or not (abs(lags[0]) > abs(lags[1]) and lags[0] * lags[1] > 0.0):
+        # (As the line rule: only a phase that converges from one side; a wandering ω puts two estimates on
+        # both sides of the target, and a phase bias common to both would pass for the curve.)
         return None
     lag2 = (-math.atan2(p2.value.imag, p2.value.real)) % (2.0 * math.pi)
     k0, tc, delay = first_order_model(max(x2, 0.0), p2.gain, p2.omega, lag2)
