@@ -45,6 +45,8 @@ class Estimate:
         unstable-process tests read its sign, which one period of the start-up transient can invert on a
         stable lag-dominant process.
     before, start, end: the crossing times that bound the two periods, s.
+    alt: the point and |F|/K0 with the transient's share read off the second model (transient.ALT_RATIO), on a
+        quiet, noise-free run; else None.
     """
 
     point: Point
@@ -53,6 +55,7 @@ class Estimate:
     before: float
     start: float
     end: float
+    alt: tuple[Point, float] | None = None
 
 
 @dataclass
@@ -99,9 +102,10 @@ class Estimates:
         return sum(1 for e in self.items if e.start < before)
 
 
-def pairs(estimates: list[Estimate]) -> list[tuple[Point, float]]:
-    """(point, x) of each of ``estimates``: what the stopping rule judges."""
-    return [(e.point, e.x) for e in estimates]
+def pairs(estimates: list[Estimate], alt: bool = False) -> list[tuple[Point, float]]:
+    """(point, x) of each of ``estimates``: what the stopping rule judges; the second model's where ``alt`` (and
+    an estimate has it)."""
+    return [e.alt if alt and e.alt is not None else (e.point, e.x) for e in estimates]
 
 
 def response(loop: Loop, samples: Samples, ta: float, tb: float, omega: float, hann: bool) -> complex:
@@ -149,14 +153,15 @@ def longest_gap(tt: np.ndarray, start: float, end: float) -> float:
 
 
 def period_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[float],
-                 fitted_x: float | None, noisy: bool = False) -> tuple[Point, float]:
+                 fitted_x: float | None, noisy: bool = False, ratio: float = 0.0) -> tuple[Point, float]:
     """The point over the last whole period of ``bounds`` (crossing times, s) and |F|/K0 over it, or over the
     periods of ``bounds`` when ``noisy`` (measurement noise that scatters the estimates, convergence.noisy).
 
     ``loop``: the loop under test; ``raw``: the samples from ``bounds[0]`` on; ``detrended``: their PV with its
     drift across ``bounds`` removed (for the point); ``fitted_x``: the load fit's |F|/K0 when a load is
     followed (then the answer, and the point as measured). Quiet and noise-free, the transient's share is
-    taken out of the point (transient.py), CORRECTIONS times: the model it uses goes through the point.
+    taken out of the point (transient.py), CORRECTIONS times: the model it uses goes through the point (two lags
+    ``ratio`` apart, or first order for 0).
     """
     ta, tb = bounds[-2], bounds[-1]
     # One whole period, rectangular: a Hann window over a single period
@@ -177,7 +182,7 @@ def period_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[f
     # Not under noise: a model through one noisy estimate corrects by its noise too (at 5 % noise on
     # exp(-s)/(100*s+1) the runs ended in half the periods with the point 1 % off and K0 7 % off).
     for _ in range(0 if noisy else CORRECTIONS):
-        value = measured - transient.bias(loop, raw.t, measure, bounds, value, x)
+        value = measured - transient.bias(loop, raw.t, measure, bounds, value, x, ratio)
         x = _static_x(loop, raw, start, tb, omega, value)
     return Point(omega, value), x
 

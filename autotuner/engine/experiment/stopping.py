@@ -45,9 +45,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from autotuner.engine.experiment.load_fit import first_order_model
 from autotuner.engine.experiment.point import Point
-from autotuner.engine.experiment.transient import model_response
+from autotuner.engine.experiment.transient import model, model_response
 
 # The settled rule judges |F|/K0 over at least this many estimates.
 STATIC_MIN = 3
@@ -192,10 +191,12 @@ def _on_line(recent: list[tuple[Point, float]], target_deg: float, tol: Toleranc
     return _at_target(recent, recent, target_deg, tol)
 
 
-def _on_model(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances) -> Verdict | None:
+def _on_model(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances,
+              ratio: float = 0.0) -> Verdict | None:
     """The point at ``target_deg`` (degrees of lag) on the line in ln ω through the latest two ``estimates``,
     when the latest lags within MODEL_GATE_DEG of it, their phases converge to it from one side, and the one
-    before lies on the curve of the first-order model through the latest (MODEL_TOL of ``tol.gain_tol``); else
+    before lies on the curve of the model through the latest (MODEL_TOL of ``tol.gain_tol``; two lags ``ratio``
+    apart, or first order for 0: transient.model, the one the estimates shed their transient through); else
     None. An unstable process's (|F|/K0 below −``tol.static_tol``) has no such model."""
     (p1, _), (p2, x2) = recent = estimates[-2:]
     if x2 < -tol.static_tol or abs(math.log(p2.omega / p1.omega)) < LINE_SPACING:
@@ -205,10 +206,8 @@ def _on_model(estimates: list[tuple[Point, float]], target_deg: float, tol: Tole
         # (As the line rule: only a phase that converges from one side; a wandering ω puts two estimates on
         # both sides of the target, and a phase bias common to both would pass for the curve.)
         return None
-    lag2 = (-math.atan2(p2.value.imag, p2.value.real)) % (2.0 * math.pi)
-    k0, tc, delay = first_order_model(max(x2, 0.0), p2.gain, p2.omega, lag2)
-    model = model_response(k0, tc, delay, p2.gain * p2.omega, p1.omega)
-    if abs(p1.value - model) > MODEL_TOL * tol.gain_tol * p2.gain:
+    k0, tc, tc2, delay, rate = model(x2, p2.value, p2.omega, ratio)
+    if abs(p1.value - model_response(k0, tc, delay, rate, p1.omega, tc2)) > MODEL_TOL * tol.gain_tol * p2.gain:
         return None
     return _at_target(estimates, recent, target_deg, tol)
 
@@ -268,13 +267,15 @@ def _static_settled(estimates: list[tuple[Point, float]], recent: list[tuple[Poi
 
 
 def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances, longest: int,
-          noisy: bool, x_std: float | None = None) -> Verdict | None:
+          noisy: bool, x_std: float | None = None, ratio: float = 0.0) -> Verdict | None:
     """The accepted mean of the latest ``estimates`` ((point, x) pairs), or None to go on.
 
     ``target_deg``: the lag aimed at, degrees; ``tol``: the tolerances.
     ``longest`` bounds how many of the latest are averaged; ``noisy`` enables
     the averaged rule; ``x_std`` (from a load fit) replaces the spread
-    of |F|/K0 by the fit's own standard error.
+    of |F|/K0 by the fit's own standard error; ``ratio``: the model the
+    estimates shed their transient through (transient.model), whose curve
+    the model rule reads.
     """
     if not noisy and x_std is None and len(estimates) >= 3:
         on_line = _on_line(estimates[-3:], target_deg, tol)
@@ -307,7 +308,7 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
             if spread / math.sqrt(k) <= tol.noise_tol and static_ok:
                 return Verdict(mean, x, k)
     if not noisy and x_std is None and len(estimates) >= 2:
-        return _on_model(estimates, target_deg, tol)
+        return _on_model(estimates, target_deg, tol, ratio)
     return None
 
 
