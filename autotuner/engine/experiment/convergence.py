@@ -16,7 +16,8 @@ from dataclasses import replace
 from autotuner.engine.experiment import endings
 from autotuner.engine.experiment.config import RelayConfig
 from autotuner.engine.experiment.endings import Ended
-from autotuner.engine.experiment.estimates import GAP, STALL, Estimates, drift, longest_gap, pairs, period_point
+from autotuner.engine.experiment.estimates import (GAP, STALL, Estimates, alt_point, drift, longest_gap, pairs,
+                                                   period_point)
 from autotuner.engine.experiment.load_fit import LoadFit
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.stopping import Tolerances, Verdict, judge
@@ -118,9 +119,10 @@ def at_falling(loop: Loop, switching: Switching, estimates: Estimates, since: fl
     longest = 2 + (periods - MIN_PERIODS) // 2
     c = loop.config
     tol = replace(tolerances(c), gain_tol=c.gain_tol * HALF_TOL, static_tol=c.static_tol * HALF_TOL)
-    for ratio in (0.0, ALT_RATIO):
-        half = period_point(loop, raw, detrended, falls[-3:], None, False, ratio)
-        verdict = judge([*pairs(usable, alt=ratio > 0.0), half], target_deg, tol, longest, False, None, ratio)
-        if verdict is not None:
-            return verdict
-    return None
+    half = period_point(loop, raw, detrended, falls[-3:], None)
+    verdict = judge([*pairs(usable), half], target_deg, tol, longest, False)
+    if verdict is None:
+        # (As at a rising switch: the estimates through the second model, judged with it.)
+        alt = alt_point(loop, raw, detrended, falls[-3:], half)
+        verdict = judge([*pairs(usable, alt=True), alt], target_deg, tol, longest, False, None, ALT_RATIO)
+    return verdict

@@ -37,12 +37,12 @@ import math
 from collections.abc import Callable
 from dataclasses import replace
 
-from autotuner.engine.experiment import convergence, endings, transient
+from autotuner.engine.experiment import convergence, endings
 from autotuner.engine.experiment.adaptation import Adaptation
 from autotuner.engine.experiment.config import RelayConfig
 from autotuner.engine.experiment.endings import Ended
-from autotuner.engine.experiment.estimates import (Estimate, Estimates, drift, lag, longest_gap, mean_x, period_point,
-                                                   response, wide_x)
+from autotuner.engine.experiment.estimates import (Estimate, Estimates, alt_point, drift, lag, longest_gap, mean_x,
+                                                   period_point, response, wide_x)
 from autotuner.engine.experiment.identification import Identification, identification
 from autotuner.engine.experiment.levels import Levels, listed
 from autotuner.engine.experiment.load_following import LoadFollowing
@@ -315,7 +315,7 @@ class RelayExperiment:
         point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x, noisy)
         wide = wide_x(loop, detrended, bounds) if fit is None else x
         quiet = fit is None and not noisy
-        alt = period_point(loop, raw, detrended.y, bounds, None, False, transient.ALT_RATIO) if quiet else None
+        alt = alt_point(loop, raw, detrended.y, bounds, (point, x)) if quiet else None
         gap = longest_gap(raw.t, bounds[0], bounds[-1])
         self._estimates.add(Estimate(point, x, wide, *bounds, alt), gap, loop.dt)
         self._accept(convergence.at_rising(loop, self._estimates, self._switching.periods, self._since(),
