@@ -24,11 +24,12 @@ of ``|F|/K0``. Four ways to be done:
   the cycle does.
 * **on the model's curve** (the same, from two estimates, when neither
   rule above passes): the latest within ``MODEL_GATE_DEG`` of the target,
-  the one before on the first-order model's curve through the latest
-  (methods.md §6) within ``MODEL_TOL`` of ``gain_tol``; the point at the
-  target on the line through the two. A first-order process with dead time
-  has its estimates exact from the second (the model is the process): it
-  need not wait for a third.
+  the one before on the curve of the model through the latest (the one
+  the estimates shed their transient through: first order, methods.md §6,
+  or two lags, transient.py) within ``MODEL_TOL`` of ``gain_tol``; the
+  point at the target on the line through the two. A first-order process
+  with dead time has its estimates exact from the second (the model is the
+  process): it need not wait for a third.
 * **averaged** (measurement noise that makes single estimates scatter more
   than ``gain_tol``; the settled rule is then not used): the mean of at least ``NOISY_MIN`` estimates whose
   standard error is within ``noise_tol`` (relative |F|) and ``static_tol``
@@ -83,8 +84,8 @@ LINE_SPACING = 0.002
 
 # The model rule (two estimates): the latest lags the target by at most this much (degrees)...
 MODEL_GATE_DEG = 2.0
-# ...and the one before lies on the first-order model's curve through the latest within this share of
-# gain_tol. The model's curve is the process's only on a first-order process with dead time; elsewhere its
+# ...and the one before lies on the model's curve through the latest within this share of gain_tol. The
+# first-order model's curve is the process's only on a first-order process with dead time; elsewhere its
 # slope differs, and a third of gain_tol let estimates with 0.3 % of transient left pass (1/(s+1)^6 of the
 # batch: point error 0.14 → 0.35 %); a fifth passed only where the estimates had shed it (batch worst 0.22 %).
 MODEL_TOL = 0.2

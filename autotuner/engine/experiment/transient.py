@@ -45,7 +45,8 @@ from autotuner.engine.experiment.record import Samples
 ALT_RATIO = 0.5
 
 
-def two_lags(x: float, gain: float, omega: float, lag: float, ratio: float) -> tuple[float, float, float, float] | None:
+def two_lags(x: float, gain: float, omega: float, lag: float,
+             ratio: float) -> tuple[float, float, float, float] | None:
     """(K0, T1, T2, L) of ``K0·e^{−Ls}/((T1·s + 1)(T2·s + 1))`` with ``T2 = ratio·T1`` through the point ``gain``
     (|F|, PV per MV unit), ``lag`` (radians) at ``omega`` (rad/s) with ``|F|/K0 = x``: K0 in PV per MV unit, the
     rest in s; None where no such model has ``L ≥ 0`` (or ``x`` is not in (0, 1))."""
