@@ -16,11 +16,13 @@ from dataclasses import replace
 from autotuner.engine.experiment import endings
 from autotuner.engine.experiment.config import RelayConfig
 from autotuner.engine.experiment.endings import Ended
-from autotuner.engine.experiment.estimates import GAP, STALL, Estimates, drift, longest_gap, pairs, period_point
+from autotuner.engine.experiment.estimates import (GAP, STALL, Estimates, alt_point, drift, longest_gap, pairs,
+                                                   period_point)
 from autotuner.engine.experiment.load_fit import LoadFit
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.stopping import Tolerances, Verdict, judge
 from autotuner.engine.experiment.switching import Switching
+from autotuner.engine.experiment.transient import ALT_RATIO
 
 # Minimum number of whole periods before convergence is judged: one for the
 # start-up transient and the first filter correction, one per estimate.
@@ -81,7 +83,13 @@ def at_rising(loop: Loop, estimates: Estimates, periods: int, since: float, targ
     # With noise, all estimates since the last disturbance may be averaged but the first
     # (the period right after the filter's first correction).
     longest = len(usable) - 1 if scattered else 2 + (periods - MIN_PERIODS) // 2
-    return judge(pairs(usable), target_deg, tolerances(loop.config), longest, scattered, x_std)
+    tol = tolerances(loop.config)
+    verdict = judge(pairs(usable), target_deg, tol, longest, scattered, x_std)
+    if verdict is None and not scattered and x_std is None:
+        # Quiet: the estimates through the second model may have shed their transient where the first-order
+        # model's have not (a process of higher order); each set is judged with its own model.
+        verdict = judge(pairs(usable, alt=True), target_deg, tol, longest, False, None, ALT_RATIO)
+    return verdict
 
 
 def at_falling(loop: Loop, switching: Switching, estimates: Estimates, since: float,
@@ -108,8 +116,13 @@ def at_falling(loop: Loop, switching: Switching, estimates: Estimates, since: fl
     if longest_gap(raw.t, crossings[-2], raw.t[-1]) > GAP * loop.dt:
         return None
     detrended = raw.y - drift(raw.t, raw.y, falls[-3:])
-    candidates = [*pairs(usable), period_point(loop, raw, detrended, falls[-3:], None)]
     longest = 2 + (periods - MIN_PERIODS) // 2
     c = loop.config
     tol = replace(tolerances(c), gain_tol=c.gain_tol * HALF_TOL, static_tol=c.static_tol * HALF_TOL)
-    return judge(candidates, target_deg, tol, longest, False)
+    half = period_point(loop, raw, detrended, falls[-3:], None)
+    verdict = judge([*pairs(usable), half], target_deg, tol, longest, False)
+    if verdict is None:
+        # (As at a rising switch: the estimates through the second model, judged with it.)
+        alt = alt_point(loop, raw, detrended, falls[-3:], half)
+        verdict = judge([*pairs(usable, alt=True), alt], target_deg, tol, longest, False, None, ALT_RATIO)
+    return verdict

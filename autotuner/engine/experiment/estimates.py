@@ -12,6 +12,7 @@ stopping rule, with those before it.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -45,6 +46,8 @@ class Estimate:
         unstable-process tests read its sign, which one period of the start-up transient can invert on a
         stable lag-dominant process.
     before, start, end: the crossing times that bound the two periods, s.
+    alt: the point and |F|/K0 with the transient's share read off the second model (transient.ALT_RATIO), on a
+        quiet, noise-free run; else None.
     """
 
     point: Point
@@ -53,6 +56,7 @@ class Estimate:
     before: float
     start: float
     end: float
+    alt: tuple[Point, float] | None = None
 
 
 @dataclass
@@ -99,9 +103,10 @@ class Estimates:
         return sum(1 for e in self.items if e.start < before)
 
 
-def pairs(estimates: list[Estimate]) -> list[tuple[Point, float]]:
-    """(point, x) of each of ``estimates``: what the stopping rule judges."""
-    return [(e.point, e.x) for e in estimates]
+def pairs(estimates: list[Estimate], alt: bool = False) -> list[tuple[Point, float]]:
+    """(point, x) of each of ``estimates``: what the stopping rule judges; the second model's where ``alt`` (and
+    an estimate has it)."""
+    return [e.alt if alt and e.alt is not None else (e.point, e.x) for e in estimates]
 
 
 def response(loop: Loop, samples: Samples, ta: float, tb: float, omega: float, hann: bool) -> complex:
@@ -165,12 +170,7 @@ def period_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[f
     measured = response(loop, replace(raw, y=detrended), ta, tb, omega, hann=False)
     if fitted_x is not None:
         return Point(omega, measured), fitted_x
-
-    def measure(out: np.ndarray) -> complex:
-        """The estimate made from the PV deviation ``out`` at the samples as from the measured PV."""
-        shifted = loop.sign * (out - drift(raw.t, out, bounds))
-        return response(loop, replace(raw, y=shifted), ta, tb, omega, hann=False)
-
+    measure = _measure(loop, raw, bounds)
     start = bounds[0] if noisy else ta
     value = measured
     x = _static_x(loop, raw, start, tb, omega, value)
@@ -180,6 +180,40 @@ def period_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[f
         value = measured - transient.bias(loop, raw.t, measure, bounds, value, x)
         x = _static_x(loop, raw, start, tb, omega, value)
     return Point(omega, value), x
+
+
+def alt_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[float],
+              first: tuple[Point, float]) -> tuple[Point, float]:
+    """The quiet, noise-free estimate over the last whole period of ``bounds`` (crossing times, s) with the
+    transient's share read off the second model (two lags, transient.ALT_RATIO) instead of the first-order one,
+    through the first-order estimate ``first`` (point, |F|/K0: :func:`period_point` of the same ``loop``,
+    ``raw`` samples and ``detrended`` PV).
+
+    Its |F|/K0 is the first's at its |F|: the static ratio is a ratio of means times |F|, and its refinement
+    (settled_x) reads the slow lag's memory alike under either model; the root it finds is most of an
+    analysis's cost.
+    """
+    ta, tb = bounds[-2], bounds[-1]
+    point, x = first
+    measured = response(loop, replace(raw, y=detrended), ta, tb, point.omega, hann=False)
+    measure = _measure(loop, raw, bounds)
+    # One correction: the model goes through the first-order estimate, which has shed most of the transient
+    # already (a second moved the batch's points by at most 0.003 % and stopped no run sooner).
+    value = measured - transient.bias(loop, raw.t, measure, bounds, point.value, x, transient.ALT_RATIO)
+    return Point(point.omega, value), x * abs(value) / point.gain
+
+
+def _measure(loop: Loop, raw: Samples, bounds: list[float]) -> Callable[[np.ndarray], complex]:
+    """The estimate over the last period of ``bounds`` (crossing times, s) made from a PV deviation at the
+    ``raw`` samples' times as from the measured PV of the ``loop`` (the drift across ``bounds`` removed)."""
+    ta, tb = bounds[-2], bounds[-1]
+    omega = 2.0 * math.pi / (tb - ta)
+
+    def measure(out: np.ndarray) -> complex:
+        shifted = loop.sign * (out - drift(raw.t, out, bounds))
+        return response(loop, replace(raw, y=shifted), ta, tb, omega, hann=False)
+
+    return measure
 
 
 def _static_x(loop: Loop, raw: Samples, start: float, end: float, omega: float, value: complex) -> float:

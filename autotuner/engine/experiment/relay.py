@@ -41,8 +41,8 @@ from autotuner.engine.experiment import convergence, endings
 from autotuner.engine.experiment.adaptation import Adaptation
 from autotuner.engine.experiment.config import RelayConfig
 from autotuner.engine.experiment.endings import Ended
-from autotuner.engine.experiment.estimates import (Estimate, Estimates, drift, lag, longest_gap, mean_x, period_point,
-                                                   response, wide_x)
+from autotuner.engine.experiment.estimates import (Estimate, Estimates, alt_point, drift, lag, longest_gap, mean_x,
+                                                   period_point, response, wide_x)
 from autotuner.engine.experiment.identification import Identification, identification
 from autotuner.engine.experiment.levels import Levels, listed
 from autotuner.engine.experiment.load_following import LoadFollowing
@@ -311,11 +311,13 @@ class RelayExperiment:
         """Estimate the point over the last period and stop if it has converged."""
         loop, crossings, fit = self._loop, self._switching.crossings, self._load.fit
         bounds = crossings[-3:]
-        point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x,
-                                convergence.noisy(loop, self._estimates))
+        noisy = convergence.noisy(loop, self._estimates)
+        point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x, noisy)
         wide = wide_x(loop, detrended, bounds) if fit is None else x
+        quiet = fit is None and not noisy
+        alt = alt_point(loop, raw, detrended.y, bounds, (point, x)) if quiet else None
         gap = longest_gap(raw.t, bounds[0], bounds[-1])
-        self._estimates.add(Estimate(point, x, wide, *bounds), gap, loop.dt)
+        self._estimates.add(Estimate(point, x, wide, *bounds, alt), gap, loop.dt)
         self._accept(convergence.at_rising(loop, self._estimates, self._switching.periods, self._since(),
                                            self._adaptation.target_deg, None if fit is None else fit.x_std))
 
