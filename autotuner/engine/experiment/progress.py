@@ -144,7 +144,7 @@ class Progress:
         dt = loop.mean_interval()
         time = loop.record.time
         rising = len(switching.rising)
-        if rising < 2 or phase_error_deg is None:
+        if rising < 3 or phase_error_deg is None:
             noise_left = max(c.noise_samples - len(loop.record), 0) * (dt or 0.0)
             prior = self.prior_period(dt, relaying)
             ran = time(-1) - time(switching.start) if relaying else 0.0
@@ -172,8 +172,12 @@ class Progress:
             guess = c.time_limit / LIMIT_SHARE
         else:
             guess = SAMPLES_PER_PERIOD * (dt if dt else 1.0)
-        if relaying:
-            guess = max(guess, 2.0 * (time(-1) - time(self.switching.start)))
+        switching = self.switching
+        if len(switching.rising) >= 2:
+            return max(guess, switching.period())
+        if relaying and not switching.rising:
+            # (The first rising switch comes after half a period at most.)
+            guess = max(guess, 2.0 * (time(-1) - time(switching.start)))
         return guess
 
     def fraction(self, left: float) -> float:
