@@ -178,6 +178,9 @@ class RelayExperiment:
             ite, progress = final_ite(self.code), 1.0
         else:
             longer = self._load.fit is not None or convergence.noisy(self._loop, self._estimates)
+            if not self._estimates.items and self.stage is Stage.RELAY:
+                # (Before an estimate, the filtered error's swing stands for the PV's.)
+                longer = self._loop.noise > convergence.NOISY * self._switching.peak_error
             lags = self._adaptation.lags
             error = abs(math.degrees(lags[-1]) - self._adaptation.target_deg) if lags else None
             ite = self._progress.seconds_left(self.stage is Stage.RELAY, longer, error)
