@@ -57,11 +57,13 @@ class IteRun:
 @dataclass(frozen=True)
 class Honesty:
     """One run judged: ``ratios`` ite/true over the judged statuses, and the largest rise of ite between
-    statuses as a share of the earlier ite (``rise``, 0 when it never rose)."""
+    statuses as a share of the earlier ite (``rise``, 0 when it never rose; ``judged_rise``: between the
+    judged statuses only)."""
 
     id: str
     ratios: np.ndarray
     rise: float
+    judged_rise: float
 
 
 def run_one(expr: str, ident: str, noise: float = 0.0, every: int = 1) -> IteRun:
@@ -98,17 +100,24 @@ def judge(run: IteRun) -> Honesty:
     true = run.end - run.t
     margin = MARGIN_PERIODS * run.period
     judged = (run.t >= run.start + margin) & (true >= margin)
-    rises = np.diff(run.ite) / run.ite[:-1] if len(run.ite) > 1 else np.zeros(0)
-    return Honesty(run.id, run.ite[judged] / true[judged], float(max(rises.max(initial=0.0), 0.0)))
+    return Honesty(run.id, run.ite[judged] / true[judged], largest_rise(run.ite), largest_rise(run.ite[judged]))
+
+
+def largest_rise(ite: np.ndarray) -> float:
+    """The largest rise between consecutive values of ``ite`` (s) as a share of the earlier one (0: none)."""
+    rises = np.diff(ite) / ite[:-1] if len(ite) > 1 else np.zeros(0)
+    return float(max(rises.max(initial=0.0), 0.0))
 
 
 @dataclass(frozen=True)
 class Summary:
     """The batch judged: the share of statuses within ``HONEST``, of runs whose ite never rose beyond
-    ``RISE_TOL``, the median and p90 ratio ite/true (p10 too: ite low is the worse lie) and the runs."""
+    ``RISE_TOL`` (over all statuses, and over the judged ones), the median and p90 ratio ite/true (p10 too:
+    ite low is the worse lie) and the runs."""
 
     within: float
     never_rising: float
+    never_rising_judged: float
     median: float
     p10: float
     p90: float
@@ -121,6 +130,7 @@ def summarise(judged: list[Honesty]) -> Summary:
     ratios = np.concatenate([h.ratios for h in judged])
     return Summary(within=float(np.mean(np.abs(ratios - 1.0) <= HONEST)),
                    never_rising=float(np.mean([h.rise <= RISE_TOL for h in judged])),
+                   never_rising_judged=float(np.mean([h.judged_rise <= RISE_TOL for h in judged])),
                    median=float(np.median(ratios)), p10=float(np.percentile(ratios, 10)),
                    p90=float(np.percentile(ratios, 90)), runs=len(judged), statuses=len(ratios))
 
@@ -151,10 +161,10 @@ def main() -> None:
     runs = run_batch(a.noise, a.every, a.workers, a.sample)
     judged = [judge(r) for r in runs]
     s = summarise(judged)
-    print("| runs | statuses | within ±30 % | never rising (≤ 2 %) | ite/true p10 | median | p90 |")
+    print("| runs | statuses | within ±30 % | never rising (≤ 2 %): all / judged | ite/true p10 | median | p90 |")
     print("|---|---|---|---|---|---|---|")
-    print(f"| {s.runs} | {s.statuses} | {s.within:.0%} | {s.never_rising:.0%} | {s.p10:.2f} | {s.median:.2f} "
-          f"| {s.p90:.2f} |")
+    print(f"| {s.runs} | {s.statuses} | {s.within:.0%} | {s.never_rising:.0%} / {s.never_rising_judged:.0%} "
+          f"| {s.p10:.2f} | {s.median:.2f} | {s.p90:.2f} |")
     periods = [r.periods for r in runs if math.isfinite(r.periods)]
     print(f"\nperiods: median {statistics.median(periods):.2f}, max {max(periods):.2f}; "
           f"{sum(not r.ok for r in runs)} runs not ok")
