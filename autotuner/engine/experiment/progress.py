@@ -33,6 +33,8 @@ CONVERGENCE = {False: 0.3, True: 0.6}
 AFTER_CONVERGED = 1.0
 # Whole periods the stopping rule needs at least (quiet: MIN_PERIODS; noisy: its averages, on the batch).
 MIN_DONE = {False: MIN_PERIODS, True: MIN_PERIODS + 2}
+# While running, at least this share of the (latest) period is left.
+LAST_SHARE = 1.0
 # A rise of the raw estimate is held off as long as the countdown stays within this share of it.
 HOLD = 0.3
 
@@ -157,6 +159,9 @@ class Progress:
                 growth = max(math.log(period / (time(switching.rising[-2]) - time(switching.rising[-3]))), 0.0)
             left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, longer) * period * math.exp(growth)
             left -= time(-1) - time(switching.rising[-1])
+            # The stop comes at a switch, and whether the next one stops the run is not known before it: at
+            # least a share of the period stays left until it has.
+            left = max(left, LAST_SHARE * period)
         left = min(left, period_cap(c.max_periods, switching, time) if rising >= 2 else left)
         if math.isfinite(c.time_limit):
             left = min(left, max(c.time_limit - loop.elapsed(), 0.0))
