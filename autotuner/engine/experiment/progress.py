@@ -1,10 +1,12 @@
 """Progress: the experiment's stage, the seconds it still needs (``ite``) and its progress report.
 
-The time left is the noise stage's rest plus the periods the stopping rule
-still needs, at the oscillation period as well as it is known: measured once
-a whole period (or half of one) has passed; before, the caller's
-``expected_period``, else a share of the time limit, else
-``SAMPLES_PER_PERIOD`` samples.
+The time left: before two whole periods, a typical run's length at the prior
+period (the caller's ``expected_period``, else a share of the time limit, else
+``SAMPLES_PER_PERIOD`` samples) less the time run; then the periods the
+stopping rule still needs, from the phase error's convergence, at the latest
+period. The displayed value counts down like a clock within ``HOLD`` of that
+estimate (docs/experiment.md, "ite and progress"). ``ite`` is a report: no
+decision of the experiment reads it.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ CONVERGENCE = {False: 0.3, True: 0.6}
 AFTER_CONVERGED = 1.0
 # Whole periods the stopping rule needs at least (quiet: MIN_PERIODS; noisy: its averages, on the batch).
 MIN_DONE = {False: MIN_PERIODS, True: MIN_PERIODS + 2}
-# While running, at least this share of the (latest) period is left.
+# From two whole periods on, at least this share of the latest period is left while the run goes on.
 LAST_SHARE = 1.0
 # A rise of the raw estimate is held off as long as the countdown stays within this share of it.
 HOLD = 0.3
@@ -88,16 +90,20 @@ class Progress:
             return switching.period()
         if len(switching.switches) >= 2:
             return 2.0 * (time(switching.switches[-1]) - time(switching.switches[-2]))
-        c = self.loop.config
-        if c.expected_period is not None:
-            guess = c.expected_period
-        elif math.isfinite(c.time_limit):
-            guess = c.time_limit / LIMIT_SHARE
-        else:
-            guess = SAMPLES_PER_PERIOD * (dt if dt else 1.0)
+        guess = self.configured_period(dt)
         if relaying:
             guess = max(guess, 2.0 * (time(-1) - time(switching.start)))
         return guess
+
+    def configured_period(self, dt: float | None) -> float:
+        """The period the configuration implies (s): the caller's ``expected_period``, else a share of the time
+        limit, else ``SAMPLES_PER_PERIOD`` samples of the mean sample interval ``dt`` (s; None before two)."""
+        c = self.loop.config
+        if c.expected_period is not None:
+            return c.expected_period
+        if math.isfinite(c.time_limit):
+            return c.time_limit / LIMIT_SHARE
+        return SAMPLES_PER_PERIOD * (dt if dt else 1.0)
 
     def stall_tolerance(self, relaying: bool) -> float:
         """The longest time without a sample (s) that leaves the estimates usable (``relaying``: the relay has
@@ -132,14 +138,13 @@ class Progress:
         """The seconds left as the record says now (``relaying``: the relay has started; ``longer``: a disturbed or
         noisy run; ``phase_error_deg``: the latest whole period's lag off the target, degrees, None before one).
 
-        Before a whole period: the noise stage's rest and ``TYPICAL_PERIODS``
-        of the prior period (the caller's ``expected_period``, else a share of
-        the time limit, else ``SAMPLES_PER_PERIOD`` samples, and at least twice
-        the time since the relay started) less the time the relay has run: the
-        first half periods of a lag-dominant process are 5–10 times shorter
-        than its period and say nothing about it. From then on the periods
-        left (:func:`periods_left`) of the latest whole period, less the time
-        since it ended.
+        Before two whole periods: the noise stage's rest and ``TYPICAL_PERIODS``
+        of the prior period (:meth:`prior_period`) less the time the relay has
+        run: the first half periods of a lag-dominant process are 5–10 times
+        shorter than its period, and the first whole period's lag carries the
+        start's transient. From then on the periods left (:func:`periods_left`)
+        of the latest whole period (times its growth), less the time since it
+        ended, and at least ``LAST_SHARE`` of it.
         """
         loop, switching = self.loop, self.switching
         c = loop.config
@@ -153,11 +158,10 @@ class Progress:
             typical = TYPICAL_PERIODS[longer]
             left = noise_left + max(typical * prior - ran, 0.5 * prior)
         else:
-            period, growth = switching.period(), 0.0
-            if rising >= 3:
-                # A period still growing (a lag-dominant process's cycle slowing down to the target) grows on.
-                growth = max(math.log(period / (time(switching.rising[-2]) - time(switching.rising[-3]))), 0.0)
-            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, longer) * period * math.exp(growth)
+            period = switching.period()
+            # A period still growing (a lag-dominant process's cycle slowing down to the target) grows on.
+            growth = max(period / (time(switching.rising[-2]) - time(switching.rising[-3])), 1.0)
+            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, longer) * period * growth
             left -= time(-1) - time(switching.rising[-1])
             # The stop comes at a switch, and whether the next one stops the run is not known before it: at
             # least a share of the period stays left until it has.
@@ -168,16 +172,11 @@ class Progress:
         return max(left, dt or 0.0, 1e-9)
 
     def prior_period(self, dt: float | None, relaying: bool) -> float:
-        """The period expected before one is measured (s), given the mean sample interval ``dt`` (s; None before
-        two samples); ``relaying``: the relay has started (the period is then at least twice its time so far)."""
-        c, time = self.loop.config, self.loop.record.time
-        if c.expected_period is not None:
-            guess = c.expected_period
-        elif math.isfinite(c.time_limit):
-            guess = c.time_limit / LIMIT_SHARE
-        else:
-            guess = SAMPLES_PER_PERIOD * (dt if dt else 1.0)
-        switching = self.switching
+        """The period expected before the estimates measure it (s), given the mean sample interval ``dt`` (s; None
+        before two samples); ``relaying``: the relay has started. The configured one (:meth:`configured_period`),
+        at least twice the relay's time until its first rising switch, at least the latest whole period after."""
+        time, switching = self.loop.record.time, self.switching
+        guess = self.configured_period(dt)
         if len(switching.rising) >= 2:
             return max(guess, switching.period())
         if relaying and not switching.rising:
