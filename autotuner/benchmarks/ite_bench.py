@@ -11,23 +11,25 @@ process's own period, not the experiment's): before, nothing has been
 measured; after, the stop depends on one switch's estimate, which no count
 of periods can foresee.
 
-``python -m autotuner.benchmarks.ite_bench [--noise 0.01] [--every 7] [--workers N]`` prints the table.
+``python -m autotuner.benchmarks.ite_bench [--noise 0.01] [--every 7] [--workers N]`` prints the table;
+``--field`` a row per field scenario (field_bench.py) instead, ``--sample 13`` every 13th process only.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
-import os
 import statistics
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
-from autotuner.benchmarks.design_bench import default_batch, load_batch
+from autotuner.benchmarks.design_bench import default_batch, load_batch, pool_map
+from autotuner.benchmarks.field_bench import SCENARIOS, scenario_sim
 from autotuner.engine.experiment.relay import RelayConfig, Status
 from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.plant.process import Process
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.simulated_tuning import EXPERIMENT_SAMPLES_PER_PERIOD, phase_frequency, run_experiment
 
@@ -70,29 +72,51 @@ def run_one(expr: str, ident: str, noise: float = 0.0, every: int = 1) -> IteRun
     """Run the experiment on the process ``expr`` (named ``ident``) with noise ``noise`` × the clean run's PV
     amplitude, reading the status every ``every`` samples."""
     process = parse_process(expr)
+    period, ts, config = _setting(process)
+    if noise <= 0.0:
+        return statuses(PlantSim(process, ts), config, ident, period, every)
+    _, clean = run_experiment(PlantSim(process, ts), config, status_every=10**9)
+    std = noise * 0.5 * float(np.ptp(clean.pv[len(clean.pv) // 2:]))
+    return statuses(PlantSim(process, ts, noise_std=std, seed=1), config, ident, period, every)
+
+
+def field_one(expr: str, ident: str, every: int = 1) -> list[IteRun | None]:
+    """Every field scenario (field_bench.SCENARIOS) on the process ``expr`` (named ``ident``), statuses every
+    ``every`` samples; None where a run did not tune."""
+    process = parse_process(expr)
+    period, ts, config = _setting(process)
+    _, clean = run_experiment(PlantSim(process, ts), config, status_every=10**9)
+    scale = abs(complex(process.freqresp(2.0 * math.pi / period)))  # |F(jω135)|·amp
+    runs: list[IteRun | None] = []
+    for scenario in SCENARIOS:
+        sim = scenario_sim(process, ts, period, scenario, scale, float(clean.t[-1]))
+        run = statuses(sim, config, ident, period, every)
+        runs.append(run if run.ok and len(run.t) > 2 else None)
+    return runs
+
+
+def _setting(process: Process) -> tuple[float, float, RelayConfig]:
+    """The period at 135° (s), the sample time (s) and the experiment's settings of ``autotuner bench``."""
     w135 = phase_frequency(process, 135.0)
     assert w135 is not None
     period = 2.0 * math.pi / w135
-    ts = period / EXPERIMENT_SAMPLES_PER_PERIOD
-    config = RelayConfig(amp=1.0, time_limit=200 * period)
-    std = 0.0
-    if noise > 0.0:
-        _, clean = run_experiment(PlantSim(process, ts), config, status_every=10**9)
-        std = noise * 0.5 * float(np.ptp(clean.pv[len(clean.pv) // 2:]))
-    statuses: list[tuple[float, Status]] = []
-    sim = PlantSim(process, ts, noise_std=std, seed=1) if std else PlantSim(process, ts)
+    return period, period / EXPERIMENT_SAMPLES_PER_PERIOD, RelayConfig(amp=1.0, time_limit=200 * period)
 
-    def record(status: Status) -> None:
-        statuses.append((sim.t, status))
 
-    experiment, trace = run_experiment(sim, config, on_status=record, status_every=every)
-    # (The status is read after the sample at sim.t − ts; its time is that sample's.)
-    running = [(t - ts, s.ite) for t, s in statuses if s.code is None]
-    start = float(trace.t[config.noise_samples - 1])
-    ident_ = experiment.result
+def statuses(sim: PlantSim, config: RelayConfig, ident: str, period: float, every: int) -> IteRun:
+    """The experiment with ``config`` on ``sim`` (named ``ident``, its 135° period ``period``, s), its status read
+    every ``every`` samples."""
+    read: list[tuple[float, Status]] = []
+    start = sim.t
+    ts = sim.ts
+    experiment, trace = run_experiment(sim, config, on_status=lambda s: read.append((sim.t - ts, s)),
+                                       status_every=every)
+    # (The status is read after the sample at sim.t − ts: its time is that sample's.)
+    running = [(t, s.ite) for t, s in read if s.code is None]
+    result = experiment.result
     return IteRun(ident, np.array([t for t, _ in running]), np.array([i for _, i in running]),
-                  float(trace.t[-1]), start, period, ident_.periods if ident_ else math.nan,
-                  experiment.code is not None and experiment.code == 0)
+                  float(trace.t[-1]), start + (config.noise_samples - 1) * ts, period,
+                  result.periods if result else math.nan, experiment.code is not None and experiment.code == 0)
 
 
 def judge(run: IteRun) -> Honesty:
@@ -135,18 +159,31 @@ def summarise(judged: list[Honesty]) -> Summary:
                    p90=float(np.percentile(ratios, 90)), runs=len(judged), statuses=len(ratios))
 
 
-def _one(args: tuple[str, str, float, int]) -> IteRun:
-    expr, ident, noise, every = args
-    return run_one(expr, ident, noise, every)
-
-
 def run_batch(noise: float, every: int, workers: int | None, sample: int = 1) -> list[IteRun]:
     """Every ``sample``-th process of the batch with ``noise``, statuses every ``every`` samples, on ``workers``
     processes."""
-    rows = load_batch(default_batch())[::sample]
-    jobs = [(r["expr"], r["id"], noise, every) for r in rows]
-    with ProcessPoolExecutor(max_workers=workers or os.cpu_count()) as pool:
-        return list(pool.map(_one, jobs))
+    return pool_map(partial(_batch_one, noise=noise, every=every), load_batch(default_batch())[::sample], workers)
+
+
+def _batch_one(row: dict[str, str], noise: float, every: int) -> IteRun:
+    return run_one(row["expr"], row["id"], noise, every)
+
+
+def _field_one(row: dict[str, str], every: int) -> list[IteRun | None]:
+    return field_one(row["expr"], row["id"], every)
+
+
+def field_table(every: int, workers: int | None, sample: int) -> str:
+    """The field scenarios on every ``sample``-th process of the batch: a markdown row per scenario."""
+    rows = pool_map(partial(_field_one, every=every), load_batch(default_batch())[::sample], workers)
+    lines = ["| scenario | runs | within ±30 % | never rising (judged) | ite/true p10 | median | p90 |",
+             "|---|---|---|---|---|---|---|"]
+    for k, scenario in enumerate(SCENARIOS):
+        judged = [judge(r[k]) for r in rows if r[k] is not None]
+        s = summarise([h for h in judged if len(h.ratios)])
+        lines.append(f"| {scenario.name} | {s.runs} | {s.within:.0%} | {s.never_rising_judged:.0%} | {s.p10:.2f} "
+                     f"| {s.median:.2f} | {s.p90:.2f} |")
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -157,7 +194,11 @@ def main() -> None:
     parser.add_argument("--sample", type=int, default=1)
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--worst", type=int, default=0, help="also list this many least honest runs")
+    parser.add_argument("--field", action="store_true", help="the field scenarios instead (no --noise)")
     a = parser.parse_args()
+    if a.field:
+        print(field_table(a.every, a.workers, a.sample))
+        return
     runs = run_batch(a.noise, a.every, a.workers, a.sample)
     judged = [judge(r) for r in runs]
     s = summarise(judged)
