@@ -32,7 +32,7 @@ TYPICAL_PERIODS = {False: 4.0, True: 6.0}
 # The phase error's decay per period, and the periods after it is within the tolerance (quiet, longer):
 # calibrated on the batch, at the rising switches.
 CONVERGENCE = {False: 0.3, True: 0.6}
-AFTER_CONVERGED = 1.0
+AFTER_CONVERGED = {False: 0.5, True: 1.0}
 # Whole periods the stopping rule needs at least (quiet: MIN_PERIODS; noisy: its averages, on the batch).
 MIN_DONE = {False: MIN_PERIODS, True: MIN_PERIODS + 2}
 # From two whole periods on, at least this share of the latest period is left while the run goes on.
@@ -204,7 +204,7 @@ def periods_left(done: int, phase_error_deg: float, phase_tol_deg: float, longer
     """
     error = max(phase_error_deg, phase_tol_deg)
     converging = math.log(error / phase_tol_deg) / -math.log(CONVERGENCE[longer])
-    return max(MIN_DONE[longer] - done, AFTER_CONVERGED + converging, 0.5)
+    return max(MIN_DONE[longer] - done, AFTER_CONVERGED[longer] + converging, 0.5)
 
 
 def period_cap(max_periods: int, switching: Switching, time: Callable[[int], float]) -> float:
