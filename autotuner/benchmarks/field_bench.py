@@ -37,6 +37,7 @@ from autotuner.engine.design.process_data import exact_point
 from autotuner.engine.design.robustness import Plant, log_grid, migo
 from autotuner.engine.experiment.relay import RelayConfig
 from autotuner.engine.plant.expression import parse_process
+from autotuner.engine.plant.process import Process
 from autotuner.engine.plant.simulation import PlantSim
 from autotuner.engine.result import TuneResult
 from autotuner.engine.simulated_tuning import EXPERIMENT_SAMPLES_PER_PERIOD, ramp_loads, result_of, run_experiment
@@ -104,21 +105,32 @@ class FieldRow:
     peers: dict[str, float] = field(default_factory=dict)
 
 
-def _run(process, ts: float, period: float, scenario: Scenario, scale: float, clean_end: float,
-         migo_ki: float, w: np.ndarray) -> tuple[Run, TuneResult]:
-    # Plant time 0 is TUNE, except with a settling start: the load step hits at 0 and TUNE comes
-    # half a period later, the PV still moving.
+def scenario_sim(process: Process, ts: float, period: float, scenario: Scenario, scale: float,
+                 clean_end: float) -> PlantSim:
+    """The simulated plant of ``scenario`` at TUNE: ``process`` sampled every ``ts`` s, its 135° period
+    ``period`` (s), noise and quantum as shares of ``scale`` (PV units), a "late" load a period before
+    ``clean_end`` (s, the clean run's end).
+
+    Plant time 0 is TUNE, except with a settling start: the load step hits at 0
+    and TUNE comes half a period later, the PV still moving (the plant is
+    advanced to it here).
+    """
     settle = 0.5 * period if scenario.settling else 0.0
     loads = [(0.0, scenario.settling)] if scenario.settling else []
     for when, size in scenario.loads:
         loads.append((settle + (clean_end - period if when == "late" else float(when) * period), size))
-    limit = TIME_LIMIT_PERIODS * period
-    loads += ramp_loads(scenario.drift / period, ts, limit)
+    loads += ramp_loads(scenario.drift / period, ts, TIME_LIMIT_PERIODS * period)
     sim = PlantSim(process, ts, noise_std=scenario.noise * scale, seed=1, quantum=scenario.quantum * scale,
                    loads=loads)
     for _ in range(int(round(settle / ts))):
         sim.advance(sim.mv0)
-    config = RelayConfig(amp=1.0, time_limit=limit)
+    return sim
+
+
+def _run(process, ts: float, period: float, scenario: Scenario, scale: float, clean_end: float,
+         migo_ki: float, w: np.ndarray) -> tuple[Run, TuneResult]:
+    sim = scenario_sim(process, ts, period, scenario, scale, clean_end)
+    config = RelayConfig(amp=1.0, time_limit=TIME_LIMIT_PERIODS * period)
     times = cpu_times()
     experiment, trace = run_experiment(sim, config, times=times)
     result = result_of(experiment, trace, "PI", 1.4)

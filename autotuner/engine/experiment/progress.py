@@ -1,15 +1,18 @@
 """Progress: the experiment's stage, the seconds it still needs (``ite``) and its progress report.
 
-The time left is the noise stage's rest plus the periods the stopping rule
-still needs, at the oscillation period as well as it is known: measured once
-a whole period (or half of one) has passed; before, the caller's
-``expected_period``, else a share of the time limit, else
-``SAMPLES_PER_PERIOD`` samples.
+The time left: before two whole periods, a typical run's length at the prior
+period (the caller's ``expected_period``, else a share of the time limit, else
+``SAMPLES_PER_PERIOD`` samples) less the time run; then the periods the
+stopping rule still needs, from the phase error's convergence, at the latest
+period. The displayed value counts down like a clock within ``HOLD`` of that
+estimate (docs/experiment.md, "ite and progress"). ``ite`` is a report: no
+decision of the experiment reads it.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
@@ -23,6 +26,19 @@ from autotuner.engine.outcome import Code
 LIMIT_SHARE = 200.0
 # ... and without a time limit, from this many samples.
 SAMPLES_PER_PERIOD = 100.0
+# Before a whole period, the periods from the relay's start to the end (quiet, longer): the batch's medians,
+# 3.96 noise-free and 6.2 at 1 % noise (docs/experiment.md, "An honest ite").
+TYPICAL_PERIODS = {False: 4.0, True: 6.0}
+# The phase error's decay per period, and the periods after it is within the tolerance (quiet, longer):
+# calibrated on the batch, at the rising switches.
+CONVERGENCE = {False: 0.3, True: 0.6}
+AFTER_CONVERGED = {False: 0.5, True: 1.0}
+# Whole periods the stopping rule needs at least (quiet: MIN_PERIODS; noisy: its averages, on the batch).
+MIN_DONE = {False: MIN_PERIODS, True: MIN_PERIODS + 2}
+# From two whole periods on, at least this share of the latest period is left while the run goes on.
+LAST_SHARE = 1.0
+# A rise of the raw estimate is held off as long as the countdown stays within this share of it.
+HOLD = 0.3
 
 
 class Stage(str, Enum):
@@ -60,6 +76,7 @@ class Progress:
         self.loop = loop
         self.switching = switching
         self._progress = 0.0
+        self._shown: tuple[float, float] | None = None  # (elapsed s, ite s) of the latest status
 
     def period_guess(self, dt: float | None, relaying: bool) -> float:
         """The oscillation period as well as it is known now (s), given the mean sample interval ``dt`` (s;
@@ -73,16 +90,20 @@ class Progress:
             return switching.period()
         if len(switching.switches) >= 2:
             return 2.0 * (time(switching.switches[-1]) - time(switching.switches[-2]))
-        c = self.loop.config
-        if c.expected_period is not None:
-            guess = c.expected_period
-        elif math.isfinite(c.time_limit):
-            guess = c.time_limit / LIMIT_SHARE
-        else:
-            guess = SAMPLES_PER_PERIOD * (dt if dt else 1.0)
+        guess = self.configured_period(dt)
         if relaying:
             guess = max(guess, 2.0 * (time(-1) - time(switching.start)))
         return guess
+
+    def configured_period(self, dt: float | None) -> float:
+        """The period the configuration implies (s): the caller's ``expected_period``, else a share of the time
+        limit, else ``SAMPLES_PER_PERIOD`` samples of the mean sample interval ``dt`` (s; None before two)."""
+        c = self.loop.config
+        if c.expected_period is not None:
+            return c.expected_period
+        if math.isfinite(c.time_limit):
+            return c.time_limit / LIMIT_SHARE
+        return SAMPLES_PER_PERIOD * (dt if dt else 1.0)
 
     def stall_tolerance(self, relaying: bool) -> float:
         """The longest time without a sample (s) that leaves the estimates usable (``relaying``: the relay has
@@ -90,27 +111,78 @@ class Progress:
         dt = self.loop.mean_interval()
         return max(STALL * self.period_guess(dt, relaying), GAP * (dt or 0.0))
 
-    def seconds_left(self, relaying: bool, longer: bool) -> float:
-        """Estimated seconds to the end (``relaying``: the relay has started; ``longer``: a disturbed or noisy
-        run, which averages at least two more periods)."""
-        loop = self.loop
+    def seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None) -> float:
+        """Estimated seconds to the end, never rising by more than its uncertainty (``relaying``: the relay has
+        started; ``longer``: a disturbed or noisy run; ``phase_error_deg``: how far the latest whole period's
+        process lag is from the target, degrees, None before one).
+
+        The raw estimate (:meth:`raw_seconds_left`) counts down between
+        statuses as a clock would; it is followed where it falls below that,
+        and where it rises the countdown is held instead as long as it stays
+        within ``HOLD`` of it (a countdown that goes up is what operators
+        complain about; one that lies low is worse).
+        """
+        raw = self.raw_seconds_left(relaying, longer, phase_error_deg)
+        now = self.loop.elapsed()
+        if self._shown is None:
+            shown = raw
+        else:
+            countdown = self._shown[1] - (now - self._shown[0])
+            shown = min(max(countdown, raw / (1.0 + HOLD)), raw * (1.0 + HOLD))
+        floor = self.loop.mean_interval() or raw
+        shown = max(shown, min(floor, raw))
+        self._shown = (now, shown)
+        return shown
+
+    def raw_seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None) -> float:
+        """The seconds left as the record says now (``relaying``: the relay has started; ``longer``: a disturbed or
+        noisy run; ``phase_error_deg``: the latest whole period's lag off the target, degrees, None before one).
+
+        Before two whole periods: the noise stage's rest and ``TYPICAL_PERIODS``
+        of the prior period (:meth:`prior_period`) less the time the relay has
+        run: the first half periods of a lag-dominant process are 5–10 times
+        shorter than its period, and the first whole period's lag carries the
+        start's transient. From then on the periods left (:func:`periods_left`)
+        of the latest whole period (times its growth), less the time since it
+        ended, and at least ``LAST_SHARE`` of it.
+        """
+        loop, switching = self.loop, self.switching
         c = loop.config
-        elapsed = loop.elapsed()
         dt = loop.mean_interval()
-        noise_left = max(c.noise_samples - len(loop.record), 0) * (dt or 0.0)
-        period = self.period_guess(dt, relaying)
-        rising = len(self.switching.rising)
-        done = max(rising - 1, 0)
-        needed = MIN_PERIODS + 1.0
-        if rising == 0:
-            needed += 0.5  # the half period before the first rising switch
-        if longer:
-            needed = max(needed, done + 2.0)
-        needed = min(needed, float(c.max_periods))
-        left = noise_left + max(needed - done, 0.5) * period
+        time = loop.record.time
+        rising = len(switching.rising)
+        if rising < 3 or phase_error_deg is None:
+            noise_left = max(c.noise_samples - len(loop.record), 0) * (dt or 0.0)
+            prior = self.prior_period(dt, relaying)
+            ran = time(-1) - time(switching.start) if relaying else 0.0
+            typical = TYPICAL_PERIODS[longer]
+            left = noise_left + max(typical * prior - ran, 0.5 * prior)
+        else:
+            period = switching.period()
+            # A period still growing (a lag-dominant process's cycle slowing down to the target) grows on.
+            growth = max(period / (time(switching.rising[-2]) - time(switching.rising[-3])), 1.0)
+            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, longer) * period * growth
+            left -= time(-1) - time(switching.rising[-1])
+            # The stop comes at a switch, and whether the next one stops the run is not known before it: at
+            # least a share of the period stays left until it has.
+            left = max(left, LAST_SHARE * period)
+        left = min(left, period_cap(c.max_periods, switching, time) if rising >= 2 else left)
         if math.isfinite(c.time_limit):
-            left = min(left, max(c.time_limit - elapsed, 0.0))
-        return max(left, dt or period / SAMPLES_PER_PERIOD)
+            left = min(left, max(c.time_limit - loop.elapsed(), 0.0))
+        return max(left, dt or 0.0, 1e-9)
+
+    def prior_period(self, dt: float | None, relaying: bool) -> float:
+        """The period expected before the estimates measure it (s), given the mean sample interval ``dt`` (s; None
+        before two samples); ``relaying``: the relay has started. The configured one (:meth:`configured_period`),
+        at least twice the relay's time until its first rising switch, at least the latest whole period after."""
+        time, switching = self.loop.record.time, self.switching
+        guess = self.configured_period(dt)
+        if len(switching.rising) >= 2:
+            return max(guess, switching.period())
+        if relaying and not switching.rising:
+            # (The first rising switch comes after half a period at most.)
+            guess = max(guess, 2.0 * (time(-1) - time(switching.start)))
+        return guess
 
     def fraction(self, left: float) -> float:
         """Progress (0–1) with ``left`` seconds to go."""
@@ -119,6 +191,27 @@ class Progress:
         # turns out longer than the estimate before it.
         self._progress = max(self._progress, elapsed / (elapsed + left))
         return self._progress
+
+
+def periods_left(done: int, phase_error_deg: float, phase_tol_deg: float, longer: bool) -> float:
+    """The periods the stopping rule still needs after ``done`` whole periods (from the first rising switch),
+    the latest one's lag ``phase_error_deg`` off the target (degrees) with the tolerance ``phase_tol_deg``
+    (degrees); ``longer``: a noisy or disturbed run.
+
+    The stop waits for the cycle's phase, which converges geometrically
+    (``CONVERGENCE``), and for ``MIN_DONE`` periods; calibrated on the batch
+    (docs/experiment.md, "An honest ite").
+    """
+    error = max(phase_error_deg, phase_tol_deg)
+    converging = math.log(error / phase_tol_deg) / -math.log(CONVERGENCE[longer])
+    return max(MIN_DONE[longer] - done, AFTER_CONVERGED[longer] + converging, 0.5)
+
+
+def period_cap(max_periods: int, switching: Switching, time: Callable[[int], float]) -> float:
+    """The seconds left until ``max_periods`` whole periods (``switching``: the relay's switches; ``time``: the
+    record's sample times, s), at the latest period: the experiment ends there whatever the estimates say."""
+    done = len(switching.rising) - 1
+    return (max_periods - done) * switching.period() - (time(-1) - time(switching.rising[-1])) + 0.5 * switching.period()
 
 
 def final_ite(code: Code | None) -> float:

@@ -178,7 +178,12 @@ class RelayExperiment:
             ite, progress = final_ite(self.code), 1.0
         else:
             longer = self._load.fit is not None or convergence.noisy(self._loop, self._estimates)
-            ite = self._progress.seconds_left(self.stage is Stage.RELAY, longer)
+            if not self._estimates.items and self.stage is Stage.RELAY:
+                # (Before an estimate, the filtered error's swing stands for the PV's.)
+                longer = self._loop.noise > convergence.NOISY * self._switching.peak_error
+            lags = self._adaptation.lags
+            error = abs(math.degrees(lags[-1]) - self._adaptation.target_deg) if lags else None
+            ite = self._progress.seconds_left(self.stage is Stage.RELAY, longer, error)
             progress = self._progress.fraction(ite)
         return Status(stage=self.stage, progress=progress, ite=ite, relay=self._switching.relay,
                       filter_phase_deg=self._adaptation.phase_deg(), periods=max(self._switching.periods, 0),

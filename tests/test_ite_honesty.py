@@ -1,0 +1,48 @@
+"""ite against the time really left (issue 28): every 13th process of the batch, noise-free and at 1 % noise.
+
+The true time left at each status is the run's end time (the trace's last sample) minus the status's time,
+known once the run has ended; ite is judged from half a period after the relay's start to half a period
+before the end (autotuner/benchmarks/ite_bench.py says why). Measured on this sample (2026-12-05): within
+±30 % on 53 % of the statuses noise-free and 60 % at 1 % noise (main's engine: 19 % and 31 %), ite/true
+p10 0.38 and 0.49 (main: 0.14 and 0.28: the 5–10 times short period guess of lag-dominant processes).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from autotuner.benchmarks.design_bench import default_batch, load_batch
+from autotuner.benchmarks.ite_bench import HONEST, judge, run_one, summarise
+from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment
+
+SAMPLE = load_batch(default_batch())[::13]
+
+
+@pytest.mark.parametrize("noise, within", [(0.0, 0.50), (0.01, 0.55)])
+def test_ite_is_within_30_percent_of_the_time_really_left_on_most_statuses(noise: float, within: float) -> None:
+    runs = [run_one(row["expr"], row["id"], noise, every=7) for row in SAMPLE]
+    judged = [judge(run) for run in runs]
+    # Independent of the engine's estimate: the true time left is the trace's end minus the status's time.
+    for run, honesty in zip(runs, judged):
+        assert run.ok and len(honesty.ratios) > 5, run.id
+        assert np.all(run.end - run.t > 0.0) and np.all(run.ite > 0.0), run.id
+    summary = summarise(judged)
+    assert summary.within >= within, summary
+    # Neither 5–10 times low (a first half period taken for the period) nor as high the other way.
+    assert summary.p10 >= 0.35 and 0.75 <= summary.median <= 1.3 and summary.p90 <= 1.7, summary
+    # The statuses within ±30 % are the ones the summary counts.
+    ratios = np.concatenate([h.ratios for h in judged])
+    assert summary.within == pytest.approx(float(np.mean(np.abs(ratios - 1.0) <= HONEST)))
+
+
+def test_ite_never_rises_between_statuses_without_news() -> None:
+    """Between two statuses with no new sample the estimate stays put; while samples arrive between switches it
+    counts down (the hold: a clock's countdown while the estimate agrees with it)."""
+    experiment = RelayExperiment(RelayConfig(amp=1.0, expected_period=10.0), mv0=0.0)
+    for k in range(30):
+        experiment.step(0.1 * k, 0.0)
+    first = experiment.status().ite
+    assert experiment.status().ite == first
+    experiment.step(3.0, 0.0)
+    assert experiment.status().ite < first
