@@ -15,7 +15,6 @@ from pathlib import Path
 import httpx
 import pytest
 import yaml
-from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
 from api.auth import token_hash
 from autotuner.service.demo import demo_config
@@ -31,7 +30,7 @@ WINDOW, EVERY = 1200.0, 100.0
 # Generous: the demo plant's seven loops run on a machine shared with the rest of the suite.
 ASSESSED_S = 300.0
 TIMEOUT_MS = 300_000
-STICKY, RETUNE = "TIC-102", "FIC-302"
+STICKY, RETUNE, SLUGGISH = "TIC-102", "FIC-302", "TIC-103"
 
 
 @pytest.fixture(scope="module")
@@ -53,19 +52,13 @@ def api(d: Daemon, path: str):
     return r.json()
 
 
-def tune_now(page, d: Daemon) -> None:
-    """Press "Tune now" on the loop page of RETUNE until its TUNE has reached the daemon: a press that landed on a
-    card being redrawn (a newer assessment) sends nothing, and is pressed again once the daemon shows no session.
-    Then the session started (TUNING, or already ended on a loaded machine), or the TUNE was refused (its words)."""
-    for _ in range(3):
-        page.click("#tune-now:enabled")  # the TUNE form's request, with the loop's defaults it holds
-        try:
-            page.wait_for_selector("#badge:not(:has-text('IDLE')), [role=alert]", timeout=30_000)
-            break
-        except PlaywrightTimeout:
-            if api(d, f"/loops/{RETUNE}")["session"]:
-                break  # it reached the daemon; the page is slow to show it
+def tune_now(page, d: Daemon, loop_id: str) -> None:
+    """Press "Tune now" once on the loop page of ``loop_id``; then the session started (TUNING, or already ended on
+    a loaded machine), or the TUNE was refused (its words)."""
+    page.click("#tune-now:enabled")  # the TUNE form's request, with the loop's defaults it holds
+    page.wait_for_selector("#badge:not(:has-text('IDLE')), [role=alert]")
     assert page.locator("[role=alert]").count() == 0, page.locator("[role=alert]").all_text_contents()
+    assert api(d, f"/loops/{loop_id}")["session"]
 
 
 def assessed(d: Daemon, loop_id: str, recommendation: str) -> dict:
@@ -199,7 +192,7 @@ def test_a_loop_recommended_for_retuning_shows_tune_now_which_tunes_it_and_then_
     with page_of(daemon) as page:
         page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{RETUNE}")
         page.wait_for_selector("#health-summary [data-recommendation=retune]")
-        tune_now(page, daemon)
+        tune_now(page, daemon, RETUNE)
         status = api(daemon, f"/loops/{RETUNE}")
         assert status["session"], status
         request = api(daemon, f"/sessions/{status['session']}")["request"]
@@ -210,3 +203,49 @@ def test_a_loop_recommended_for_retuning_shows_tune_now_which_tunes_it_and_then_
         assert before["session"] == status["session"] and before["recommendation"] == "retune"
         assert status["session"][:8] in page.text_content("#health-before h3")
         assert page.locator("#health-now").count() == 1
+
+
+# Every node taken out of the health card from now on that is, or holds, something the operator can press.
+WATCH_REMOVALS = """() => {
+  const pressable = "button, summary, a, input, select";
+  window.pressableRemoved = [];
+  new MutationObserver((records) => {
+    for (const r of records) for (const n of r.removedNodes) {
+      if (n.nodeType === 1 && (n.matches(pressable) || n.querySelector(pressable))) window.pressableRemoved.push(n.outerHTML.slice(0, 120));
+    }
+  }).observe(document.querySelector("#health"), { childList: true, subtree: true });
+}"""
+
+
+def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
+    """The button pressed down, the card redrawn with a newer assessment, the button released: one press starts
+    the tuning. The card's request for the newer assessment is held until the button is down, so the redraw
+    lands between press and release every time."""
+    assessed(daemon, SLUGGISH, "retune")
+    with page_of(daemon) as page:
+        page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{SLUGGISH}")
+        page.wait_for_selector("#health-summary [data-recommendation=retune]")
+        page.wait_for_selector("#tune-now:enabled")
+        page.locator("#tune-now").scroll_into_view_if_needed()
+        page.evaluate(WATCH_REMOVALS)
+        held: list = []
+        health = f"**/api/v1/loops/{SLUGGISH}/health"
+        page.route(health, held.append)
+        deadline = time.monotonic() + ASSESSED_S
+        while not held:  # the card asks for the daemon's next assessment (every EVERY plant s)
+            assert time.monotonic() < deadline, "the card never asked for a newer assessment"
+            page.wait_for_timeout(100)  # lets Playwright deliver the request to the route
+        shown = page.get_attribute("#health", "data-time")
+        box = page.locator("#tune-now").bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.down()
+        page.unroute(health)
+        held[0].continue_()
+        page.wait_for_function("t => document.querySelector('#health').dataset.time !== t", arg=shown)
+        # Redrawn: the operator's button is where it was, still the one pressed and focused.
+        assert page.evaluate("document.activeElement && document.activeElement.id") == "tune-now"
+        page.mouse.up()
+        page.wait_for_selector("#badge:not(:has-text('IDLE')), [role=alert]")
+        assert page.locator("[role=alert]").count() == 0, page.locator("[role=alert]").all_text_contents()
+        assert api(daemon, f"/loops/{SLUGGISH}")["session"]
+        assert page.evaluate("window.pressableRemoved") == []
