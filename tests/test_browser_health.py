@@ -229,8 +229,12 @@ def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
         page.locator("#tune-now").scroll_into_view_if_needed()
         page.evaluate(WATCH_REMOVALS)
         held: list = []
+
+        def hold(route) -> None:
+            held.append(route)
+
         health = f"**/api/v1/loops/{SLUGGISH}/health"
-        page.route(health, held.append)
+        page.route(health, hold)
         deadline = time.monotonic() + ASSESSED_S
         while not held:  # the card asks for the daemon's next assessment (every EVERY plant s)
             assert time.monotonic() < deadline, "the card never asked for a newer assessment"
@@ -239,8 +243,8 @@ def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
         box = page.locator("#tune-now").bounding_box()
         page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
         page.mouse.down()
-        page.unroute(health)
         held[0].continue_()
+        page.unroute(health)
         page.wait_for_function("t => document.querySelector('#health').dataset.time !== t", arg=shown)
         # Redrawn: the operator's button is where it was, still the one pressed and focused.
         assert page.evaluate("document.activeElement && document.activeElement.id") == "tune-now"
