@@ -226,7 +226,6 @@ def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
         page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{SLUGGISH}")
         page.wait_for_selector("#health-summary [data-recommendation=retune]")
         page.wait_for_selector("#tune-now:enabled")
-        page.locator("#tune-now").scroll_into_view_if_needed()
         page.evaluate(WATCH_REMOVALS)
         held: list = []
 
@@ -240,9 +239,13 @@ def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
             assert time.monotonic() < deadline, "the card never asked for a newer assessment"
             page.wait_for_timeout(100)  # lets Playwright deliver the request to the route
         shown = page.get_attribute("#health", "data-time")
+        page.locator("#tune-now").scroll_into_view_if_needed()
         box = page.locator("#tune-now").bounding_box()
-        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        assert page.evaluate("([x, y]) => document.elementFromPoint(x, y)?.id", [x, y]) == "tune-now"
+        page.mouse.move(x, y)
         page.mouse.down()
+        assert page.evaluate("document.activeElement && document.activeElement.id") == "tune-now"  # pressed
         held[0].continue_()
         page.unroute(health)
         page.wait_for_function("t => document.querySelector('#health').dataset.time !== t", arg=shown)
