@@ -251,8 +251,8 @@ def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
         page.wait_for_function("t => document.querySelector('#health').dataset.time !== t", arg=shown)
         # Redrawn: the operator's button is where it was, still the one pressed and focused.
         assert page.evaluate("document.activeElement && document.activeElement.id") == "tune-now"
+        assert page.evaluate("window.pressableRemoved") == []
         page.mouse.up()
         page.wait_for_selector("#badge:not(:has-text('IDLE')), [role=alert]")
         assert page.locator("[role=alert]").count() == 0, page.locator("[role=alert]").all_text_contents()
         assert api(daemon, f"/loops/{SLUGGISH}")["session"]
-        assert page.evaluate("window.pressableRemoved") == []
