@@ -250,6 +250,7 @@ def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
         page.unroute(health)
         page.wait_for_function("t => document.querySelector('#health').dataset.time !== t", arg=shown)
         # Redrawn: the operator's button is where it was, still the one pressed and focused.
+        assert page.evaluate("([x, y]) => document.elementFromPoint(x, y)?.id", [x, y]) == "tune-now"
         assert page.evaluate("document.activeElement && document.activeElement.id") == "tune-now"
         assert page.evaluate("window.pressableRemoved") == []
         page.mouse.up()
