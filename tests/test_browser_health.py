@@ -123,6 +123,33 @@ def test_the_overview_shows_each_loops_health_live_and_sorts_worst_first(daemon)
         assert page.eval_on_selector_all("#loops tbody tr", "rs => rs.map(r => r.dataset.loop)") == ids
 
 
+# On the overview: every loop link taken out of the table from now on, and how many times a health cell was redrawn
+# (refilled, or its row replaced).
+WATCH_LINKS = """() => {
+  const tbody = document.querySelector("#loops tbody");
+  window.linksRemoved = [];
+  window.healthRedrawn = 0;
+  new MutationObserver((records) => {
+    for (const r of records) {
+      if (r.target.closest?.("td[data-col=health]") || (r.target === tbody && r.addedNodes.length)) window.healthRedrawn += 1;
+      for (const n of r.removedNodes) {
+        if (n.nodeType === 1 && (n.matches("a") || n.querySelector("a"))) window.linksRemoved.push(n.outerHTML.slice(0, 120));
+      }
+    }
+  }).observe(tbody, { childList: true, subtree: true });
+}"""
+
+
+def test_the_overview_redraws_a_loops_health_without_taking_its_link_from_under_the_pointer(daemon):
+    assessed(daemon, STICKY, "check_valve")
+    with page_of(daemon) as page:
+        page.wait_for_selector(f"#loops tr[data-loop={STICKY}] [data-hflag=stiction]")
+        page.evaluate(WATCH_LINKS)
+        # The sticky valve's reason names its period and amplitude, new with each assessment (every 5 s here).
+        page.wait_for_function("() => window.healthRedrawn >= 2")
+        assert page.evaluate("window.linksRemoved") == []
+
+
 def test_the_sticky_valves_card_shows_stiction_and_check_valve_with_its_evidence_and_no_tune_now(daemon):
     with page_of(daemon) as page:
         assessed(daemon, STICKY, "check_valve")
