@@ -15,7 +15,6 @@ from pathlib import Path
 import httpx
 import pytest
 import yaml
-from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
 from api.auth import token_hash
 from autotuner.service.demo import demo_config
@@ -31,7 +30,7 @@ WINDOW, EVERY = 1200.0, 100.0
 # Generous: the demo plant's seven loops run on a machine shared with the rest of the suite.
 ASSESSED_S = 300.0
 TIMEOUT_MS = 300_000
-STICKY, RETUNE = "TIC-102", "FIC-302"
+STICKY, RETUNE, SLUGGISH = "TIC-102", "FIC-302", "TIC-103"
 
 
 @pytest.fixture(scope="module")
@@ -53,19 +52,13 @@ def api(d: Daemon, path: str):
     return r.json()
 
 
-def tune_now(page, d: Daemon) -> None:
-    """Press "Tune now" on the loop page of RETUNE until its TUNE has reached the daemon: a press that landed on a
-    card being redrawn (a newer assessment) sends nothing, and is pressed again once the daemon shows no session.
-    Then the session started (TUNING, or already ended on a loaded machine), or the TUNE was refused (its words)."""
-    for _ in range(3):
-        page.click("#tune-now:enabled")  # the TUNE form's request, with the loop's defaults it holds
-        try:
-            page.wait_for_selector("#badge:not(:has-text('IDLE')), [role=alert]", timeout=30_000)
-            break
-        except PlaywrightTimeout:
-            if api(d, f"/loops/{RETUNE}")["session"]:
-                break  # it reached the daemon; the page is slow to show it
+def tune_now(page, d: Daemon, loop_id: str) -> None:
+    """Press "Tune now" once on the loop page of ``loop_id``; then the session started (TUNING, or already ended on
+    a loaded machine), or the TUNE was refused (its words)."""
+    page.click("#tune-now:enabled")  # the TUNE form's request, with the loop's defaults it holds
+    page.wait_for_selector("#badge:not(:has-text('IDLE')), [role=alert]")
     assert page.locator("[role=alert]").count() == 0, page.locator("[role=alert]").all_text_contents()
+    assert api(d, f"/loops/{loop_id}")["session"]
 
 
 def assessed(d: Daemon, loop_id: str, recommendation: str) -> dict:
@@ -128,6 +121,33 @@ def test_the_overview_shows_each_loops_health_live_and_sorts_worst_first(daemon)
             daemon.wait_until(row_is_the_daemons, 60, f"{loop_id}'s health on the page to be the daemon's")
         page.click("#sort-health")
         assert page.eval_on_selector_all("#loops tbody tr", "rs => rs.map(r => r.dataset.loop)") == ids
+
+
+# On the overview: every loop link taken out of the table from now on, and how many times a health cell was redrawn
+# (refilled, or its row replaced).
+WATCH_LINKS = """() => {
+  const tbody = document.querySelector("#loops tbody");
+  window.linksRemoved = [];
+  window.healthRedrawn = 0;
+  new MutationObserver((records) => {
+    for (const r of records) {
+      if (r.target.closest?.("td[data-col=health]") || (r.target === tbody && r.addedNodes.length)) window.healthRedrawn += 1;
+      for (const n of r.removedNodes) {
+        if (n.nodeType === 1 && (n.matches("a") || n.querySelector("a"))) window.linksRemoved.push(n.outerHTML.slice(0, 120));
+      }
+    }
+  }).observe(tbody, { childList: true, subtree: true });
+}"""
+
+
+def test_the_overview_redraws_a_loops_health_without_taking_its_link_from_under_the_pointer(daemon):
+    assessed(daemon, STICKY, "check_valve")
+    with page_of(daemon) as page:
+        page.wait_for_selector(f"#loops tr[data-loop={STICKY}] [data-hflag=stiction]")
+        page.evaluate(WATCH_LINKS)
+        # The sticky valve's reason names its period and amplitude, new with each assessment (every 5 s here).
+        page.wait_for_function("() => window.healthRedrawn >= 2")
+        assert page.evaluate("window.linksRemoved") == []
 
 
 def test_the_sticky_valves_card_shows_stiction_and_check_valve_with_its_evidence_and_no_tune_now(daemon):
@@ -199,7 +219,7 @@ def test_a_loop_recommended_for_retuning_shows_tune_now_which_tunes_it_and_then_
     with page_of(daemon) as page:
         page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{RETUNE}")
         page.wait_for_selector("#health-summary [data-recommendation=retune]")
-        tune_now(page, daemon)
+        tune_now(page, daemon, RETUNE)
         status = api(daemon, f"/loops/{RETUNE}")
         assert status["session"], status
         request = api(daemon, f"/sessions/{status['session']}")["request"]
@@ -210,3 +230,57 @@ def test_a_loop_recommended_for_retuning_shows_tune_now_which_tunes_it_and_then_
         assert before["session"] == status["session"] and before["recommendation"] == "retune"
         assert status["session"][:8] in page.text_content("#health-before h3")
         assert page.locator("#health-now").count() == 1
+
+
+# Every node taken out of the health card from now on that is, or holds, something the operator can press.
+WATCH_REMOVALS = """() => {
+  const pressable = "button, summary, a, input, select";
+  window.pressableRemoved = [];
+  new MutationObserver((records) => {
+    for (const r of records) for (const n of r.removedNodes) {
+      if (n.nodeType === 1 && (n.matches(pressable) || n.querySelector(pressable))) window.pressableRemoved.push(n.outerHTML.slice(0, 120));
+    }
+  }).observe(document.querySelector("#health"), { childList: true, subtree: true });
+}"""
+
+
+def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
+    """The button pressed down, the card redrawn with a newer assessment, the button released: one press starts
+    the tuning. The card's request for the newer assessment is held until the button is down, so the redraw
+    lands between press and release every time."""
+    assessed(daemon, SLUGGISH, "retune")
+    with page_of(daemon) as page:
+        page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{SLUGGISH}")
+        page.wait_for_selector("#health-summary [data-recommendation=retune]")
+        page.wait_for_selector("#tune-now:enabled")
+        page.evaluate(WATCH_REMOVALS)
+        held: list = []
+
+        def hold(route) -> None:
+            held.append(route)
+
+        health = f"**/api/v1/loops/{SLUGGISH}/health"
+        page.route(health, hold)
+        deadline = time.monotonic() + ASSESSED_S
+        while not held:  # the card asks for the daemon's next assessment (every EVERY plant s)
+            assert time.monotonic() < deadline, "the card never asked for a newer assessment"
+            page.wait_for_timeout(100)  # lets Playwright deliver the request to the route
+        shown = page.get_attribute("#health", "data-time")
+        page.locator("#tune-now").scroll_into_view_if_needed()
+        box = page.locator("#tune-now").bounding_box()
+        x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        assert page.evaluate("([x, y]) => document.elementFromPoint(x, y)?.id", [x, y]) == "tune-now"
+        page.mouse.move(x, y)
+        page.mouse.down()
+        assert page.evaluate("document.activeElement && document.activeElement.id") == "tune-now"  # pressed
+        held[0].continue_()
+        page.unroute(health)
+        page.wait_for_function("t => document.querySelector('#health').dataset.time !== t", arg=shown)
+        # Redrawn: the operator's button is where it was, still the one pressed and focused.
+        assert page.evaluate("([x, y]) => document.elementFromPoint(x, y)?.id", [x, y]) == "tune-now"
+        assert page.evaluate("document.activeElement && document.activeElement.id") == "tune-now"
+        assert page.evaluate("window.pressableRemoved") == []
+        page.mouse.up()
+        page.wait_for_selector("#badge:not(:has-text('IDLE')), [role=alert]")
+        assert page.locator("[role=alert]").count() == 0, page.locator("[role=alert]").all_text_contents()
+        assert api(daemon, f"/loops/{SLUGGISH}")["session"]

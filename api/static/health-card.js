@@ -46,17 +46,26 @@ const REFRESH_MS = 5000;
 const DEAD_TIME_SOURCE = { model: "from the last tuning's model", "one sample": "one sample (no model: the Harris index is a lower bound)" };
 
 // `page`: the loop page's record; `actions`: the actions card, whose TUNE flow "tune now" uses.
+// The card's parts are built once and a redraw fills their contents: what the operator can press ("Tune now", the
+// indices' fold) stays the same element in the page across redraws, keeping its focus and any press under way (a
+// mousedown whose element leaves the page, even to come straight back, makes no click).
 export function healthCard(page, actions) {
   const node = h("section", { class: "card wide health", id: "health" }, h("h2", {}, "Loop health"),
     h("p", { class: "muted" }, "loading…"));
   const tuneNow = h("button", { type: "button", class: "primary", id: "tune-now", onclick: () => actions.tune() }, "Tune now");
+  const time = h("span", { class: "muted small", id: "health-time" });
+  const verdict = slot(); // the badge and the advice, before "tune now"
+  const summary = h("div", { class: "summary", id: "health-summary" }, verdict);
+  const [flags, comparison, proof, indicesSlot, windowSlot] = [slot(), slot(), slot(), slot(), slot()];
+  const indices = indicesBox();
+  const parts = [h("div", { class: "card-head" }, h("h2", {}, "Loop health"), time), summary, flags, comparison, proof,
+    h("div", { class: "health-details" }, indicesSlot, windowSlot)];
   // What the card shows: the verdict (state, severity, flags, the loop's session) and the assessment's time it was
   // drawn for, and when. A new verdict is fetched at once; a newer assessment of the same verdict at most every
   // REFRESH_MS (the daemon may assess every second of wall time at a demo's speed).
   let drawn = { verdict: null, time: null, at: 0 };
   let loading = null;
   let timer = null;
-  const view = { indicesOpen: true }; // kept across redraws: the operator folded the indices, or not
 
   function update(loop) {
     const s = loop.health ?? null;
@@ -94,19 +103,29 @@ export function healthCard(page, actions) {
     node.dataset.state = body.state;
     node.dataset.severity = body.severity;
     node.dataset.time = a?.time ?? ""; // the assessment shown (unix s), as the daemon stamped it
-    fill(node,
-      h("div", { class: "card-head" }, h("h2", {}, "Loop health"),
-        h("span", { class: "muted small", id: "health-time" }, a?.time ? `assessed ${clock(a.time)}` : "")),
-      h("div", { class: "summary", id: "health-summary" }, healthBadge(body.state ? body : null),
-        a ? advice(a.recommendation) : h("span", { class: "muted" }, body.reason || stateWords(body.state)),
-        a?.recommendation === "retune" ? tuneNow : null),
-      a ? flagList(a) : null,
-      before ? beforeAfter(before, a) : null,
-      body.evidence ? evidence(body.evidence, a, u) : null,
-      h("div", { class: "health-details" }, a ? indicesTable(a, before, u, view) : null, windowInfo(body, a)));
+    if (!node.contains(summary)) fill(node, parts); // the first drawing replaces "loading…"
+    time.textContent = a?.time ? `assessed ${clock(a.time)}` : "";
+    fill(verdict, healthBadge(body.state ? body : null),
+      a ? advice(a.recommendation) : h("span", { class: "muted" }, body.reason || stateWords(body.state)));
+    present(summary, tuneNow, a?.recommendation === "retune");
+    fill(flags, a ? flagList(a) : null);
+    fill(comparison, before ? beforeAfter(before, a) : null);
+    fill(proof, body.evidence ? evidence(body.evidence, a, u) : null);
+    if (a) indices.show(a, before, u);
+    present(indicesSlot, indices.node, Boolean(a));
+    fill(windowSlot, windowInfo(body, a));
   }
 
   return { node, update, close: () => clearTimeout(timer) };
+}
+
+// A place in the card whose contents a redraw replaces; it draws no box of its own (CSS: .slot).
+const slot = () => h("div", { class: "slot" });
+
+// `child` in `parent` (at its end) when `wanted`, else out of the page; moved only when that changes.
+function present(parent, child, wanted) {
+  if (!wanted) child.remove();
+  else if (child.parentNode !== parent) parent.append(child);
 }
 
 function stateWords(state) {
@@ -150,23 +169,25 @@ function evidence(ev, a, u) {
   return h("div", { class: `health-evidence${boxes.length > 1 ? " two" : ""}`, id: "health-evidence" }, boxes);
 }
 
-// Every index with its unit, now and (after a tuning) before it.
-// `view.indicesOpen`: whether the table is unfolded (the operator's choice, kept across redraws).
-function indicesTable(a, before, u, view) {
+// Every index with its unit, now and (after a tuning) before it: the fold built once (the operator's open or
+// folded stays, and its summary is never replaced under the pointer), its table drawn anew by `show`.
+function indicesBox() {
+  const table = h("div", { class: "scroll-x" });
+  const node = h("details", { class: "health-indices", open: true }, h("summary", {}, "Indices"), table);
+  return { node, show: (a, before, u) => fill(table, indicesTable(a, before, u)) };
+}
+
+function indicesTable(a, before, u) {
   const known = new Set(INDICES.map(([name]) => name));
   const rows = [...INDICES, ...Object.keys(a.indices).filter((k) => !known.has(k)).map((k) => [k, k, ""])];
   const value = (v) => (typeof v === "number" ? fmt(v) : "—");
-  const box = h("details", { class: "health-indices", open: view.indicesOpen,
-                             ontoggle: () => { view.indicesOpen = box.open; } },
-    h("summary", {}, "Indices"),
-    h("div", { class: "scroll-x" }, h("table", { class: "indices", id: "health-indices" },
-      h("thead", {}, h("tr", {}, h("th", {}, "index"), h("th", { class: "num" }, "now"),
-        before ? h("th", { class: "num" }, "before tuning") : null, h("th", {}, "unit"))),
-      h("tbody", {}, rows.filter(([name]) => name in a.indices).map(([name, label, unit]) => h("tr", { "data-index": name },
-        h("th", {}, label), h("td", { class: "num now" }, value(a.indices[name])),
-        before ? h("td", { class: "num before" }, value(before.indices?.[name])) : null,
-        h("td", { class: "unit" }, unitText(unit, u))))))));
-  return box;
+  return h("table", { class: "indices", id: "health-indices" },
+    h("thead", {}, h("tr", {}, h("th", {}, "index"), h("th", { class: "num" }, "now"),
+      before ? h("th", { class: "num" }, "before tuning") : null, h("th", {}, "unit"))),
+    h("tbody", {}, rows.filter(([name]) => name in a.indices).map(([name, label, unit]) => h("tr", { "data-index": name },
+      h("th", {}, label), h("td", { class: "num now" }, value(a.indices[name])),
+      before ? h("td", { class: "num before" }, value(before.indices?.[name])) : null,
+      h("td", { class: "unit" }, unitText(unit, u))))));
 }
 
 // An index's unit in the loop's units: "°C" for PV, "%/h" for MV/h; as written where the loop names none.

@@ -79,6 +79,22 @@ export function overviewView() {
     $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
   }
 
+  // The row drawn anew for a loop's new state or health (`tr`) into the row on the page (`old`): only the cells
+  // whose contents changed are refilled, and the loop's link is never taken out of the page (a press on it that
+  // spans a health event, every few seconds a loop, would otherwise open nothing).
+  function merge(old, tr) {
+    old.className = tr.className;
+    old.dataset.rank = tr.dataset.rank;
+    [...tr.cells].forEach((td, i) => {
+      const cell = old.cells[i];
+      if (cell.isEqualNode(td)) return;
+      const link = $("a.loop-id", cell);
+      if (!link) return cell.replaceChildren(...td.childNodes);
+      while (link.nextSibling) link.nextSibling.remove();
+      link.after(...[...td.childNodes].slice(1)); // the same loop: the same link
+    });
+  }
+
   // One event stream for every loop (GET /events): each loop's state when it opens and on every change, its
   // live values (the newest sample, at most one per loop every 0.5 s) in between. No polling.
   const loops = new Map();
@@ -88,9 +104,8 @@ export function overviewView() {
     const old = rows.get(loop.id);
     tr.dataset.rank = String(loop.health?.rank ?? "");
     const rankChanged = old && tr.dataset.rank !== old.dataset.rank;
-    if (old) old.replaceWith(tr);
-    else { tbody.appendChild(tr); order.push(loop.id); }
-    rows.set(loop.id, tr);
+    if (old) merge(old, tr);
+    else { tbody.appendChild(tr); order.push(loop.id); rows.set(loop.id, tr); }
     if (byHealth && (!old || rankChanged)) sort();
     $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
   }
