@@ -20,8 +20,10 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
+from typing import Any
 
 import numpy as np
 
@@ -186,13 +188,25 @@ def field_table(every: int, workers: int | None, sample: int) -> str:
     return "\n".join(lines)
 
 
+def _at_least(low: float, kind: type) -> Callable[[str], Any]:
+    """An argparse type: a ``kind`` number ≥ ``low`` (the option's unit), else a usage error naming it."""
+    def parse(text: str) -> Any:
+        value = kind(text)
+        if not value >= low:
+            raise argparse.ArgumentTypeError(f"must be at least {low}, got {text}")
+        return value
+    return parse
+
+
 def main() -> None:
     """Print the table for the batch (``--noise``, ``--every``, ``--sample``, ``--workers``)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--noise", type=float, default=0.0)
-    parser.add_argument("--every", type=int, default=7)
-    parser.add_argument("--sample", type=int, default=1)
-    parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument("--noise", type=_at_least(0.0, float), default=0.0,
+                        help="σ of white measurement noise as a share of the clean run's PV amplitude (default 0)")
+    parser.add_argument("--every", type=_at_least(1, int), default=7, help="a status every this many samples")
+    parser.add_argument("--sample", type=_at_least(1, int), default=1, help="every this many-th process of the batch")
+    parser.add_argument("--workers", type=_at_least(1, int), default=None,
+                        help="worker processes (default: one per core)")
     parser.add_argument("--worst", type=int, default=0, help="also list this many least honest runs")
     parser.add_argument("--field", action="store_true", help="the field scenarios instead (no --noise)")
     a = parser.parse_args()
