@@ -276,7 +276,7 @@ async def loop_health(manager: Manager, _: Viewer) -> list[dict[str, Any]]:
     """Every configured loop's health summary, worst first (rank descending, then loop id): what the overview's
     health column shows (docs/health.md, "Online"). ``GET /health`` is the daemon's liveness."""
     rows = [{"loop": loop_id, "description": loop.config.description, **loop.health.summary()}
-            for loop_id, loop in manager.loops.items() if loop.health is not None]
+            for loop_id, loop in manager.loops.items()]
     return sorted(rows, key=lambda row: (-row["rank"], row["loop"]))
 
 
@@ -286,9 +286,7 @@ async def loop_health_detail(loop_id: LoopId, manager: Manager, _: Viewer) -> di
     """One loop's health in full: the newest assessment for its current gains (indices, flags, reasons,
     recommendation, window), the one before its newest tuning, and the evidence (the assessed window's samples,
     downsampled, with the oscillation's crossings) the page draws."""
-    health = manager.get(loop_id).health
-    assert health is not None
-    return health.detail()
+    return manager.get(loop_id).health.detail()
 
 
 @router.get("/loops/{loop_id}/health/history", response_model=list[HealthHistoryItem], tags=["health"],
@@ -476,15 +474,16 @@ def create_app(config: DaemonConfig, env_token: str | None = None, host: str = "
         manager = LoopManager(config, store, None if config.samplers == 0 else SamplerField(config.loops,
                                                                                               config.samplers),
                               fleet)
+        heap.settle()  # before the loops run: its one full collection delays none of their samples
         try:
             await manager.start()
         except BaseException:
+            heap.release()
             if fleet is not None:
                 fleet.leases.close()
             raise
         app.state.manager = manager
         app.state.metrics = registry_of(manager, app.state)
-        heap.settle()
         opcua = None
         try:
             if config.opcua is not None:

@@ -79,7 +79,7 @@ class Loop:
     events: LoopEvents = field(default_factory=LoopEvents)
     link_errors: int = 0  # failures of its watch's link and sessions ended by a link fault, since the start
     history: HistoryHealth = field(default_factory=HistoryHealth)  # the daemon's history, shared by every loop
-    health: LoopHealth | None = None  # its online health (set by the manager)
+    health: LoopHealth = field(kw_only=True)  # its online health
 
     @property
     def busy(self) -> bool:
@@ -145,7 +145,7 @@ class Loop:
             pending_gains=self.pending_gains, monitor_error=self.monitor_error, history_error=self.history.error,
             defaults=settings_of(c, TuneRequest()), bounds=BoundsRecord(c.max_amp, c.max_hysteresis),
             units=_units(c), restore=None if p is None else p.status(), owner=self.owner,
-            health=None if self.health is None else HealthSummary(**self.health.summary()))
+            health=HealthSummary(**self.health.summary()))
 
     def as_json(self) -> dict[str, Any]:
         """The status as JSON (:meth:`status_record`)."""

@@ -130,8 +130,11 @@ class LoopManager:
         self.recorder.on_health = self._history_health
         self.field: Field = LocalField(config.loops) if field is None else field
         reaches = getattr(self.field, "reaches", {})
-        self.loops: dict[str, Loop] = {c.id: Loop(c, reaches.get(c.id), history=self.recorder.health)
-                                       for c in config.loops}
+        origin = time.time()  # plant time 0 of every loop's health record
+        self.loops: dict[str, Loop] = {
+            c.id: Loop(c, reaches.get(c.id), history=self.recorder.health,
+                       health=LoopHealth(c, origin, phase=i / len(config.loops)))
+            for i, c in enumerate(config.loops)}
         self.handback_config: HandBackConfig = config.handback
         self._stopping = False
         self._shutdown: asyncio.Task[list[str]] | None = None
@@ -141,9 +144,6 @@ class LoopManager:
         self.sampling = Sampling()
         self.outcomes: Counter[int] = Counter()  # sessions ended since the start, by code
         self._overloaded_until = -math.inf
-        origin = time.time()  # plant time 0 of every loop's health record
-        for i, loop in enumerate(self.loops.values()):
-            loop.health = LoopHealth(loop.config, origin, phase=i / len(self.loops))
         self.health_cpu = 0.0  # CPU seconds of the health assessments in the workers, since the start
         self.health_assessed = 0  # assessments made since the start
         self._health_task: asyncio.Task[None] | None = None
@@ -429,7 +429,6 @@ class LoopManager:
         self.recorder.record(self.history.begin, sid, loop_id, user, settings.as_json())  # before the session's
         loop.session, loop.status, loop.result = sid, None, None
         loop.events.trend.start(sid)
-        assert loop.health is not None
         loop.health.restart(sid)  # new gains make the samples before it another loop's
         self._publish(loop, "health", {"loop": loop_id, **loop.health.summary()})
         loop.running = Session(sid, plan_of(loop.config, settings, self.handback_config.session()),
@@ -552,7 +551,6 @@ class LoopManager:
         def done(f: asyncio.Future[Any]) -> None:
             if not f.cancelled() and f.exception() is None:
                 loop.latest = f.result()
-                assert loop.health is not None
                 loop.health.model = _model(loop.latest) or loop.health.model
                 self._publish(loop, "state", loop.as_json())
 
@@ -565,7 +563,6 @@ class LoopManager:
         """At a start (or a take-over): the loop's newest successful session's model, its newest stored health
         assessment (current unless the loop was tuned after it) and the newest stored before its newest tuning."""
         health, loop_id = loop.health, loop.config.id
-        assert health is not None
         sessions = await self.recorder.record(self.history.of_loop, loop_id, MODEL_SEARCH)
         health.model = next((model for record in sessions if (model := _model(record)) is not None), None)
         health.session = None if loop.latest is None else loop.latest["id"]
@@ -592,7 +589,6 @@ class LoopManager:
             if len(self._health_jobs) >= HEALTH_IN_FLIGHT or self._stopping:
                 return
             loop = order[(self._health_cursor + k) % len(order)]
-            assert loop.health is not None
             served = self.fleet is None or self.fleet.valid(loop.config.id)
             if served and not loop.busy and loop.health.is_due(wall):
                 job = asyncio.create_task(self._assess(loop, loop.health.job(wall), loop.health.generation))
@@ -610,7 +606,6 @@ class LoopManager:
         """Assess ``job`` in a worker; keep, record and publish the result (dropped if the loop's record restarted
         meanwhile: a tuning began)."""
         health = loop.health
-        assert health is not None
         try:
             result, cpu = await pooled(run_job, job)
         except Exception as exc:  # a worker's failure: the loop is tried again at its next time
@@ -781,7 +776,6 @@ class LoopManager:
         changed = (loop.mode, loop.gains) != (sample.mode, gains)
         loop.mode, loop.gains = Mode(sample.mode), gains
         loop.pv, loop.sp, loop.mv = sample.pv, sample.sp, sample.mv
-        assert loop.health is not None
         loop.health.add(reading.time, sample.sp, sample.pv, sample.mv, loop.mode is Mode.AUTO)
         self._publish(loop, "sample", {"time": reading.time, "pv": sample.pv, "sp": sample.sp, "mv": sample.mv,
                                        "mode": loop.mode.name})
