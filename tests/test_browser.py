@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import datetime
 
 import httpx
@@ -209,6 +210,60 @@ def wait_attr_above(page, selector: str, attr: str, value: float) -> float:
     return float(page.get_attribute(selector, attr))
 
 
+# Watches the actions card: every redraw sets TBRK's tooltip (counted in window.redraws), and window.offered
+# collects the ids of its buttons that were left enabled at any moment (cleared by the test).
+WATCH_ACTIONS = """() => {
+  window.redraws = 0;
+  window.offered = new Set();
+  new MutationObserver((records) => {
+    for (const r of records) {
+      if (r.attributeName === "title" && r.target.id === "tbrk") window.redraws += 1;
+      if (r.attributeName === "disabled" && r.target.id && !r.target.disabled) window.offered.add(r.target.id);
+    }
+  }).observe(document.querySelector("#actions"), { attributes: true, subtree: true, attributeFilter: ["title", "disabled"] });
+}"""
+
+
+@contextmanager
+def held(page, path: str) -> Iterator[list]:
+    """While inside: the page's requests to the API's ``path`` are held (the list of their Playwright routes);
+    at the exit they go on to the daemon."""
+    routes: list = []
+    pattern = f"**/api/v1{path}"
+
+    def hold(route) -> None:
+        routes.append(route)
+
+    page.route(pattern, hold)
+    try:
+        yield routes
+    finally:
+        for route in routes:
+            route.continue_()
+        page.unroute(pattern)
+
+
+def arrived(page, routes: list, count: int = 1) -> None:
+    """Wait until ``count`` requests are held in ``routes`` (Playwright delivers them while the test waits)."""
+    deadline = time.monotonic() + TIMEOUT_MS / 1000
+    while len(routes) < count:
+        assert time.monotonic() < deadline, f"{count} request(s) expected, {len(routes)} held"
+        page.wait_for_timeout(50)
+
+
+def redrawn_by_a_state_event(page, daemon: Daemon) -> None:
+    """The loop page's stream cut and reconnected: the new stream starts with the loop's state, which redraws the
+    cards; returns once the actions card has been redrawn (WATCH_ACTIONS installed)."""
+    before = page.evaluate("window.redraws")
+    daemon.proxy.down()
+    try:
+        page.locator("[data-banner=stream]").wait_for()
+    finally:
+        daemon.proxy.up()
+    page.locator("[data-banner=stream]").wait_for(state="detached")
+    page.wait_for_function("(n) => window.redraws > n", arg=before)
+
+
 def test_login_with_an_unknown_token_is_refused_in_words(page, daemon):
     page.goto(daemon.url)
     page.fill("#token", "not-a-token")
@@ -290,7 +345,15 @@ def test_operator_tunes_from_the_page_applies_the_gains_and_finds_the_session_in
         row = page.inner_text(f"#apply-changes tr[data-param={key}]")
         assert "→" in row
         assert close(number(page.inner_text(f"#apply-changes tr[data-param={key}] td.new").removesuffix(" s")), gains[key])
-    page.click("#apply-confirm")
+    # The apply under way (its request held): "Apply gains…" stays disabled across a redraw from a state event.
+    page.evaluate(WATCH_ACTIONS)
+    with held(page, "/loops/TIC-101/apply") as applying:
+        page.click("#apply-confirm")
+        arrived(page, applying)
+        assert page.is_disabled("#apply")
+        redrawn_by_a_state_event(page, daemon)
+        assert page.is_disabled("#apply") and page.locator("#apply-dialog").count() == 0
+        assert "apply" not in page.evaluate("[...window.offered]")
     page.wait_for_selector("#apply-done")
     status = daemon.get("/loops/TIC-101")
     assert status["pending_gains"] is False
@@ -430,6 +493,45 @@ def test_tbrk_from_the_page_restores_the_loop(page, daemon):
     assert status["mode"] == saved["mode"] == "AUTO"
     page.wait_for_selector("[data-readout=mode]:has-text('AUTO')")
     assert page.is_enabled("#tune") and page.is_disabled("#tbrk")
+
+
+def test_a_command_under_way_keeps_its_button_disabled_across_redraws(page, daemon):
+    """TUNE and TBRK pressed, their requests held: a state event meanwhile (the stream cut and reconnected starts
+    with the loop's state) redraws the card and the pressed button stays disabled — the page never offers the
+    command twice (it re-enabled TUNE, and the daemon answered the second 409 busy). Released, it is done once."""
+    daemon.wait_idle("LIC-201")
+    daemon.wait_idle("FIC-301")
+    login(page, daemon, OPERATOR, "operator")
+    page.goto(daemon.url + "#/loop/FIC-301")
+    page.wait_for_selector("#tune:enabled")
+    page.evaluate(WATCH_ACTIONS)
+    before = daemon.get("/loops/FIC-301/history?limit=200")
+    with held(page, "/loops/FIC-301/tune") as tuning:
+        page.click("#tune")
+        arrived(page, tuning)
+        assert page.is_disabled("#tune")
+        redrawn_by_a_state_event(page, daemon)
+        assert page.is_disabled("#tune"), page.get_attribute("#tune", "title")
+        # Neither Enter in a field nor "Tune now" (both submit the form) sends it again.
+        page.evaluate("document.querySelector('#tune-form').requestSubmit()")
+        page.wait_for_timeout(300)  # lets Playwright deliver a second request to the route, were there one
+        assert len(tuning) == 1
+    page.wait_for_selector("#status [data-flag=tbsy]:has-text('TBSY 1')")
+    assert "tune" not in page.evaluate("[...window.offered]")  # not once between the press and TBSY
+    after = daemon.get("/loops/FIC-301/history?limit=200")
+    assert len(after) == len(before) + 1 and page.locator("[role=alert]").count() == 0
+    with held(page, "/loops/FIC-301/break") as breaking:
+        page.click("#tbrk:enabled")
+        arrived(page, breaking)
+        page.evaluate("window.offered.clear()")
+        assert page.is_disabled("#tbrk")
+        redrawn_by_a_state_event(page, daemon)
+        assert page.is_disabled("#tbrk"), page.get_attribute("#tbrk", "title")
+        assert "tbrk" not in page.evaluate("[...window.offered]")
+    page.wait_for_selector("#status [data-flag=tbsy]:has-text('TBSY 0')")
+    page.wait_for_selector("#tune:enabled")
+    assert page.is_disabled("#tbrk") and page.locator("[role=alert]").count() == 0
+    assert daemon.get(f"/sessions/{after[0]['id']}")["code"] == 1  # aborted: the one TBRK
 
 
 def test_api_errors_in_words_and_a_lost_stream_reconnects(page, daemon):

@@ -284,3 +284,43 @@ def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
         page.wait_for_selector("#badge:not(:has-text('IDLE')), [role=alert]")
         assert page.locator("[role=alert]").count() == 0, page.locator("[role=alert]").all_text_contents()
         assert api(daemon, f"/loops/{SLUGGISH}")["session"]
+
+
+def test_sorted_by_health_no_row_moves_under_the_pointer_until_it_leaves_the_table(daemon):
+    """Sorted by health, the pointer on the sticky valve's link: its rank changes (tuned, its health is collecting
+    again: rank 0, the last place) and its row stays under the pointer; once the pointer leaves the table, the
+    order is the daemon's (``GET /loop-health``)."""
+    assessed(daemon, STICKY, "check_valve")
+    row = f"#loops tr[data-loop={STICKY}]"
+    with page_of(daemon) as page:
+        page.wait_for_selector(f"{row} [data-hflag=stiction]")
+        page.click("#sort-health")
+        daemon.wait_until(lambda: shown_order(page) == listed_order(daemon), 60, "the page sorted as the daemon")
+        rank = page.get_attribute(row, "data-rank")
+        assert int(rank) > 0
+        page.hover(f"{row} a.loop-id")
+        box = page.locator(f"{row} a.loop-id").bounding_box()
+        x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        shown = shown_order(page)
+        r = httpx.post(f"{daemon.base}/loops/{STICKY}/tune", headers=daemon.headers, timeout=30)
+        assert r.status_code == 202, r.text
+        try:
+            page.wait_for_function("([s, r]) => document.querySelector(s).dataset.rank !== r", arg=[row, rank])
+            daemon.wait_until(lambda: listed_order(daemon) != shown, 60, "the daemon's order to change")
+            assert shown_order(page) == shown
+            assert page.evaluate("([x, y]) => document.elementFromPoint(x, y)?.closest('tr')?.dataset.loop",
+                                 [x, y]) == STICKY
+            page.mouse.move(1, 1)  # off the table (the page's header)
+            daemon.wait_until(lambda: shown_order(page) == listed_order(daemon), 60, "the daemon's order once left")
+        finally:
+            httpx.post(f"{daemon.base}/loops/{STICKY}/break", headers=daemon.headers, timeout=30)
+
+
+def shown_order(page) -> list[str]:
+    """The overview's loops, top to bottom."""
+    return page.eval_on_selector_all("#loops tbody tr", "rs => rs.map(r => r.dataset.loop)")
+
+
+def listed_order(d: Daemon) -> list[str]:
+    """The daemon's order of the loops, worst health first."""
+    return [x["loop"] for x in api(d, "/loop-health")]

@@ -20,7 +20,7 @@ export function loopView(id) {
     page.loop = loop;
     page.shownSession = null; // the result card shows the session as applied
     update();
-  });
+  }, () => update());
   const trend = trendCard(page);
   const result = resultCard(page);
   const health = healthCard(page, actions);

@@ -29,6 +29,11 @@ export function overviewView() {
       h("div", { class: "head-tools" }, sortButton, h("span", { class: "muted", id: "updated" }, ""))), table));
   const rows = new Map();
   const order = []; // the loops' ids as the daemon lists them (the config's order)
+  // While the pointer is over the table, sorted by health, a new rank moves no row: the order waits until the
+  // pointer leaves (a row moving under it turned a click aimed at one loop into a click on another).
+  let pointed = false;
+  table.addEventListener("pointerenter", () => { pointed = true; });
+  table.addEventListener("pointerleave", () => { pointed = false; if (byHealth) sort(); });
 
   // Worst first by the daemon's rank (then loop id, as GET /loop-health), or as configured.
   function sort() {
@@ -106,7 +111,7 @@ export function overviewView() {
     const rankChanged = old && tr.dataset.rank !== old.dataset.rank;
     if (old) merge(old, tr);
     else { tbody.appendChild(tr); order.push(loop.id); rows.set(loop.id, tr); }
-    if (byHealth && (!old || rankChanged)) sort();
+    if (byHealth && (!old || rankChanged) && !pointed) sort();
     $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
   }
   sort();
