@@ -151,14 +151,15 @@ class Plc:
 
 class Daemon:
     """An `autotuner serve --config` process over one loop ``L1`` on ``plc`` (or anything with its ``url`` and
-    ``speed``: a proxy in front of it), with its history in ``tmp``."""
+    ``speed``: a proxy in front of it), with its history in ``tmp``; ``record_wait``: the config's bound for a
+    session's records, s; ``handback``: the config's handback settings."""
 
-    def __init__(self, tmp: Path, plc: Any, **handback: float) -> None:
+    def __init__(self, tmp: Path, plc: Any, record_wait: float = 10.0, **handback: float) -> None:
         self.tmp = tmp
         self.history = tmp / "history.sqlite"
         settings = {"window": 2.0, "retry_first": 0.3, "retry_max": 1.0, "track_timeout": 2.0, "shutdown": 8.0,
                     "watchdog": 0.0} | handback
-        config = {"history": str(self.history), "handback": settings, "loops": [{
+        config = {"history": str(self.history), "record_wait": record_wait, "handback": settings, "loops": [{
             "id": "L1", "link": plc.url, "ts": 0.3, "speed": plc.speed, "monitor_period": 0.5,
             "tuning": {"controller": "PI", "amp": AMP, "time_limit": 2000}, "limits": {"pv": [0, 100],
                                                                                         "mv": [0, 100]}}]}
@@ -237,8 +238,8 @@ def plc(tmp_path) -> Iterator[Plc]:
 
 
 @contextmanager
-def daemon(tmp: Path, plc: Any, **handback: float) -> Iterator[Daemon]:
-    d = Daemon(tmp, plc, **handback)
+def daemon(tmp: Path, plc: Any, record_wait: float = 10.0, **handback: float) -> Iterator[Daemon]:
+    d = Daemon(tmp, plc, record_wait, **handback)
     try:
         yield d
     finally:

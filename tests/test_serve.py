@@ -134,6 +134,10 @@ def test_a_good_config_resolves_paths_next_to_the_file(tmp_path):
     (('pv: "°C"', 'pv: "degrees Celsius above zero"'), "loops[0].units.pv", "at most 16 characters"),
     (('mv: "%"', 'mv: "%\\n"'), "loops[0].units.mv", "should match pattern"),
     (('mv: "%"', 'mw: "%"'), "loops[0].units.mw", "Extra inputs"),
+    (("history: db/history.sqlite", "history: db/history.sqlite\nrecord_wait: 0.5"), "record_wait",
+     "greater than or equal to 1"),
+    (("history: db/history.sqlite", "history: db/history.sqlite\nrecord_wait: 601"), "record_wait",
+     "less than or equal to 600"),
 ])
 def test_every_error_names_the_file_the_path_and_what_is_wrong(tmp_path, change, where, what):
     path = write(tmp_path, GOOD.replace(*change))

@@ -453,7 +453,10 @@ class DaemonConfig(Strict):
     with a new session before that TUNE is refused (``overloaded``).
     ``fleet``: this daemon among others on one PostgreSQL history (a
     PostgreSQL history always holds leases; the section sets their name and
-    times); not with an SQLite history.
+    times); not with an SQLite history. ``record_wait``: how long a session
+    waits for the history to record what must be durable before it goes on
+    (its saved state, a gains intent, its end, the restore), wall seconds
+    (docs/handback.md).
     """
 
     history: str = "autotuner-history.db"
@@ -465,6 +468,8 @@ class DaemonConfig(Strict):
     max_sessions: Annotated[int, Field(ge=1, le=100000)] | None = None
     sampler_load: Annotated[float, Field(gt=0.0, le=1.0)] = 0.6
     fleet: FleetConfig | None = None
+    # s; the default is session_record.RECORD_WAIT, `autotuner tune --config`'s bound (not imported: it loads the engine)
+    record_wait: Annotated[float, Field(ge=1.0, le=600.0)] = 10.0
 
     @field_validator("history")
     @classmethod

@@ -126,7 +126,7 @@ class LoopManager:
         self._fleet_task: asyncio.Task[None] | None = None
         if fleet is not None:
             fleet.idle = self._releasable
-        self.recorder = Recorder(history)
+        self.recorder = Recorder(history, config.record_wait)
         self.recorder.on_health = self._history_health
         self.field: Field = LocalField(config.loops) if field is None else field
         reaches = getattr(self.field, "reaches", {})
@@ -692,7 +692,7 @@ class LoopManager:
             if not self._stopping:
                 # Awaited (bounded) before the loop shows idle: a client that sees TBSY fall reads this session as
                 # the last one (last_outcome, pending_gains), not the one before it.
-                await waited(refreshed)
+                await waited(refreshed, self.recorder.wait)
             if running.saved is not None and pending is None:  # what the session left: its mode, the gains
                 loop.mode, loop.gains, loop.sp = Mode(running.saved.mode), outcome.gains_after, running.saved.sp
             if math.isfinite(running.pv):  # the session's last values, not the monitor's
@@ -915,7 +915,7 @@ class LoopManager:
         # database is locked): the event loop never waits on the database, and the records keep their order.
         written = self.recorder.record(self.history.restored, p.sid, p.final, done.message, int(done.code))
         try:  # shown restored once recorded (bounded; not during a shutdown, whose bound is for the hand-backs)
-            if not self._stopping and (why := await waited(written)):
+            if not self._stopping and (why := await waited(written, self.recorder.wait)):
                 log.error("loop %s: the restore of session %s is not recorded yet: %s", loop_id, p.sid, why)
         finally:  # cancelled while waiting (a shutdown): the loop is dealt with all the same
             loop.pending = None

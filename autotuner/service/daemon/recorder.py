@@ -53,8 +53,9 @@ class Recorder:
     manager) is called on the event loop when it changes.
     """
 
-    def __init__(self, history: History) -> None:
+    def __init__(self, history: History, wait: float = RECORD_WAIT) -> None:
         self.history = history
+        self.wait = wait  # how long a session's record is waited for, wall seconds (the config's record_wait)
         self.health = HistoryHealth()
         self.on_health: Callable[[], None] | None = None
         self._thread = ThreadPoolExecutor(1, thread_name_prefix="history")
@@ -90,9 +91,10 @@ class Recorder:
             log.error("history: a write failed for good (%s: %s)", type(future.exception()).__name__,
                       future.exception())
 
-    async def durable(self, method: Callable[..., Any], *args: Any, wait: float = RECORD_WAIT) -> str:
-        """Record ``method(*args)`` and wait up to ``wait`` s; '' once recorded, else why not (it goes on)."""
-        return await waited(self.record(method, *args), wait)
+    async def durable(self, method: Callable[..., Any], *args: Any, wait: float | None = None) -> str:
+        """Record ``method(*args)`` and wait up to ``wait`` s (None: :attr:`wait`); '' once recorded, else why not
+        (it goes on)."""
+        return await waited(self.record(method, *args), self.wait if wait is None else wait)
 
     async def read(self, method: Callable[..., Any], *args: Any, wait: float) -> Any:
         """``method(*args)`` read in the history's thread, after the writes before it; TimeoutError after ``wait``
@@ -133,12 +135,12 @@ class Recorder:
 
     async def session_record(self, name: str, *args: Any) -> str:
         """:meth:`guard` of ``History.<name>`` for a session's records (:data:`SESSION_RECORDS` only), within
-        ``RECORD_WAIT`` s."""
+        :attr:`wait` s."""
         if name not in SESSION_RECORDS:
             raise ValueError(f"a session may not record {name!r}")
         method = getattr(self.history, name)
         undo = functools.partial(self.history.withdraw, args[0], args[2]) if name == "intend" else None
-        return await self.guard(method, *args, wait=RECORD_WAIT, undo=undo)
+        return await self.guard(method, *args, wait=self.wait, undo=undo)
 
     @property
     def pending(self) -> int:
