@@ -65,22 +65,41 @@ def chromium_path() -> str:
 def logged_in_page(url: str, token: str, timeout_ms: float = 90_000) -> Iterator[Any]:
     """A Playwright page of headless Chromium (1400×900) on the operator page at ``url``, logged in with ``token``
     (the overview shown); at the exit, an AssertionError if the page had a JavaScript error."""
+    with chromium() as browser, logged_in(browser, url, token, timeout_ms) as page:
+        yield page
+
+
+@contextlib.contextmanager
+def chromium() -> Iterator[Any]:
+    """A headless Chromium (Playwright's Browser), closed at the exit; for a module's tests to share."""
     from playwright.sync_api import sync_playwright
 
-    errors: list[str] = []
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=chromium_path(), args=CHROMIUM_ARGS)
         try:
-            page = browser.new_page(viewport={"width": 1400, "height": 900})
-            page.set_default_timeout(timeout_ms)
-            page.on("pageerror", lambda exc: errors.append(str(exc)))
-            page.goto(url)
-            page.fill("#token", token)
-            page.click("#login button[type=submit]")
-            page.wait_for_selector("#loops tbody tr")
-            yield page
+            yield browser
         finally:
             browser.close()
+
+
+@contextlib.contextmanager
+def logged_in(browser: Any, url: str, token: str, timeout_ms: float = 90_000) -> Iterator[Any]:
+    """A page of its own (a fresh browser context: no cookies or storage of another test) of ``browser``
+    (1400×900) on the operator page at ``url``, logged in with ``token`` (the overview shown), waiting at most
+    ``timeout_ms`` ms for anything; at the exit, an AssertionError if the page had a JavaScript error."""
+    errors: list[str] = []
+    context = browser.new_context(viewport={"width": 1400, "height": 900})
+    try:
+        page = context.new_page()
+        page.set_default_timeout(timeout_ms)
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(url)
+        page.fill("#token", token)
+        page.click("#login button[type=submit]")
+        page.wait_for_selector("#loops tbody tr")
+        yield page
+    finally:
+        context.close()
     assert not errors, f"JavaScript errors on the page: {errors[:3]}"
 
 

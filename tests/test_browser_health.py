@@ -18,7 +18,7 @@ import yaml
 
 from api.auth import token_hash
 from autotuner.service.demo import demo_config
-from helpers import Daemon, logged_in_page
+from helpers import Daemon, chromium, logged_in
 from test_browser import close, legible, no_horizontal_scroll, number, usable
 
 OPERATOR, VIEWER = "health-operator-secret", "health-viewer-secret"
@@ -80,12 +80,19 @@ def shown_time(page) -> float | None:
     return float(text) if text else None
 
 
-def page_of(d: Daemon, token: str = OPERATOR):
-    return logged_in_page(f"http://127.0.0.1:{d.port}/", token, timeout_ms=TIMEOUT_MS)
+@pytest.fixture(scope="module")
+def browser() -> Iterator[object]:
+    """One Chromium for the module's tests (each test's page in a context of its own)."""
+    with chromium() as b:
+        yield b
 
 
-def test_the_overview_shows_each_loops_health_live_and_sorts_worst_first(daemon):
-    with page_of(daemon) as page:
+def page_of(browser, d: Daemon, token: str = OPERATOR):
+    return logged_in(browser, f"http://127.0.0.1:{d.port}/", token, timeout_ms=TIMEOUT_MS)
+
+
+def test_the_overview_shows_each_loops_health_live_and_sorts_worst_first(browser, daemon):
+    with page_of(browser, daemon) as page:
         # Opened before any assessment exists: what follows comes in on the overview's event stream.
         ids = [loop["id"] for loop in api(daemon, "/loops")]
         page.wait_for_selector(f"#loops tr[data-loop={STICKY}] td[data-col=health] [data-health]")
@@ -140,9 +147,9 @@ WATCH_LINKS = """() => {
 }"""
 
 
-def test_the_overview_redraws_a_loops_health_without_taking_its_link_from_under_the_pointer(daemon):
+def test_the_overview_redraws_a_loops_health_without_taking_its_link_from_under_the_pointer(browser, daemon):
     assessed(daemon, STICKY, "check_valve")
-    with page_of(daemon) as page:
+    with page_of(browser, daemon) as page:
         page.wait_for_selector(f"#loops tr[data-loop={STICKY}] [data-hflag=stiction]")
         page.evaluate(WATCH_LINKS)
         # The sticky valve's reason names its period and amplitude, new with each assessment (every 5 s here).
@@ -150,8 +157,8 @@ def test_the_overview_redraws_a_loops_health_without_taking_its_link_from_under_
         assert page.evaluate("window.linksRemoved") == []
 
 
-def test_the_sticky_valves_card_shows_stiction_and_check_valve_with_its_evidence_and_no_tune_now(daemon):
-    with page_of(daemon) as page:
+def test_the_sticky_valves_card_shows_stiction_and_check_valve_with_its_evidence_and_no_tune_now(browser, daemon):
+    with page_of(browser, daemon) as page:
         assessed(daemon, STICKY, "check_valve")
         page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{STICKY}")
         page.wait_for_selector("#health-flags [data-flag=stiction]")
@@ -188,10 +195,10 @@ def test_the_sticky_valves_card_shows_stiction_and_check_valve_with_its_evidence
 
 
 @pytest.mark.parametrize("width,height", [(390, 844), (820, 1180), (1920, 1080), (3840, 2160)])
-def test_every_screen_size_shows_the_health_column_and_card(daemon, width, height):
+def test_every_screen_size_shows_the_health_column_and_card(browser, daemon, width, height):
     assessed(daemon, STICKY, "check_valve")
     assessed(daemon, RETUNE, "retune")
-    with page_of(daemon) as page:
+    with page_of(browser, daemon) as page:
         page.set_viewport_size({"width": width, "height": height})
         page.wait_for_selector(f"#loops tr[data-loop={STICKY}] [data-hflag=stiction]")
         no_horizontal_scroll(page)
@@ -210,13 +217,13 @@ def test_every_screen_size_shows_the_health_column_and_card(daemon, width, heigh
         legible(page, "#health-trend")
 
 
-def test_a_loop_recommended_for_retuning_shows_tune_now_which_tunes_it_and_then_its_health_before_and_after(daemon):
+def test_a_loop_recommended_for_retuning_shows_tune_now_which_tunes_it_and_then_its_health_before_and_after(browser, daemon):
     assessed(daemon, RETUNE, "retune")
-    with page_of(daemon, VIEWER) as page:
+    with page_of(browser, daemon, VIEWER) as page:
         page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{RETUNE}")
         page.wait_for_selector("#tune-now")
         assert page.is_disabled("#tune-now") and "operator" in page.get_attribute("#tune-now", "title")
-    with page_of(daemon) as page:
+    with page_of(browser, daemon) as page:
         page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{RETUNE}")
         page.wait_for_selector("#health-summary [data-recommendation=retune]")
         tune_now(page, daemon, RETUNE)
@@ -244,12 +251,12 @@ WATCH_REMOVALS = """() => {
 }"""
 
 
-def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
+def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(browser, daemon):
     """The button pressed down, the card redrawn with a newer assessment, the button released: one press starts
     the tuning. The card's request for the newer assessment is held until the button is down, so the redraw
     lands between press and release every time."""
     assessed(daemon, SLUGGISH, "retune")
-    with page_of(daemon) as page:
+    with page_of(browser, daemon) as page:
         page.goto(f"http://127.0.0.1:{daemon.port}/#/loop/{SLUGGISH}")
         page.wait_for_selector("#health-summary [data-recommendation=retune]")
         page.wait_for_selector("#tune-now:enabled")
@@ -286,13 +293,13 @@ def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(daemon):
         assert api(daemon, f"/loops/{SLUGGISH}")["session"]
 
 
-def test_sorted_by_health_no_row_moves_under_the_pointer_until_it_leaves_the_table(daemon):
+def test_sorted_by_health_no_row_moves_under_the_pointer_until_it_leaves_the_table(browser, daemon):
     """Sorted by health, the pointer on the sticky valve's link: its rank changes (tuned, its health is collecting
     again: rank 0, the last place) and its row stays under the pointer; once the pointer leaves the table, the
     order is the daemon's (``GET /loop-health``)."""
     assessed(daemon, STICKY, "check_valve")
     row = f"#loops tr[data-loop={STICKY}]"
-    with page_of(daemon) as page:
+    with page_of(browser, daemon) as page:
         page.wait_for_selector(f"{row} [data-hflag=stiction]")
         page.click("#sort-health")
         daemon.wait_until(lambda: shown_order(page) == listed_order(daemon), 60, "the page sorted as the daemon")
