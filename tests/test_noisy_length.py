@@ -17,12 +17,7 @@ import pytest
 
 from autotuner.engine.experiment import convergence
 from autotuner.engine.experiment.loop import cycle_noise
-from autotuner.engine.experiment.relay import RelayConfig
-from autotuner.engine.outcome import Code
-from autotuner.engine.plant.expression import parse_process
-from autotuner.engine.plant.simulation import PlantSim
-from autotuner.engine.simulated_tuning import EXPERIMENT_SAMPLES_PER_PERIOD, phase_frequency, run_experiment
-from test_experiment_length import CASES as LENGTH_CASES
+from test_experiment_length import CASES as LENGTH_CASES, identified
 
 PERIODS = 4.5
 NOISE = 0.01  # σ as a share of |F(jω135)|·amp
@@ -34,14 +29,7 @@ CASES = LENGTH_CASES
 @pytest.mark.parametrize("seed", [1, 2])
 @pytest.mark.parametrize("expr, f, k0", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
 def test_tunes_within_four_and_a_half_periods_at_one_percent_noise(expr, f, k0, seed) -> None:
-    process = parse_process(expr)
-    w135 = phase_frequency(process, 135.0)
-    period = 2.0 * math.pi / w135
-    sigma = NOISE * abs(f(1j * w135))
-    sim = PlantSim(process, period / EXPERIMENT_SAMPLES_PER_PERIOD, noise_std=sigma, seed=seed)
-    experiment, _ = run_experiment(sim, RelayConfig(amp=1.0, time_limit=200 * period))
-    assert experiment.code is Code.OK, experiment.message
-    result = experiment.result
+    result = identified(expr, NOISE, seed)
     assert result.periods <= PERIODS
     true = complex(f(1j * result.point.omega))
     # Half of gain_tol: what the settled rule claims of its point (a standard error within it).
