@@ -89,16 +89,19 @@ class Held:
         compared made after the levels last ``changed_at``, s), else None."""
         verdict = self.verdict
         latest = [k0 for when, k0 in self.gains[-FITS_AGREE:] if when > changed_at]
-        if verdict is None or len(latest) < FITS_AGREE:
+        if verdict is None or len(latest) < FITS_AGREE or self.uncertain(fit, tol):
             return None
         gain = verdict.point.gain
         xs = [fitted_x(gain, k0) for k0 in latest]
         x = fitted_x(gain, fit.static_gain)
-        # One static_tol of standard error, as a followed load's K0 always had; on a slow mode (|F|/K0 below
-        # 0.5) relative to it, twice the settled rule's bound: an error of 0.019 at 0.053 (K0 five times off,
-        # under a random load the step-and-ramp fit does not describe) is no estimate of K0.
-        if fit.x_std > min(tol.static_tol, 2.0 * static_bound(tol, x)):
-            return None
         if max(xs) - min(xs) > static_bound(tol, x):
             return None
         return replace(verdict, x=x)
+
+    def uncertain(self, fit: LoadFit, tol: Tolerances) -> bool:
+        """True when the ``fit``'s standard error of |F|/K0 at the held point is beyond the tolerances ``tol``:
+        one static_tol, as a followed load's K0 always had; on a slow mode (|F|/K0 below 0.5) relative to it,
+        twice the settled rule's bound (an error of 0.019 at 0.053 — K0 five times off, under a random load the
+        step-and-ramp fit does not describe — is no estimate of K0)."""
+        gain = fit.static_gain * fit.x if self.verdict is None else self.verdict.point.gain
+        return fit.x_std > min(tol.static_tol, 2.0 * static_bound(tol, fitted_x(gain, fit.static_gain)))

@@ -61,8 +61,9 @@ from autotuner.engine.outcome import MESSAGES, Code
 __all__ = ["Identification", "Point", "RelayConfig", "RelayExperiment", "Stage", "Status"]
 
 # While a load is followed on a quiet run, at most this many of the latest estimates are re-read with each new
-# fit (the stopping rule's curve rule judges six; each re-reading runs the model over the record three times).
-REREAD = 6
+# fit, until a point is held (the settled rule judges up to four estimates by the seventh period; each re-reading
+# runs the model over the record three times).
+REREAD = 4
 
 
 class RelayExperiment:
@@ -340,21 +341,25 @@ class RelayExperiment:
         if fit is None or not corrects:
             return convergence.at_rising(self._loop, self._estimates, self._switching.periods, self._since(),
                                          self._adaptation.target_deg, None if fit is None else fit.x_std)
-        self._reread(fit)
-        verdict = convergence.at_rising(self._loop, self._estimates, self._switching.periods, self._since(),
-                                        self._adaptation.target_deg, fit.x_std, corrected=True)
-        since = self._since()
-        oldest = self._estimates.usable(since)[-verdict.count].start if verdict is not None else math.inf
         held, now = self._held, self._loop.record.time(-1)
+        step = max(self._load.discard_before, self._estimates.stalled_until)
+        verdict, oldest = None, math.inf
+        if held.verdict is None or held.oldest < step:
+            # (A held point needs no more estimates: only K0 is awaited.)
+            self._reread(fit)
+            verdict = convergence.at_rising(self._loop, self._estimates, self._switching.periods, self._since(),
+                                            self._adaptation.target_deg, fit.x_std, corrected=True)
+            if verdict is not None:
+                oldest = self._estimates.usable(self._since())[-verdict.count].start
         if not held.gains and self._load.confirmed is not None:
             # (The confirming candidate came a period before, with the same levels.)
             held.gains.append((math.nextafter(now, -math.inf), self._load.confirmed.static_gain))
-        held.update(verdict, oldest, max(self._load.discard_before, self._estimates.stalled_until), fit, now)
+        held.update(verdict, oldest, step, fit, now)
         self._load.point = None if held.verdict is None else held.verdict.point
-        if held.verdict is not None and fit.x_std > self.config.static_tol:
-            self._load.excite()  # the point stands; K0 needs a change of the MV's mean
-        changed = self._levels.changed_at
-        return held.result(fit, convergence.tolerances(self.config), -math.inf if changed >= now else changed)
+        changed, tol = self._levels.changed_at, convergence.tolerances(self.config)
+        if held.verdict is not None and held.uncertain(fit, tol):
+            self._load.excite()  # the point stands; K0 is not sure yet: a change of the MV's mean excites it
+        return held.result(fit, tol, -math.inf if changed >= now else changed)
 
     def _corrects(self) -> bool:
         """True when a followed load's estimates shed its share through the model (load_correction.py): a quiet,
