@@ -104,4 +104,5 @@ class Held:
         twice the settled rule's bound (an error of 0.019 at 0.053 — K0 five times off, under a random load the
         step-and-ramp fit does not describe — is no estimate of K0)."""
         gain = fit.static_gain * fit.x if self.verdict is None else self.verdict.point.gain
-        return fit.x_std > min(tol.static_tol, 2.0 * static_bound(tol, fitted_x(gain, fit.static_gain)))
+        x = fitted_x(gain, fit.static_gain)
+        return fit.x_std > (tol.static_tol if x >= 0.1 else min(tol.static_tol, 2.0 * static_bound(tol, x)))
