@@ -6,6 +6,9 @@ disturbance is acted on when two fits a period apart agree on it: its
 |F|/K0 replaces the simple means, estimates whose windows reach back before
 a load step are left out, and the relay's centre follows the load within
 ±amp (levels.py). Once disturbed, every period refits near the accepted fit.
+On a quiet, noise-free run the estimates since the step shed the load's share
+instead (load_correction.py): there the centre stays for a load within
+KEEP_CENTRE of the weaker level, and the bias flips only when K0 needs it.
 """
 
 from __future__ import annotations
@@ -211,7 +214,7 @@ class LoadFollowing:
         transients alone, and a change of the MV's mean excites it (the fit's x_std falls)."""
         levels = self.levels
         if levels.flipped and levels.changed_at > -math.inf:
-            return
+            return  # (a flip made already; one recorded but not applied yet, the levels never changed, goes on)
         levels.flip_once()
         levels.reset()
         levels.changed_at = self.loop.record.time(-1)

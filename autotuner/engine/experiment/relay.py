@@ -22,9 +22,9 @@ deviations from the operating point over it (over the last two under noise);
 on a quiet, noise-free run the point is taken without the share of the start's
 transient a first-order model says it holds (estimates.py, transient.py). The
 experiment stops when the estimates agree (convergence.py, stopping.py). Load
-steps and drift are estimated through and followed (load_following.py); an
-open-loop unstable process is recognised (unstable.py) and kept bounded
-(runaway.py). The ways it ends are in endings.py, the result in
+steps and drift are estimated through and followed (load_following.py,
+load_correction.py); an open-loop unstable process is recognised (unstable.py)
+and kept bounded (runaway.py). The ways it ends are in endings.py, the result in
 identification.py, ``ite`` and the progress in progress.py.
 
 This class only sequences those parts: each sample goes through :meth:`step`;
