@@ -42,12 +42,24 @@ def _assert_accurate(experiment, process, static_rel: float) -> None:
 @pytest.mark.parametrize("size", [0.25, -0.3])
 def test_a_load_step_part_way_is_estimated_through(size: float) -> None:
     # Before: "the static gain must be positive" (the step was read as static gain).
-    experiment, trace, process = _run(PLANT, loads=[(3.0, size)])
+    experiment, _, process = _run(PLANT, loads=[(3.0, size)])
     _assert_accurate(experiment, process, 0.1)
     ident = experiment.result
     assert ident.disturbance and ident.load_estimate == pytest.approx(size, abs=0.05)
-    # The relay's centre followed the load: the MV ends around mv0 − load.
-    assert abs(trace.mv[-200:].mean() + size) < 0.5
+
+
+def test_the_relays_centre_follows_a_large_load_and_stays_for_a_small_one() -> None:
+    # A quiet run takes a followed load's share out of its estimates (load_correction.py): the centre moves only
+    # for a load beyond half the weaker level's amplitude (0.3 × amp at bias 0.2); every move is a transient.
+    small, small_trace, process = _run(PLANT, loads=[(3.0, 0.2)])
+    _assert_accurate(small, process, 0.02)
+    assert small.result.load_estimate == pytest.approx(0.2, abs=0.01)
+    # The relay's own levels, mv0 + amp and mv0 − amp·(1 − 2·bias), the whole run long.
+    assert small_trace.mv.max() <= 1.0 + 1e-9 and small_trace.mv.min() >= -0.6 - 1e-9
+    large, large_trace, process = _run(PLANT, loads=[(3.0, 0.45)])
+    _assert_accurate(large, process, 0.02)
+    # The centre followed the load: the MV ends around mv0 − load, its low level beyond the relay's own.
+    assert abs(large_trace.mv[-200:].mean() + 0.45) < 0.5 and large_trace.mv.min() < -1.0
 
 
 @pytest.mark.parametrize("expr", ["exp(-s)/(2*s+1)", "exp(-s)/(50*s+1)^2"])

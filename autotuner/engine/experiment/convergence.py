@@ -101,11 +101,12 @@ def unsettled(when: str, loop: Loop, estimates: Estimates, since: float, fit: Lo
 
 
 def at_rising(loop: Loop, estimates: Estimates, periods: int, since: float, target_deg: float,
-              x_std: float | None) -> Verdict | None:
+              x_std: float | None, corrected: bool = False) -> Verdict | None:
     """The verdict on the ``estimates`` of the ``loop`` after ``periods`` whole periods, or None to go on.
 
     ``since``: estimates whose period starts earlier are left out (s); ``target_deg``: the lag aimed at,
-    degrees; ``x_std``: a followed load fit's standard error of |F|/K0 (None while quiet).
+    degrees; ``x_std``: a followed load fit's standard error of |F|/K0 (None while quiet); ``corrected``: the
+    followed load's share is taken out of the estimates (load_correction.py).
     """
     if periods < MIN_PERIODS or len(estimates) < 2:
         return None
@@ -120,6 +121,10 @@ def at_rising(loop: Loop, estimates: Estimates, periods: int, since: float, targ
     # (the period right after the filter's first correction).
     longest = len(usable) - 1 if scattered else 2 + (periods - MIN_PERIODS) // 2
     tol = tolerances(loop.config)
+    if x_std is not None and corrected:
+        # A followed load's estimates with its share taken out (load_correction.py): judged as quiet ones, each
+        # |F|/K0 the fit's K0 at its |F| (the caller waits for the fit's K0 to be as sure as a quiet run's).
+        x_std = None
     verdict = judge(pairs(usable), target_deg, tol, longest, scattered, x_std, scatter=spread)
     if verdict is None and not scattered and x_std is None:
         # Quiet: the estimates through the second model may have shed their transient where the first-order

@@ -203,6 +203,36 @@ def alt_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[floa
     return Point(point.omega, value), x * abs(value) / point.gain
 
 
+def followed_point(loop: Loop, raw: Samples, detrended: np.ndarray, bounds: list[float], static_gain: float,
+                   load: np.ndarray, first: Point | None = None, ratio: float = 0.0) -> tuple[Point, float]:
+    """The quiet, noise-free estimate over the last whole period of ``bounds`` (crossing times, s) while a load is
+    followed: the transient's share read off the model (transient.py; two lags ``ratio`` apart, or first order
+    for 0) driven by the MV and the fitted ``load`` (MV units at each of the record's holds), through the point
+    and the fit's ``static_gain`` (K0, PV per MV unit); its |F|/K0 is |F|/K0 of the fit.
+
+    ``loop``, ``raw``, ``detrended``: as for :func:`period_point`. ``first``: the first-order model's estimate,
+    which the second model goes through (one correction, as :func:`alt_point`); None for the first-order one
+    (CORRECTIONS). The point is the PV as measured less a model's transient: a fit that does not describe the
+    record leaves a share that differs from window to window, and the stopping rule's consistency tests
+    (stopping.py) do not pass on such estimates.
+    """
+    ta, tb = bounds[-2], bounds[-1]
+    omega = 2.0 * math.pi / (tb - ta)
+    measured = response(loop, replace(raw, y=detrended), ta, tb, omega, hann=False)
+    measure = _measure(loop, raw, bounds)
+    value = measured if first is None else first.value
+    for _ in range(CORRECTIONS if first is None else 1):
+        x = fitted_x(abs(value), static_gain)
+        value = measured - transient.bias(loop, raw.t, measure, bounds, value, x, ratio, load)
+    return Point(omega, value), fitted_x(abs(value), static_gain)
+
+
+def fitted_x(gain: float, static_gain: float) -> float:
+    """|F|/K0 of a point of ``gain`` (|F|, PV per MV unit) with a fitted ``static_gain`` (K0, PV per MV unit; inf
+    for an integrator: 0)."""
+    return gain / static_gain if math.isfinite(static_gain) and static_gain != 0.0 else 0.0
+
+
 def _measure(loop: Loop, raw: Samples, bounds: list[float]) -> Callable[[np.ndarray], complex]:
     """The estimate over the last period of ``bounds`` (crossing times, s) made from a PV deviation at the
     ``raw`` samples' times as from the measured PV of the ``loop`` (the drift across ``bounds`` removed)."""

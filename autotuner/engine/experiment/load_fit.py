@@ -143,6 +143,13 @@ class LoadFit:
             load += self.step
         return load
 
+    def loads(self, t: np.ndarray, t0: float) -> np.ndarray:
+        """The fitted load at the process input at the times ``t`` (s; ``t0``: the record start), MV units."""
+        load = self.ramp * (t - t0)
+        if self.step_time is not None:
+            load = load + np.where(t >= self.step_time, self.step, 0.0)
+        return load
+
     @property
     def detected(self) -> bool:
         """True when any disturbance term was needed to explain the data."""

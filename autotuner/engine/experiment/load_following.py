@@ -6,6 +6,9 @@ disturbance is acted on when two fits a period apart agree on it: its
 |F|/K0 replaces the simple means, estimates whose windows reach back before
 a load step are left out, and the relay's centre follows the load within
 ±amp (levels.py). Once disturbed, every period refits near the accepted fit.
+On a quiet, noise-free run the estimates since the step shed the load's share
+instead (load_correction.py): there the centre stays for a load within
+KEEP_CENTRE of the weaker level, and the bias flips only when K0 needs it.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from autotuner.engine.experiment.estimates import Estimates, lag
 from autotuner.engine.experiment.levels import Levels
 from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
 from autotuner.engine.experiment.loop import Loop
+from autotuner.engine.experiment.point import Point
 from autotuner.engine.experiment.switching import Switching
 
 # The record is searched for a disturbance from this many periods on (earlier,
@@ -33,6 +37,10 @@ SHIFT_STEP = 0.03
 JUMP = 0.05
 # A fit whose |F|/K0 is this uncertain describes no disturbance reliably enough to act on.
 X_STD_MAX = 0.1
+# On a run whose estimates shed the load's share (load_correction.py: quiet, noise-free), the relay's centre stays
+# where it is while the load is within this share of the weaker level's amplitude (amp·(1 − 2·bias)): the cycle
+# goes on around it, and every step of the levels is a new transient in the estimates.
+KEEP_CENTRE = 0.5
 
 
 @dataclass
@@ -60,6 +68,11 @@ class LoadFollowing:
         self.fit: LoadFit | None = None
         self.candidate: LoadFit | None = None
         self.discard_before = -math.inf  # estimates whose period starts before this (s) precede a load step
+        self.confirmed: LoadFit | None = None  # the candidate the accepted fit confirmed
+        # A point the stopping rule holds (load_correction.Held): the fits' model goes through it rather than
+        # through the latest estimate (a flip's transient in it would put the model, and K0, off).
+        self.point: Point | None = None
+        self.quiet = False  # a quiet, noise-free run of a process not open-loop unstable (set by the experiment)
         self._fits = _Fits((0, 0), None)
 
     def due(self) -> bool:
@@ -90,6 +103,7 @@ class LoadFollowing:
         previous, self.candidate = self.candidate, fit
         if previous is None or not self._agree(previous, fit):
             return True  # look again next period before accepting anything
+        self.confirmed = previous
         self._accept(fit)
         return True
 
@@ -133,7 +147,7 @@ class LoadFollowing:
         if self._resonant():
             return None
         loop = self.loop
-        point = self.estimates.latest.point
+        point = self.estimates.latest.point if self.point is None else self.point
         record = loop.record.all()
         n = len(record.u)
         scale = point.gain * loop.config.amp
@@ -182,7 +196,7 @@ class LoadFollowing:
         """A fitted disturbance worth estimating through: larger than a fraction of amp (or of the PV scale)."""
         amp = self.loop.config.amp
         step = fit.step_time is not None and abs(fit.step) >= LOAD_FRACTION * amp
-        ramp = abs(fit.ramp) * self.loop.elapsed() >= 2.0 * LOAD_FRACTION * amp
+        ramp = abs(fit.ramp) * self.loop.elapsed() >= (1.0 if self.quiet else 2.0) * LOAD_FRACTION * amp
         free = abs(fit.free) >= LOAD_FRACTION * self.estimates.latest.point.gain * amp
         return step or ramp or free
 
@@ -190,9 +204,35 @@ class LoadFollowing:
         self.fit = fit
         if fit.step_time is not None:
             self.discard_before = max(self.discard_before, fit.step_time)
-            if abs(fit.step) >= 2.0 * LOAD_FRACTION * self.loop.config.amp:
+            # (Where the estimates shed the load's share the bias flips only when K0 needs it: excite.)
+            if abs(fit.step) >= 2.0 * LOAD_FRACTION * self.loop.config.amp and not self._keeps_centre():
                 self.levels.flip_once()
         self._follow()
+
+    def excite(self) -> None:
+        """Flip the relay's bias now (once per experiment): after a load step the static gain is known from the
+        transients alone, and a change of the MV's mean excites it (the fit's x_std falls)."""
+        levels = self.levels
+        if levels.flipped and levels.changed_at > -math.inf:
+            return  # (a flip made already; one recorded but not applied yet, the levels never changed, goes on)
+        levels.flip_once()
+        levels.reset()
+        levels.changed_at = self.loop.record.time(-1)
+
+    @property
+    def corrects(self) -> bool:
+        """True when the estimates shed the followed load's share (load_correction.py): a ``quiet`` run, and a
+        fit whose model does not run away (|F|/K0 not below −static_tol)."""
+        return self.quiet and self.fit is not None and self.fit.x >= -self.loop.config.static_tol
+
+    def _keeps_centre(self) -> bool:
+        """True when the relay's centre stays put for the followed load (KEEP_CENTRE; the estimates shed the
+        load's share: :attr:`corrects`)."""
+        fit, config = self.fit, self.loop.config
+        if fit is None or not self.corrects:
+            return False
+        load = fit.load_at(self.loop.record.time(-1), self.loop.record.time(0))
+        return abs(load) <= KEEP_CENTRE * config.amp * (1.0 - 2.0 * config.bias)
 
     def _follow(self) -> None:
         """Shift the relay's centre to cancel the fitted load at the process input (within ±amp)."""
@@ -210,7 +250,11 @@ class LoadFollowing:
             raise endings.load_too_large(load, amp)
         center = loop.mv0 - loop.sign * load
         rate = loop.sign * fit.ramp
-        if abs(center - applied) > SHIFT_STEP * amp or levels.changed_at == -math.inf:
+        if self._keeps_centre():
+            if abs(rate - levels.follow_rate) * period > 0.2 * SHIFT_STEP * amp:
+                # A drift is followed from the centre where it is: no step of the levels.
+                levels.follow(applied, rate, then)
+        elif abs(center - applied) > SHIFT_STEP * amp or levels.changed_at == -math.inf:
             # Each step of the levels starts a transient: estimates are taken after it.
             levels.follow(center, rate, then)
             levels.changed_at = t

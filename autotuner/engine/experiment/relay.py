@@ -22,9 +22,9 @@ deviations from the operating point over it (over the last two under noise);
 on a quiet, noise-free run the point is taken without the share of the start's
 transient a first-order model says it holds (estimates.py, transient.py). The
 experiment stops when the estimates agree (convergence.py, stopping.py). Load
-steps and drift are estimated through and followed (load_following.py); an
-open-loop unstable process is recognised (unstable.py) and kept bounded
-(runaway.py). The ways it ends are in endings.py, the result in
+steps and drift are estimated through and followed (load_following.py,
+load_correction.py); an open-loop unstable process is recognised (unstable.py)
+and kept bounded (runaway.py). The ways it ends are in endings.py, the result in
 identification.py, ``ite`` and the progress in progress.py.
 
 This class only sequences those parts: each sample goes through :meth:`step`;
@@ -37,7 +37,7 @@ import math
 from collections.abc import Callable
 from dataclasses import replace
 
-from autotuner.engine.experiment import convergence, endings
+from autotuner.engine.experiment import convergence, endings, load_correction
 from autotuner.engine.experiment.adaptation import Adaptation
 from autotuner.engine.experiment.config import RelayConfig
 from autotuner.engine.experiment.endings import Ended
@@ -45,6 +45,7 @@ from autotuner.engine.experiment.estimates import (Estimate, Estimates, alt_poin
                                                    period_point, response, wide_x)
 from autotuner.engine.experiment.identification import Identification, identification
 from autotuner.engine.experiment.levels import Levels, listed
+from autotuner.engine.experiment.load_fit import LoadFit
 from autotuner.engine.experiment.load_following import LoadFollowing
 from autotuner.engine.experiment.loop import Loop, cycle_noise
 from autotuner.engine.experiment.point import Point
@@ -58,6 +59,11 @@ from autotuner.engine.outcome import MESSAGES, Code
 
 # The experiment's public names, wherever they are defined.
 __all__ = ["Identification", "Point", "RelayConfig", "RelayExperiment", "Stage", "Status"]
+
+# While a load is followed on a quiet run, at most this many of the latest estimates are re-read with each new
+# fit, until a point is held (the settled rule judges up to four estimates by the seventh period; each re-reading
+# runs the model over the record three times).
+REREAD = 4
 
 
 class RelayExperiment:
@@ -79,6 +85,7 @@ class RelayExperiment:
         adaptation = self._adaptation = Adaptation(loop)
         estimates = self._estimates = Estimates()
         self._load = LoadFollowing(loop, switching, levels, estimates)
+        self._held = load_correction.Held()  # a followed load's point, while K0 may still wait
         self._unstable = Unstable(loop, levels, adaptation, estimates, self._load)
         self._runaway = Runaway(loop, switching, levels)
         self._progress = Progress(loop, switching)
@@ -262,6 +269,7 @@ class RelayExperiment:
         if len(switching.rising) == 1:
             self._start_filter()
             return
+        self._corrects()  # (tells the load following whether its share is taken out of the estimates)
         raw, detrended = self._period_samples()
         ta, tb = switching.crossings[-2], switching.crossings[-1]
         omega = 2.0 * math.pi / (tb - ta)
@@ -277,7 +285,8 @@ class RelayExperiment:
             self._judge(raw, detrended)
         if self._load.fit is None and self._load.due():
             # Quiet so far: look for a disturbance while the estimates have not settled.
-            self._load.look(self._unstable.unstable)
+            if self._load.look(self._unstable.unstable) and self._load.fit is not None and self._corrects():
+                self._accept(self._verdict())
 
     def _start_filter(self) -> None:
         """First rising switch: only half a period is known. Start the filter at the describing-function guess."""
@@ -327,8 +336,51 @@ class RelayExperiment:
         alt = alt_point(loop, raw, detrended.y, bounds, (point, x)) if quiet else None
         gap = longest_gap(raw.t, bounds[0], bounds[-1])
         self._estimates.add(Estimate(point, x, wide, *bounds, alt), gap, loop.dt)
-        self._accept(convergence.at_rising(loop, self._estimates, self._switching.periods, self._since(),
-                                           self._adaptation.target_deg, None if fit is None else fit.x_std))
+        self._accept(self._verdict())
+
+    def _verdict(self) -> Verdict | None:
+        """The stopping rule's verdict on the estimates now (those since a followed load's step re-read with its
+        latest fit first, on a quiet run: load_correction.py)."""
+        fit, corrects = self._load.fit, self._corrects()
+        if fit is None or not corrects:
+            return convergence.at_rising(self._loop, self._estimates, self._switching.periods, self._since(),
+                                         self._adaptation.target_deg, None if fit is None else fit.x_std)
+        held, now = self._held, self._loop.record.time(-1)
+        step = max(self._load.discard_before, self._estimates.stalled_until)
+        verdict, oldest = None, math.inf
+        if held.verdict is None or held.oldest < step:
+            # (A held point needs no more estimates: only K0 is awaited.)
+            self._reread(fit)
+            verdict = convergence.at_rising(self._loop, self._estimates, self._switching.periods, self._since(),
+                                            self._adaptation.target_deg, fit.x_std, corrected=True)
+            if verdict is not None:
+                oldest = self._estimates.usable(self._since())[-verdict.count].start
+        if not held.gains and self._load.confirmed is not None:
+            # (The confirming candidate came a period before, with the same levels.)
+            held.gains.append((math.nextafter(now, -math.inf), self._load.confirmed.static_gain))
+        held.update(verdict, oldest, step, fit, now)
+        self._load.point = None if held.verdict is None else held.verdict.point
+        changed, tol = self._levels.changed_at, convergence.tolerances(self.config)
+        if held.verdict is not None and held.uncertain(fit, tol):
+            self._load.excite()  # the point stands; K0 is not sure yet: a change of the MV's mean excites it
+        return held.result(fit, tol, -math.inf if changed >= now else changed)
+
+    def _corrects(self) -> bool:
+        """True when a followed load's estimates shed its share through the model (load_correction.py): a quiet,
+        noise-free run of a process that is not open-loop unstable (whose model would run away)."""
+        self._load.quiet = not self._unstable.unstable and not convergence.noisy(self._loop, self._estimates)
+        return self._load.corrects
+
+    def _reread(self, fit: LoadFit) -> None:
+        """Re-read the latest estimates since the load step (at most REREAD) with the followed ``fit``."""
+        items = self._estimates.items
+        since = max(self._load.discard_before, self._estimates.stalled_until)
+        load = load_correction.loads(self._loop, fit)
+        follows = bool(self._levels.follow_rate)
+        for i in range(len(items) - 1, max(len(items) - REREAD, 0) - 1, -1):
+            if items[i].start < since:
+                break
+            items[i] = load_correction.reread(self._loop, items[i], fit, load, follows)
 
     def _on_half(self) -> None:
         """A falling switch: a quiet run may stop half a period sooner."""
@@ -342,9 +394,14 @@ class RelayExperiment:
         # Before accepting a quiet result, make sure the record holds no
         # disturbance that the simple means would have mixed in.
         if self._load.fit is None and self._load.look(self._unstable.unstable):
+            if self._load.fit is not None and self._corrects():
+                # Just accepted: the estimates since its step may pass as they are, its share taken out.
+                self._accept(self._verdict())
             return
         fit = self._load.fit
-        self.result = identification(self._loop, verdict.point, fit.x if fit is not None else verdict.x, fit,
+        # (Where the load's share was taken out, the verdict's |F|/K0 is the fit's K0 at the verdict's |F|.)
+        x = fit.x if fit is not None and not self._load.corrects else verdict.x
+        self.result = identification(self._loop, verdict.point, x, fit,
                                      self._estimates.discarded(self._load.discard_before),
                                      self._adaptation.hysteresis, self._adaptation.target_deg)
         raise Ended(Code.OK, MESSAGES[Code.OK])
@@ -353,8 +410,12 @@ class RelayExperiment:
 
     def _since(self) -> float:
         """Estimates whose window starts before this time (s) are not used: a load step, a change of the relay's
-        levels or a stall came after them."""
-        return max(self._load.discard_before, self._levels.changed_at, self._estimates.stalled_until)
+        levels or a stall came after them. (Where a followed load's share is taken out, load_correction.py, a
+        change made just now, after every window, is none: the load's acceptance may judge them at once.)"""
+        changed = self._levels.changed_at
+        if changed >= self._loop.record.time(-1) and self._corrects():
+            changed = -math.inf
+        return max(self._load.discard_before, changed, self._estimates.stalled_until)
 
     def _unfinished(self, when: str) -> Ended:
         """The ending of an experiment whose estimates did not settle ``when``."""

@@ -106,11 +106,13 @@ def model_output(history: Samples, times: np.ndarray, since: float, k0: float, t
 
 
 def bias(loop: Loop, times: np.ndarray, measure: Callable[[np.ndarray], complex], bounds: list[float],
-         value: complex, x: float, ratio: float = 0.0) -> complex:
+         value: complex, x: float, ratio: float = 0.0, load: np.ndarray | None = None) -> complex:
     """The transient's share of the estimate ``value`` (F over the last period of ``bounds``, crossing times,
     s; PV per MV unit) with ``x`` = |F|/K0 of the ``loop``: what the model through them (:func:`model`, two
     lags ``ratio`` apart or first order) reads when its output at the samples' ``times`` (s) goes through
-    ``measure`` (the estimate as ``value`` was made, from a PV deviation), less its exact F(jω).
+    ``measure`` (the estimate as ``value`` was made, from a PV deviation), less its exact F(jω). ``load``: a
+    fitted load at the process input at each of the record's holds (MV units), a second input to the model
+    beside the MV (load_correction.py), or None.
 
     Zero for an open-loop unstable process (``x`` < 0 beyond ``static_tol``), whose model's run over the
     record would grow without bound; a slightly negative ``x`` is an integrator seen through noise.
@@ -122,7 +124,8 @@ def bias(loop: Loop, times: np.ndarray, measure: Callable[[np.ndarray], complex]
     # From rest: MEMORY time constants before the windows (an integrator: a period, any offset goes).
     since = bounds[0] - delay - (MEMORY * tc if math.isfinite(k0) else bounds[-1] - bounds[-2])
     history = loop.record.all()
-    output = model_output(replace(history, u=history.u - loop.mv0), times, since, k0, tc, delay, rate, tc2)
+    inputs = history.u - loop.mv0 if load is None else history.u - loop.mv0 + load
+    output = model_output(replace(history, u=inputs), times, since, k0, tc, delay, rate, tc2)
     return measure(output) - model_response(k0, tc, delay, rate, omega, tc2)
 
 
