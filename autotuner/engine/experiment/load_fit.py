@@ -203,9 +203,11 @@ def settled_x(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, om
     ``omega`` in rad/s, ``lag`` in rad), and ``x`` is refined from its own
     result a few times (the fixed point is where the model and the means
     agree). Once the means have settled the lag passes the mean on unchanged
-    and the result is the plain ratio, whatever the model. ``x`` outside
-    (0, 1) is returned as it is: an integrator or an unstable process has no
-    settled mean to correct to.
+    and the result is the plain ratio, whatever the model. A plain ratio of
+    the wrong sign (the relay's mean moved and the slow lag's PV mean is still
+    on the old side) becomes the root in (0, 1) where the lag explains the
+    means; otherwise, and for ``x`` ≥ 1/_X_MAX, ``x`` is returned as it is: an
+    integrator or an unstable process has no settled mean to correct to.
 
     A PV still settling when the relay started (``slope``, PV units per
     second at ``t0``, with ``dy`` measured from the PV at ``t0``) is the lag's
