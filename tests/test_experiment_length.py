@@ -61,9 +61,6 @@ SHORTER = [  # batch id, expression, the same F(s) in closed form, static gain, 
     ("P7-084", "1*exp(-0.9*s)/((1*s+1)*(0.1*s+1))", lambda s: cmath.exp(-0.9 * s) / ((s + 1) * (0.1 * s + 1)), 1.0,
      THREE_AND_A_HALF),
     ("P8-121", "(1-0.9*s)/(s+1)^3", lambda s: (1 - 0.9 * s) / (s + 1) ** 3, 1.0, THREE_AND_A_HALF),
-    # A slow mode whose first |F|/K0 read negative (the PV's mean had not answered the relay's yet): the root of
-    # settled_x through it, 4.56 periods on main.
-    ("P1-019", "exp(-s)/(200*s+1)", lambda s: cmath.exp(-s) / (200 * s + 1), 1.0, FOUR),
 ]
 
 

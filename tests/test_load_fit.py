@@ -108,30 +108,6 @@ def test_the_settled_x_sees_through_the_start_transient_on_an_uneven_record() ->
     assert settled == pytest.approx(x_true, rel=0.005)
 
 
-@pytest.mark.parametrize("plant", ["exp(-s)/(20*s+1)", "exp(-s)/(200*s+1)"])
-def test_the_settled_x_of_means_that_have_not_answered_the_relay_yet(plant: str) -> None:
-    # The relay's mean flips from +0.2 to −0.2 at the second period (as a filter correction or a load's
-    # relay shift moves it): over the third the slow lag's PV mean is still on the old side, so the plain ratio
-    # of the means has the wrong sign; the root through the model's lag is the true |F|/K0.
-    process = parse_process(plant)
-    point = exact_point(process, 135.0)
-    period = 2.0 * math.pi / point.omega
-    sim = PlantSim(process, period / 100.0)
-    t, y, u = [], [], []
-    while sim.t < 3.0 * period:
-        t.append(sim.t)
-        y.append(sim.measure())
-        u.append((0.2 if sim.t < 2.0 * period else -0.2) + (1.0 if math.sin(point.omega * sim.t) >= 0.0 else -1.0))
-        sim.advance(u[-1])
-    t, y, u = np.array(t), np.array(y), np.array(u)
-    ta, tb = 2.0 * period, 3.0 * period
-    dy = sampled_coefficient(t, y, ta, tb, 0.0, hann=False).real
-    plain = point.gain * held_coefficient(t, u, ta, tb, 0.0, hann=False).real / dy
-    settled = load_fit.settled_x(t, u, dy, plain, point.gain, point.omega, math.radians(135.0), ta, tb)
-    assert plain < 0.0
-    assert settled == pytest.approx(point.gain / process.static_gain(), rel=0.005)
-
-
 def test_the_lagged_mean_equals_the_lag_run_sample_by_sample_over_many_chunks() -> None:
     # 2 000 time constants: the closed form is summed in chunks; here the lag runs one interval at a time.
     rng = np.random.default_rng(7)

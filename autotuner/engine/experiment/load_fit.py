@@ -203,11 +203,9 @@ def settled_x(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, om
     ``omega`` in rad/s, ``lag`` in rad), and ``x`` is refined from its own
     result a few times (the fixed point is where the model and the means
     agree). Once the means have settled the lag passes the mean on unchanged
-    and the result is the plain ratio, whatever the model. A plain ratio of
-    the wrong sign (the relay's mean moved and the slow lag's PV mean is still
-    on the old side) becomes the root in (0, 1) where the lag explains the
-    means; otherwise, and for ``x`` ≥ 1/_X_MAX, ``x`` is returned as it is: an
-    integrator or an unstable process has no settled mean to correct to.
+    and the result is the plain ratio, whatever the model. ``x`` outside
+    (0, 1) is returned as it is: an integrator or an unstable process has no
+    settled mean to correct to.
 
     A PV still settling when the relay started (``slope``, PV units per
     second at ``t0``, with ``dy`` measured from the PV at ``t0``) is the lag's
@@ -223,10 +221,7 @@ def settled_x(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, om
     if dy == 0.0 or t[0] + lag / omega > ta:
         return x
     near_one = _X_MAX <= x < 1.0 / _X_MAX
-    # A plain ratio of the wrong sign: the PV's mean has not answered the relay's new mean yet (a slow lag,
-    # 1/((s+1)*(0.1*s+1)^2) read −0.07 at the first estimate, true 0.09).
-    behind = x <= 0.0 and slope == 0.0
-    if not (0.0 < x < _X_MAX or near_one or behind):
+    if not (0.0 < x < _X_MAX or near_one):
         return x
 
     def mismatch(v: float) -> float:
@@ -239,10 +234,6 @@ def settled_x(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, om
         return v * (dy - slope * tc * (1.0 - left)) - gain * seen
 
     lo, hi = _X_MAX * 1e-3, _X_MAX
-    if behind:
-        # The root within (0, 1) where the lag explains the means; else, as measured (an integrator, whose
-        # |F|/K0 is 0, or an unstable process, whose is negative, have none).
-        return x if mismatch(lo) * mismatch(hi) > 0.0 else _root(mismatch, lo, hi)
     if slope == 0.0:
         # From the plain ratio the refinement converges in a few steps where the correction is small: a
         # step of the plain ratio's refinement (v·dy − |F|·seen = 0 with seen held), then secant steps.
@@ -266,17 +257,12 @@ def settled_x(t: np.ndarray, u: np.ndarray, dy: float, x: float, gain: float, om
         # read 0.66, then 1.02 after the steps, true 0.93): the root within (0, 1) where there is one.
         if mismatch(lo) * mismatch(hi) > 0.0:
             return x if near_one else v
-        return _root(mismatch, lo, hi)
+        return float(scipy.optimize.brentq(mismatch, lo, hi, xtol=_SETTLED * lo, rtol=_SETTLED))
     # A free response to take out moves the mean far more as x changes (through T) than the plain
     # ratio's refinement can follow: the root of the mismatch within (0, 1), bracketed.
     if near_one or mismatch(lo) * mismatch(hi) > 0.0:
         return x
     return float(scipy.optimize.brentq(mismatch, lo, hi, xtol=1e-5))
-
-
-def _root(f: Callable[[float], float], lo: float, hi: float) -> float:
-    """The root of ``f`` (of |F|/K0) within [``lo``, ``hi``], whose ends it has opposite signs at, to _SETTLED."""
-    return float(scipy.optimize.brentq(f, lo, hi, xtol=_SETTLED * lo, rtol=_SETTLED))
 
 
 def lag_states(s: np.ndarray, u: np.ndarray, tc: float) -> np.ndarray:
