@@ -41,8 +41,9 @@ def _assert_accurate(experiment, process, static_rel: float) -> None:
 
 @pytest.mark.parametrize("size", [0.25, -0.3])
 def test_a_load_step_part_way_is_estimated_through(size: float) -> None:
-    # Before: "the static gain must be positive" (the step was read as static gain).
-    experiment, _, process = _run(PLANT, loads=[(3.0, size)])
+    # Before: "the static gain must be positive" (the step was read as static gain). At 2.5 periods: the quiet
+    # run now ends at 3.2, before a step at 3.0 reaches the PV through the dead time (K0 1.0000, as it should).
+    experiment, _, process = _run(PLANT, loads=[(2.5, size)])
     _assert_accurate(experiment, process, 0.1)
     ident = experiment.result
     assert ident.disturbance and ident.load_estimate == pytest.approx(size, abs=0.05)
@@ -51,12 +52,12 @@ def test_a_load_step_part_way_is_estimated_through(size: float) -> None:
 def test_the_relays_centre_follows_a_large_load_and_stays_for_a_small_one() -> None:
     # A quiet run takes a followed load's share out of its estimates (load_correction.py): the centre moves only
     # for a load beyond half the weaker level's amplitude (0.3 × amp at bias 0.2); every move is a transient.
-    small, small_trace, process = _run(PLANT, loads=[(3.0, 0.2)])
+    small, small_trace, process = _run(PLANT, loads=[(2.5, 0.2)])  # before the quiet run's end at 3.2
     _assert_accurate(small, process, 0.02)
     assert small.result.load_estimate == pytest.approx(0.2, abs=0.01)
     # The relay's own levels, mv0 + amp and mv0 − amp·(1 − 2·bias), the whole run long.
     assert small_trace.mv.max() <= 1.0 + 1e-9 and small_trace.mv.min() >= -0.6 - 1e-9
-    large, large_trace, process = _run(PLANT, loads=[(3.0, 0.45)])
+    large, large_trace, process = _run(PLANT, loads=[(2.5, 0.45)])
     _assert_accurate(large, process, 0.02)
     # The centre followed the load: the MV ends around mv0 − load, its low level beyond the relay's own.
     assert abs(large_trace.mv[-200:].mean() + 0.45) < 0.5 and large_trace.mv.min() < -1.0
@@ -76,8 +77,9 @@ def test_a_small_load_step_against_the_bias_is_not_taken_for_a_resonance(expr: s
 
 def test_a_load_that_cancels_the_bias_on_a_dead_time_process_is_not_taken_for_a_resonance() -> None:
     # −0.2 × amp cancels the relay's mean: |F|/K0 ran away above 1 (1.1, 1.8, 2.9, 5.9, …) with |F|
-    # unchanged, the load fit was skipped as "a resonance" and the run ended with ite 11.
-    experiment, _, process = _run("exp(-s)/(0.05*s+1)^2", loads=[(3.3, -0.2)])
+    # unchanged, the load fit was skipped as "a resonance" and the run ended with ite 11. At 2.8 periods: the
+    # quiet run now ends at 3.31, before a step at 3.3 reaches the PV (K0 1.0000).
+    experiment, _, process = _run("exp(-s)/(0.05*s+1)^2", loads=[(2.8, -0.2)])
     _assert_accurate(experiment, process, 0.05)
     assert experiment.result.disturbance
 

@@ -5,8 +5,9 @@ since the latest disturbance, change of the levels or stall are judged; the
 longer the experiment runs, the more of the latest may be averaged. On a
 quiet, noise-free run the period between the latest falling crossings, which
 overlaps the latest rising one by half, stops it half a period sooner when the
-two agree within ``HALF_TOL`` of the tolerances. When neither has happened by ``max_periods`` or the time
-limit, :func:`unsettled` says why.
+two agree within ``HALF_TOL`` of the tolerances — from the falling switch after the first estimate on, where
+both transient models' sets must agree. When neither has happened by ``max_periods`` or the time limit,
+:func:`unsettled` says why.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from autotuner.engine.experiment.estimates import (GAP, STALL, Estimates, alt_po
                                                    period_point)
 from autotuner.engine.experiment.load_fit import LoadFit
 from autotuner.engine.experiment.loop import Loop
-from autotuner.engine.experiment.stopping import Tolerances, Verdict, judge
+from autotuner.engine.experiment.stopping import MODEL_GATE_DEG, Tolerances, Verdict, judge
 from autotuner.engine.experiment.switching import Switching
 from autotuner.engine.experiment.transient import ALT_RATIO
 
@@ -37,6 +38,10 @@ SCATTER_MAX = 0.25
 # difference of disjoint windows, but by √ρ/(1 − √ρ) × that of windows half a period apart — 2.4–2.9 times
 # more for ρ = 0.5–0.3.
 HALF_TOL = 1.0 / 3.0
+# The falling switch after the first estimate is judged only when that estimate lags the target by at most this
+# much (degrees): the estimate of the period ending there is most of an analysis's cost, and on the batch every
+# run that stopped there had its first estimate within 0.6° (at 4° or at this gate, the same runs stopped).
+FIRST_GATE_DEG = MODEL_GATE_DEG
 
 
 def tolerances(config: RelayConfig) -> Tolerances:
@@ -146,10 +151,15 @@ def at_falling(loop: Loop, switching: Switching, estimates: Estimates, since: fl
     ones are averaged.)
     """
     periods, falls, crossings = switching.periods, switching.falls, switching.crossings
-    if periods < MIN_PERIODS or len(falls) < 3 or noisy(loop, estimates):
+    # From the falling switch after the first estimate on: that estimate and the period ending here may pass
+    # the model rule (exp(-s)/(s+1) and its like: exact from the first estimate, 3.77 → 3.21 periods).
+    if periods < MIN_PERIODS - 1 or len(falls) < 3 or noisy(loop, estimates):
         return None
     usable = estimates.usable(since)
     if falls[-2] < since or not usable:
+        return None
+    if periods < MIN_PERIODS and abs(-usable[-1].point.phase_deg - target_deg) > FIRST_GATE_DEG:
+        # (One estimate, too far from the target for a stop half a period on.)
         return None
     raw = loop.record.since(min(falls[-3], crossings[-2]))
     # A sampling gap (a stalled link) in the overlap biases both windows alike, so they agree: only the
@@ -157,14 +167,23 @@ def at_falling(loop: Loop, switching: Switching, estimates: Estimates, since: fl
     if longest_gap(raw.t, crossings[-2], raw.t[-1]) > GAP * loop.dt:
         return None
     detrended = raw.y - drift(raw.t, raw.y, falls[-3:])
-    longest = 2 + (periods - MIN_PERIODS) // 2
+    longest = 2 + max(periods - MIN_PERIODS, 0) // 2
     c = loop.config
     tol = replace(tolerances(c), gain_tol=c.gain_tol * HALF_TOL, static_tol=c.static_tol * HALF_TOL)
     half = period_point(loop, raw, detrended, falls[-3:], None)
     spread = estimate_scatter(loop, estimates)
     verdict = judge([*pairs(usable), half], target_deg, tol, longest, False, scatter=spread)
-    if verdict is None:
-        # (As at a rising switch: the estimates through the second model, judged with it.)
-        alt = alt_point(loop, raw, detrended, falls[-3:], half)
-        verdict = judge([*pairs(usable, alt=True), alt], target_deg, tol, longest, False, None, ALT_RATIO, spread)
-    return verdict
+    # One estimate so far, which the period ending here overlaps by half: both share what is left of the
+    # transient, so both models' corrections must pass (alone, the first-order set stopped exp(-s)/(0.01*s+1)^2
+    # at 3.31 periods with its point 0.37 % off; 0.06 % at 4.31 before).
+    both = periods < MIN_PERIODS
+    if verdict is None and both:
+        return None
+    if verdict is not None and not both:
+        return verdict
+    # (As at a rising switch: the estimates through the second model, judged with it.)
+    alt = alt_point(loop, raw, detrended, falls[-3:], half)
+    second = judge([*pairs(usable, alt=True), alt], target_deg, tol, longest, False, None, ALT_RATIO, spread)
+    if both:
+        return verdict if second is not None else None
+    return second
