@@ -13,7 +13,7 @@ import math
 
 import pytest
 
-from autotuner.engine.experiment.relay import RelayConfig
+from autotuner.engine.experiment.relay import Identification, RelayConfig
 from autotuner.engine.outcome import Code
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.plant.simulation import PlantSim
@@ -35,15 +35,22 @@ CASES = [  # batch id, expression, the same F(s) in closed form, static gain
 ]
 
 
-@pytest.mark.parametrize("expr, f, k0", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
-def test_tunes_within_four_periods_as_accurately_as_the_bench_requires(expr, f, k0) -> None:
+def identified(expr: str, noise: float = 0.0, seed: int = 1) -> Identification:
+    """The experiment's result on ``expr`` at the bench's conditions, with white noise of σ ``noise`` × |F(jω135)|
+    (amp 1) from ``seed``; it must end "ok"."""
     process = parse_process(expr)
     w135 = phase_frequency(process, 135.0)
     period = 2.0 * math.pi / w135
-    sim = PlantSim(process, period / EXPERIMENT_SAMPLES_PER_PERIOD)
+    sigma = noise * abs(complex(process.freqresp(w135)))
+    sim = PlantSim(process, period / EXPERIMENT_SAMPLES_PER_PERIOD, noise_std=sigma, seed=seed)
     experiment, _ = run_experiment(sim, RelayConfig(amp=1.0, time_limit=200 * period))
     assert experiment.code is Code.OK, experiment.message
-    result = experiment.result
+    return experiment.result
+
+
+@pytest.mark.parametrize("expr, f, k0", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_tunes_within_four_periods_as_accurately_as_the_bench_requires(expr, f, k0) -> None:
+    result = identified(expr)
     assert result.periods <= FOUR
     true = complex(f(1j * result.point.omega))
     assert abs(result.point.value - true) / abs(true) <= 0.002

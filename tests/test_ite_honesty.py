@@ -5,6 +5,9 @@ known once the run has ended; ite is judged from half a period after the relay's
 before the end (autotuner/benchmarks/ite_bench.py says why). Measured on this sample (2026-12-05): within
 ±30 % on 53 % of the statuses noise-free and 60 % at 1 % noise (main's engine: 19 % and 31 %), ite/true
 p10 0.38 and 0.49 (main: 0.14 and 0.28: the 5–10 times short period guess of lag-dominant processes).
+Since branch noisy-short the 1 % noise runs are quiet ones (their estimates scatter by a seventh of gain_tol:
+docs/experiment.md, "Quiet rules under low noise"), two periods shorter, and ite counts them as it counts
+the noise-free runs: within ±30 % on 54 % of the statuses (noise-free 53 %), p10 0.42, median 0.91.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment
 SAMPLE = load_batch(default_batch())[::13]
 
 
-@pytest.mark.parametrize("noise, within", [(0.0, 0.50), (0.01, 0.55)])
+@pytest.mark.parametrize("noise, within", [(0.0, 0.50), (0.01, 0.50)])
 def test_ite_is_within_30_percent_of_the_time_really_left_on_most_statuses(noise: float, within: float) -> None:
     runs = [run_one(row["expr"], row["id"], noise, every=7) for row in SAMPLE]
     judged = [judge(run) for run in runs]

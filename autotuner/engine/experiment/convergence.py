@@ -12,6 +12,7 @@ both transient models' sets must agree. When neither has happened by ``max_perio
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 from autotuner.engine.experiment import endings
@@ -28,8 +29,10 @@ from autotuner.engine.experiment.transient import ALT_RATIO
 # Minimum number of whole periods before convergence is judged: one for the
 # start-up transient and the first filter correction, one per estimate.
 MIN_PERIODS = 3
-# Noise (σ) above this fraction of |F|·amp makes single estimates scatter beyond gain_tol.
-NOISY = 0.002
+# A run is noisy when one period's estimate of F is expected to scatter by more than this share of gain_tol
+# (scatter): then the quiet rules' agreement of two or three estimates could be the noise's, and the averaged
+# rule judges. Below it the noise moves an estimate less than the quiet rules' tests can tell from a transient.
+SCATTER_MAX = 0.25
 # The share of gain_tol and static_tol within which a period between falling crossings must agree with the
 # latest rising one: a transient decaying by ρ per period leaves the latest estimate off by ρ/(1 − ρ) × the
 # difference of disjoint windows, but by √ρ/(1 − √ρ) × that of windows half a period apart — 2.4–2.9 times
@@ -42,11 +45,43 @@ def tolerances(config: RelayConfig) -> Tolerances:
     return Tolerances(config.phase_tol_deg, config.gain_tol, config.static_tol, config.noise_tol)
 
 
+def scatter(noise: float, swing: float, samples: float) -> float:
+    """The expected relative standard error of each of the real and imaginary parts of one period's estimate of
+    F, from white noise of σ ``noise`` (PV units) over ``samples`` samples of a cycle whose fundamental is
+    ``swing`` (PV units; |F|·amp for the relay's MV, whose fundamental is about amp at bias 0.2).
+
+    A Fourier coefficient over N samples of white noise has each part's standard error σ·sqrt(2/N).
+    """
+    if noise <= 0.0:
+        return 0.0
+    return noise * math.sqrt(2.0 / max(samples, 1.0)) / swing if swing > 0.0 else math.inf
+
+
 def noisy(loop: Loop, estimates: Estimates) -> bool:
-    """True when the measured noise of ``loop`` is large enough to scatter the ``estimates`` beyond gain_tol."""
+    """True when the measured noise of ``loop`` is expected to scatter one period's estimate of the ``estimates``
+    by more than SCATTER_MAX of gain_tol."""
+    return estimate_scatter(loop, estimates) > SCATTER_MAX * loop.config.gain_tol
+
+
+def estimate_scatter(loop: Loop, estimates: Estimates) -> float:
+    """:func:`scatter` of the latest of the ``estimates`` of the ``loop`` (0 before one)."""
     if not estimates.items:
-        return False
-    return loop.noise > NOISY * estimates.latest.point.gain * loop.config.amp
+        return 0.0
+    latest = estimates.latest
+    return period_scatter(loop, latest.point.gain * loop.config.amp, latest.end - latest.start)
+
+
+def too_scattered(loop: Loop, swing: float, period: float) -> bool:
+    """True when the noise of ``loop`` scatters one ``period``'s (s) estimate of a cycle whose fundamental is
+    ``swing`` (PV units) by more than SCATTER_MAX of gain_tol (:func:`scatter`)."""
+    return period_scatter(loop, swing, period) > SCATTER_MAX * loop.config.gain_tol
+
+
+def period_scatter(loop: Loop, swing: float, period: float) -> float:
+    """:func:`scatter` of one ``period``'s (s) estimate of the ``loop``'s cycle whose fundamental is ``swing``
+    (PV units)."""
+    samples = period / loop.dt if loop.dt > 0.0 else 1.0
+    return scatter(loop.sigma, swing, samples)
 
 
 def unsettled(when: str, loop: Loop, estimates: Estimates, since: float, fit: LoadFit | None,
@@ -81,15 +116,16 @@ def at_rising(loop: Loop, estimates: Estimates, periods: int, since: float, targ
     # Estimates scatter with noise and sampling jitter; the longer the
     # experiment runs, the more of the latest may be averaged (stopping.py).
     scattered = noisy(loop, estimates)
+    spread = estimate_scatter(loop, estimates)
     # With noise, all estimates since the last disturbance may be averaged but the first
     # (the period right after the filter's first correction).
     longest = len(usable) - 1 if scattered else 2 + (periods - MIN_PERIODS) // 2
     tol = tolerances(loop.config)
-    verdict = judge(pairs(usable), target_deg, tol, longest, scattered, x_std)
+    verdict = judge(pairs(usable), target_deg, tol, longest, scattered, x_std, scatter=spread)
     if verdict is None and not scattered and x_std is None:
         # Quiet: the estimates through the second model may have shed their transient where the first-order
         # model's have not (a process of higher order); each set is judged with its own model.
-        verdict = judge(pairs(usable, alt=True), target_deg, tol, longest, False, None, ALT_RATIO)
+        verdict = judge(pairs(usable, alt=True), target_deg, tol, longest, False, None, ALT_RATIO, spread)
     return verdict
 
 
@@ -123,12 +159,13 @@ def at_falling(loop: Loop, switching: Switching, estimates: Estimates, since: fl
     c = loop.config
     tol = replace(tolerances(c), gain_tol=c.gain_tol * HALF_TOL, static_tol=c.static_tol * HALF_TOL)
     half = period_point(loop, raw, detrended, falls[-3:], None)
-    verdict = judge([*pairs(usable), half], target_deg, tol, longest, False)
+    spread = estimate_scatter(loop, estimates)
+    verdict = judge([*pairs(usable), half], target_deg, tol, longest, False, scatter=spread)
     if verdict is not None and periods >= MIN_PERIODS:
         return verdict
     # (As at a rising switch: the estimates through the second model, judged with it.)
     alt = alt_point(loop, raw, detrended, falls[-3:], half)
-    second = judge([*pairs(usable, alt=True), alt], target_deg, tol, longest, False, None, ALT_RATIO)
+    second = judge([*pairs(usable, alt=True), alt], target_deg, tol, longest, False, None, ALT_RATIO, spread)
     if periods < MIN_PERIODS:
         # One estimate so far, which the period ending here overlaps by half: both share what is left of the
         # transient, so both models' corrections must pass (alone, the first-order set stopped

@@ -46,7 +46,7 @@ from autotuner.engine.experiment.estimates import (Estimate, Estimates, alt_poin
 from autotuner.engine.experiment.identification import Identification, identification
 from autotuner.engine.experiment.levels import Levels, listed
 from autotuner.engine.experiment.load_following import LoadFollowing
-from autotuner.engine.experiment.loop import Loop
+from autotuner.engine.experiment.loop import Loop, cycle_noise
 from autotuner.engine.experiment.point import Point
 from autotuner.engine.experiment.progress import Progress, Stage, Status, final_ite
 from autotuner.engine.experiment.record import Record, Samples
@@ -178,9 +178,12 @@ class RelayExperiment:
             ite, progress = final_ite(self.code), 1.0
         else:
             longer = self._load.fit is not None or convergence.noisy(self._loop, self._estimates)
-            if not self._estimates.items and self.stage is Stage.RELAY:
-                # (Before an estimate, the filtered error's swing stands for the PV's.)
-                longer = self._loop.noise > convergence.NOISY * self._switching.peak_error
+            if not self._estimates.items and len(self._switching.rising) >= 2:
+                # (Before an estimate, the filtered error's swing over the first whole period stands for the PV's,
+                # the prior for the period; before, the swing is still growing: the first half period from rest
+                # of a lag-dominant process swings a third as much, and a 1 % noise passed for 3 %.)
+                period = self._progress.prior_period(self._loop.mean_interval(), True)
+                longer = convergence.too_scattered(self._loop, self._switching.peak_error, period)
             lags = self._adaptation.lags
             error = abs(math.degrees(lags[-1]) - self._adaptation.target_deg) if lags else None
             ite = self._progress.seconds_left(self.stage is Stage.RELAY, longer, error)
@@ -316,6 +319,7 @@ class RelayExperiment:
         """Estimate the point over the last period and stop if it has converged."""
         loop, crossings, fit = self._loop, self._switching.crossings, self._load.fit
         bounds = crossings[-3:]
+        loop.cycle_noise = cycle_noise(raw.y[raw.t >= bounds[-2]])
         noisy = convergence.noisy(loop, self._estimates)
         point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x, noisy)
         wide = wide_x(loop, detrended, bounds) if fit is None else x

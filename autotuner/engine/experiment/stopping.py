@@ -90,6 +90,13 @@ MODEL_GATE_DEG = 2.0
 # batch: point error 0.14 → 0.35 %); a fifth passed only where the estimates had shed it (batch worst 0.22 %).
 MODEL_TOL = 0.2
 
+# A quiet run whose noise scatters each estimate's F by more than this share of gain_tol (the expected standard
+# error of each part, convergence.scatter): its settled point is the mean of the latest two, not the latest (or
+# the mean of two that straddle it). One estimate's noise is then as large as what is left of its transient: at
+# 1 % noise (the batch) the points that stopped at a falling switch were 0.185 % off at the median as the latest,
+# 0.145 % as the mean.
+MEAN_SCATTER = 0.03
+
 
 @dataclass(frozen=True)
 class Tolerances:
@@ -268,7 +275,7 @@ def _static_settled(estimates: list[tuple[Point, float]], recent: list[tuple[Poi
 
 
 def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Tolerances, longest: int,
-          noisy: bool, x_std: float | None = None, ratio: float = 0.0) -> Verdict | None:
+          noisy: bool, x_std: float | None = None, ratio: float = 0.0, scatter: float = 0.0) -> Verdict | None:
     """The accepted mean of the latest ``estimates`` ((point, x) pairs), or None to go on.
 
     ``target_deg``: the lag aimed at, degrees; ``tol``: the tolerances.
@@ -276,9 +283,12 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
     the averaged rule; ``x_std`` (from a load fit) replaces the spread
     of |F|/K0 by the fit's own standard error; ``ratio``: the model the
     estimates shed their transient through (transient.model), whose curve
-    the model rule reads.
+    the model rule reads; ``scatter``: the expected relative standard error of
+    each part of one estimate's F from the measured noise (convergence.scatter;
+    beyond MEAN_SCATTER of gain_tol, the settled point is the mean of the latest two).
     """
-    if not noisy and x_std is None and len(estimates) >= 3:
+    quiet = not noisy and x_std is None
+    if quiet and len(estimates) >= 3:
         on_line = _on_line(estimates[-3:], target_deg, tol)
         if on_line is not None:
             return on_line
@@ -298,7 +308,8 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
             if x_std is None:
                 static_ok = _static_settled(estimates, recent, tol)
             if spread / math.sqrt(k) <= 0.5 * tol.gain_tol and static_ok:
-                point, x = _settled(estimates)
+                scattered = quiet and scatter > MEAN_SCATTER * tol.gain_tol
+                point, x = _stats(recent[-2:])[:2] if scattered else _settled(estimates)
                 return Verdict(point, x, k)
             # Scattered along the curve: their mean is the point, at the mean ω, if it lags as asked.
             if (k >= CURVE_MIN and static_ok and abs(-mean.phase_deg - target_deg) <= tol.phase_tol_deg
@@ -308,7 +319,7 @@ def judge(estimates: list[tuple[Point, float]], target_deg: float, tol: Toleranc
             static_ok = static_ok or (x_std is None and x_spread / math.sqrt(k) <= tol.static_tol)
             if spread / math.sqrt(k) <= tol.noise_tol and static_ok:
                 return Verdict(mean, x, k)
-    if not noisy and x_std is None and len(estimates) >= 2:
+    if quiet and len(estimates) >= 2:
         return _on_model(estimates, target_deg, tol, ratio)
     return None
 
