@@ -17,8 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
-from autotuner.engine.experiment.convergence import MIN_PERIODS
-from autotuner.engine.experiment.estimates import GAP, STALL
+from autotuner.engine.experiment.convergence import MIN_PERIODS, SCATTER_MAX, estimate_scatter
+from autotuner.engine.experiment.estimates import GAP, STALL, Estimates
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.switching import Switching
 from autotuner.engine.outcome import Code
@@ -49,6 +49,13 @@ PERIOD_STEP = 0.01
 NOISY_CONVERGENCE = 0.6
 NOISY_AFTER_CONVERGED = 1.0
 NOISY_MIN_DONE = MIN_PERIODS + 2
+# ...and at least NOISY_PERIODS times (one estimate's scatter / noise_tol) ** SCATTER_POWER times (phase error /
+# tolerance) ** NOISY_PHASE_POWER: the averaged rule waits for the standard error of a mean of estimates, which
+# takes longer the more each scatters (the field bench's 3 % and 5 % noise runs, every 5th process of the batch,
+# fitted in log at their rising switches; docs/experiment.md, "ite after the shorter experiment").
+NOISY_PERIODS = 3.0
+SCATTER_POWER = 0.57
+NOISY_PHASE_POWER = 0.4
 # From two whole periods on, at least this share of the latest period is left while the run goes on.
 LAST_SHARE = 1.0
 # A rise of the raw estimate is held off as long as the countdown stays within this share of it (0.3 → 0.35 with
@@ -84,12 +91,13 @@ class Status:
 
 
 class Progress:
-    """The time-left estimate and the progress, which never goes backwards (``loop``, ``switching``: the loop
-    under test and the relay's switches)."""
+    """The time-left estimate and the progress, which never goes backwards (``loop``, ``switching``,
+    ``estimates``: the loop under test, the relay's switches and the estimates of the point)."""
 
-    def __init__(self, loop: Loop, switching: Switching) -> None:
+    def __init__(self, loop: Loop, switching: Switching, estimates: Estimates) -> None:
         self.loop = loop
         self.switching = switching
+        self.estimates = estimates
         self._progress = 0.0
         self._shown: tuple[float, float] | None = None  # (elapsed s, ite s) of the latest status
 
@@ -177,7 +185,11 @@ class Progress:
             # (A period still growing, a lag-dominant process's cycle slowing down to the target, grows on: the
             # periods left count that in, GROWTH_POWER.)
             ratio = period / (time(switching.rising[-2]) - time(switching.rising[-3]))
-            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, ratio, longer) * period
+            # (Only a run the scatter gate calls noisy waits for the averaged rule; one labelled so for its load
+            # fit, or before its first estimate, does not.)
+            scatter = estimate_scatter(loop, self.estimates)
+            scatter = scatter / c.noise_tol if scatter > SCATTER_MAX * c.gain_tol else 0.0
+            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, ratio, longer, scatter) * period
             left -= time(-1) - time(switching.rising[-1])
             # The stop comes at a switch, and whether the next one stops the run is not known before it: at
             # least a share of the period stays left until it has.
@@ -209,22 +221,27 @@ class Progress:
         return self._progress
 
 
-def periods_left(done: int, phase_error_deg: float, phase_tol_deg: float, ratio: float, longer: bool) -> float:
+def periods_left(done: int, phase_error_deg: float, phase_tol_deg: float, ratio: float, longer: bool,
+                 scatter: float = 0.0) -> float:
     """The periods the stopping rule still needs after ``done`` whole periods (from the first rising switch),
     the latest one's lag ``phase_error_deg`` off the target (degrees) with the tolerance ``phase_tol_deg``
     (degrees), the latest period ``ratio`` times the one before (1: unchanged); ``longer``: a noisy or disturbed
-    run.
+    run; ``scatter``: the latest estimate's expected scatter as a share of ``noise_tol`` (0 before one).
 
     A quiet run's: the batch's median at the same errors (``SETTLED_PERIODS``).
     A noisy one waits for the cycle's phase, which converges geometrically
-    (``NOISY_CONVERGENCE``), and for ``NOISY_MIN_DONE`` periods (the averaged
-    rule's). Calibrated on the batch (docs/experiment.md, "An honest ite").
+    (``NOISY_CONVERGENCE``), for ``NOISY_MIN_DONE`` periods (the averaged
+    rule's) and for the average of scattered estimates (``NOISY_PERIODS``).
+    Calibrated on the batch (docs/experiment.md, "An honest ite", "ite after
+    the shorter experiment").
     """
     error = max(phase_error_deg, phase_tol_deg) / phase_tol_deg
     if longer:
         converging = math.log(error) / -math.log(NOISY_CONVERGENCE)
-        # (Periods still growing grow on: counted as that many more of the latest.)
-        return max(NOISY_MIN_DONE - done, NOISY_AFTER_CONVERGED + converging, 0.5) * max(ratio, 1.0)
+        averaging = NOISY_PERIODS * scatter ** SCATTER_POWER * error ** NOISY_PHASE_POWER
+        # (Periods still growing grow on: counted as that many more of the latest. The averaging's fit counts
+        # that in already.)
+        return max(max(NOISY_MIN_DONE - done, NOISY_AFTER_CONVERGED + converging, 0.5) * max(ratio, 1.0), averaging)
     change = max(abs(ratio - 1.0), PERIOD_STEP) / PERIOD_STEP
     return (SETTLED_PERIODS[min(done, 4)] * error ** PHASE_POWER * change ** CHANGE_POWER
             * ratio ** GROWTH_POWER)
