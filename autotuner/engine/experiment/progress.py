@@ -243,7 +243,7 @@ def periods_left(done: int, phase_error_deg: float, phase_tol_deg: float, ratio:
         # that in already.)
         return max(max(NOISY_MIN_DONE - done, NOISY_AFTER_CONVERGED + converging, 0.5) * max(ratio, 1.0), averaging)
     change = max(abs(ratio - 1.0), PERIOD_STEP) / PERIOD_STEP
-    return (SETTLED_PERIODS[min(done, 4)] * error ** PHASE_POWER * change ** CHANGE_POWER
+    return (SETTLED_PERIODS[min(max(done, 2), 4)] * error ** PHASE_POWER * change ** CHANGE_POWER
             * ratio ** GROWTH_POWER)
 
 
