@@ -7,7 +7,10 @@ before the end (autotuner/benchmarks/ite_bench.py says why). Measured on this sa
 p10 0.38 and 0.49 (main: 0.14 and 0.28: the 5–10 times short period guess of lag-dominant processes).
 Since branch noisy-short the 1 % noise runs are quiet ones (their estimates scatter by a seventh of gain_tol:
 docs/experiment.md, "Quiet rules under low noise"), two periods shorter, and ite counts them as it counts
-the noise-free runs: within ±30 % on 54 % of the statuses (noise-free 53 %), p10 0.42, median 0.91.
+the noise-free runs: within ±30 % on 54 % of the statuses (noise-free 53 %), p10 0.42, median 0.91; ite never
+rose (judged) in 2 of the 11 noise-free runs and 6 of the 1 % ones. Since branch ite-three a quiet run's periods
+left are the batch's median at the same phase error and change of the period (progress.SETTLED_PERIODS): within
+±30 % on 59 % of the statuses noise-free and 59 % at 1 % noise, p10 0.50 and 0.45, never rising in 5 and 6 of 11.
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment
 SAMPLE = load_batch(default_batch())[::13]
 
 
-@pytest.mark.parametrize("noise, within", [(0.0, 0.50), (0.01, 0.50)])
-def test_ite_is_within_30_percent_of_the_time_really_left_on_most_statuses(noise: float, within: float) -> None:
+@pytest.mark.parametrize("noise, within, never_rising", [(0.0, 0.57, 0.4), (0.01, 0.57, 0.5)])
+def test_ite_is_within_30_percent_of_the_time_really_left_on_most_statuses(noise: float, within: float,
+                                                                           never_rising: float) -> None:
     runs = [run_one(row["expr"], row["id"], noise, every=7) for row in SAMPLE]
     judged = [judge(run) for run in runs]
     # Independent of the engine's estimate: the true time left is the trace's end minus the status's time.
@@ -33,10 +37,24 @@ def test_ite_is_within_30_percent_of_the_time_really_left_on_most_statuses(noise
     summary = summarise(judged)
     assert summary.within >= within, summary
     # Neither 5–10 times low (a first half period taken for the period) nor as high the other way.
-    assert summary.p10 >= 0.35 and 0.75 <= summary.median <= 1.3 and summary.p90 <= 1.7, summary
+    assert summary.p10 >= 0.44 and 0.75 <= summary.median <= 1.3 and summary.p90 <= 1.7, summary
+    # ite rises past 2 % between judged statuses only in the runs where a period brought news.
+    assert summary.never_rising_judged >= never_rising, summary
     # The statuses within ±30 % are the ones the summary counts.
     ratios = np.concatenate([h.ratios for h in judged])
     assert summary.within == pytest.approx(float(np.mean(np.abs(ratios - 1.0) <= HONEST)))
+
+
+def test_a_noisy_runs_ite_counts_the_periods_its_averages_take() -> None:
+    """At 5 % noise the runs are noisy (the averaged rule) and last 5–20 periods; ite counts the periods the
+    average of scattered estimates takes (progress.NOISY_PERIODS). Measured on this sample (2026-12-05): within
+    ±30 % on 43 % of the statuses, ite/true p10 0.33, median 0.88, p90 2.78 (before: 17 %, 0.14, 0.34, 1.19)."""
+    runs = [run_one(row["expr"], row["id"], 0.05, every=7) for row in SAMPLE]
+    summary = summarise([judge(run) for run in runs])
+    assert all(run.ok for run in runs)
+    assert summary.within >= 0.4, summary
+    # No longer a third of the time left at the median; the high tail is what a scatter-driven stop costs.
+    assert summary.p10 >= 0.25 and 0.6 <= summary.median <= 1.3 and summary.p90 <= 3.0, summary
 
 
 def test_ite_never_rises_between_statuses_without_news() -> None:

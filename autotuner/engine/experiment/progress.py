@@ -3,10 +3,11 @@
 The time left: before two whole periods, a typical run's length at the prior
 period (the caller's ``expected_period``, else a share of the time limit, else
 ``SAMPLES_PER_PERIOD`` samples) less the time run; then the periods the
-stopping rule still needs, from the phase error's convergence, at the latest
-period. The displayed value counts down like a clock within ``HOLD`` of that
-estimate (docs/experiment.md, "ite and progress"). ``ite`` is a report: no
-decision of the experiment reads it.
+stopping rule still needs, at the latest period: on a quiet run the batch's
+median at the same phase error and change of the period, on a noisy one the
+phase error's convergence. The displayed value counts down like a clock within
+``HOLD`` of that estimate (docs/experiment.md, "ite and progress", "An honest
+ite"). ``ite`` is a report: no decision of the experiment reads it.
 """
 
 from __future__ import annotations
@@ -16,8 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
-from autotuner.engine.experiment.convergence import MIN_PERIODS
-from autotuner.engine.experiment.estimates import GAP, STALL
+from autotuner.engine.experiment.convergence import MIN_PERIODS, SCATTER_MAX, estimate_scatter
+from autotuner.engine.experiment.estimates import GAP, STALL, Estimates
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.switching import Switching
 from autotuner.engine.outcome import Code
@@ -27,18 +28,39 @@ LIMIT_SHARE = 200.0
 # ... and without a time limit, from this many samples.
 SAMPLES_PER_PERIOD = 100.0
 # Before a whole period, the periods from the relay's start to the end (quiet, longer): the batch's medians,
-# 3.96 noise-free and 6.2 at 1 % noise (docs/experiment.md, "An honest ite").
+# 4.05 noise-free and 4.57 at 1 % noise (a quiet run since the scatter gate), 6.2 for a noisy one
+# (docs/experiment.md, "An honest ite").
 TYPICAL_PERIODS = {False: 4.0, True: 6.0}
-# The phase error's decay per period, and the periods after it is within the tolerance (quiet, longer):
-# calibrated on the batch, at the rising switches.
-CONVERGENCE = {False: 0.3, True: 0.6}
-AFTER_CONVERGED = {False: 0.5, True: 1.0}
-# Whole periods the stopping rule needs at least (quiet: MIN_PERIODS; noisy: its averages, on the batch).
-MIN_DONE = {False: MIN_PERIODS, True: MIN_PERIODS + 2}
+# A quiet run's periods left at a rising switch, the median of the batch's (noise-free and 1 % noise pooled,
+# fitted in log; docs/experiment.md, "An honest ite"): SETTLED_PERIODS[whole periods done, 4 for more] times
+# (phase error / tolerance) ** PHASE_POWER times (the latest period's change / PERIOD_STEP) ** CHANGE_POWER times
+# (latest period / the one before) ** GROWTH_POWER. The period's change predicts best: a cycle whose period
+# still moves is still settling, and the stop waits on |F|, which settles with it. Fewer whole periods count
+# less: the start's transient inflates both errors of a run that ends early too.
+SETTLED_PERIODS = {2: 0.23, 3: 0.42, 4: 0.60}
+PHASE_POWER = 0.28
+CHANGE_POWER = 0.47
+GROWTH_POWER = 0.165
+# A change of the period below this share counts as none.
+PERIOD_STEP = 0.01
+# A noisy or disturbed run: the phase error's decay per period, the periods after it is within the tolerance
+# and the whole periods the averaged rule needs at least (calibrated on the batch's 1 % runs when they were noisy
+# ones, before the scatter gate; kept).
+NOISY_CONVERGENCE = 0.6
+NOISY_AFTER_CONVERGED = 1.0
+NOISY_MIN_DONE = MIN_PERIODS + 2
+# ...and at least NOISY_PERIODS times (one estimate's scatter / noise_tol) ** SCATTER_POWER times (phase error /
+# tolerance) ** NOISY_PHASE_POWER: the averaged rule waits for the standard error of a mean of estimates, which
+# takes longer the more each scatters (the field bench's 3 % and 5 % noise runs, every 5th process of the batch,
+# fitted in log at their rising switches; docs/experiment.md, "ite after the shorter experiment").
+NOISY_PERIODS = 3.0
+SCATTER_POWER = 0.57
+NOISY_PHASE_POWER = 0.4
 # From two whole periods on, at least this share of the latest period is left while the run goes on.
 LAST_SHARE = 1.0
-# A rise of the raw estimate is held off as long as the countdown stays within this share of it.
-HOLD = 0.3
+# A rise of the raw estimate is held off as long as the countdown stays within this share of it (0.3 → 0.35 with
+# SETTLED_PERIODS: 2–6 points more of the batch's runs never rise, within ±30 % the same).
+HOLD = 0.35
 
 
 class Stage(str, Enum):
@@ -69,12 +91,13 @@ class Status:
 
 
 class Progress:
-    """The time-left estimate and the progress, which never goes backwards (``loop``, ``switching``: the loop
-    under test and the relay's switches)."""
+    """The time-left estimate and the progress, which never goes backwards (``loop``, ``switching``,
+    ``estimates``: the loop under test, the relay's switches and the estimates of the point)."""
 
-    def __init__(self, loop: Loop, switching: Switching) -> None:
+    def __init__(self, loop: Loop, switching: Switching, estimates: Estimates) -> None:
         self.loop = loop
         self.switching = switching
+        self.estimates = estimates
         self._progress = 0.0
         self._shown: tuple[float, float] | None = None  # (elapsed s, ite s) of the latest status
 
@@ -143,8 +166,8 @@ class Progress:
         run: the first half periods of a lag-dominant process are 5–10 times
         shorter than its period, and the first whole period's lag carries the
         start's transient. From then on the periods left (:func:`periods_left`)
-        of the latest whole period (times its growth), less the time since it
-        ended, and at least ``LAST_SHARE`` of it.
+        of the latest whole period, less the time since it ended, and at least
+        ``LAST_SHARE`` of it.
         """
         loop, switching = self.loop, self.switching
         c = loop.config
@@ -159,9 +182,14 @@ class Progress:
             left = noise_left + max(typical * prior - ran, 0.5 * prior)
         else:
             period = switching.period()
-            # A period still growing (a lag-dominant process's cycle slowing down to the target) grows on.
-            growth = max(period / (time(switching.rising[-2]) - time(switching.rising[-3])), 1.0)
-            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, longer) * period * growth
+            # (A period still growing, a lag-dominant process's cycle slowing down to the target, grows on: the
+            # periods left count that in, GROWTH_POWER.)
+            ratio = period / (time(switching.rising[-2]) - time(switching.rising[-3]))
+            # (Only a run the scatter gate calls noisy waits for the averaged rule; one labelled so for its load
+            # fit, or before its first estimate, does not.)
+            scatter = estimate_scatter(loop, self.estimates)
+            scatter = scatter / c.noise_tol if scatter > SCATTER_MAX * c.gain_tol else 0.0
+            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, ratio, longer, scatter) * period
             left -= time(-1) - time(switching.rising[-1])
             # The stop comes at a switch, and whether the next one stops the run is not known before it: at
             # least a share of the period stays left until it has.
@@ -193,18 +221,30 @@ class Progress:
         return self._progress
 
 
-def periods_left(done: int, phase_error_deg: float, phase_tol_deg: float, longer: bool) -> float:
+def periods_left(done: int, phase_error_deg: float, phase_tol_deg: float, ratio: float, longer: bool,
+                 scatter: float = 0.0) -> float:
     """The periods the stopping rule still needs after ``done`` whole periods (from the first rising switch),
     the latest one's lag ``phase_error_deg`` off the target (degrees) with the tolerance ``phase_tol_deg``
-    (degrees); ``longer``: a noisy or disturbed run.
+    (degrees), the latest period ``ratio`` times the one before (1: unchanged); ``longer``: a noisy or disturbed
+    run; ``scatter``: the latest estimate's expected scatter as a share of ``noise_tol`` (0 before one).
 
-    The stop waits for the cycle's phase, which converges geometrically
-    (``CONVERGENCE``), and for ``MIN_DONE`` periods; calibrated on the batch
-    (docs/experiment.md, "An honest ite").
+    A quiet run's: the batch's median at the same errors (``SETTLED_PERIODS``).
+    A noisy one waits for the cycle's phase, which converges geometrically
+    (``NOISY_CONVERGENCE``), for ``NOISY_MIN_DONE`` periods (the averaged
+    rule's) and for the average of scattered estimates (``NOISY_PERIODS``).
+    Calibrated on the batch (docs/experiment.md, "An honest ite", "ite after
+    the shorter experiment").
     """
-    error = max(phase_error_deg, phase_tol_deg)
-    converging = math.log(error / phase_tol_deg) / -math.log(CONVERGENCE[longer])
-    return max(MIN_DONE[longer] - done, AFTER_CONVERGED[longer] + converging, 0.5)
+    error = max(phase_error_deg, phase_tol_deg) / phase_tol_deg
+    if longer:
+        converging = math.log(error) / -math.log(NOISY_CONVERGENCE)
+        averaging = NOISY_PERIODS * scatter ** SCATTER_POWER * error ** NOISY_PHASE_POWER
+        # (Periods still growing grow on: counted as that many more of the latest. The averaging's fit counts
+        # that in already.)
+        return max(max(NOISY_MIN_DONE - done, NOISY_AFTER_CONVERGED + converging, 0.5) * max(ratio, 1.0), averaging)
+    change = max(abs(ratio - 1.0), PERIOD_STEP) / PERIOD_STEP
+    return (SETTLED_PERIODS[min(max(done, 2), 4)] * error ** PHASE_POWER * change ** CHANGE_POWER
+            * ratio ** GROWTH_POWER)
 
 
 def period_cap(max_periods: int, switching: Switching, time: Callable[[int], float]) -> float:
