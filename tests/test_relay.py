@@ -248,6 +248,11 @@ def test_relay_is_clipped_to_mv_limits():
         ({"amp": 1.0, "bias": 0.5}, "bias"),
         ({"amp": 1.0, "time_limit": 0.0}, "time limit"),
         ({"amp": 1.0, "pv_limits": (1.0, 0.0)}, "pv_limits"),
+        ({"amp": 1.0, "phase_tol_deg": 0.0}, "phase_tol_deg"),  # was a ZeroDivisionError in ite, samples later
+        ({"amp": 1.0, "gain_tol": -0.01}, "gain_tol"),
+        ({"amp": 1.0, "static_tol": math.inf}, "static_tol"),
+        ({"amp": 1.0, "noise_tol": math.nan}, "noise_tol"),
+        ({"amp": 1.0, "max_periods": 0}, "max_periods"),
     ],
 )
 def test_config_errors_name_the_setting(kwargs, word):

@@ -22,7 +22,7 @@ class RelayConfig:
     time_limit: longest experiment, seconds.
     noise_samples: samples of the noise-measuring stage.
     max_periods: give up after this many oscillation periods.
-    phase_tol_deg: accepted error of the phase, degrees.
+    phase_tol_deg: accepted error of the phase, degrees (this and the three tolerances below: > 0).
     gain_tol: accepted relative change of the point between consecutive estimates.
     static_tol: accepted change of ``|F(jω)|/K0`` between consecutive estimates
         (measured this way, the tolerance on the static gain stays meaningful as
@@ -78,6 +78,12 @@ class RelayConfig:
             raise ValueError(f"expected_period must be a positive number of seconds, got {self.expected_period}")
         if self.noise_samples < 5:
             raise ValueError(f"noise_samples must be at least 5, got {self.noise_samples}")
+        if self.max_periods < 1:
+            raise ValueError(f"max_periods must be at least 1, got {self.max_periods}")
+        for name in ("phase_tol_deg", "gain_tol", "static_tol", "noise_tol"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):  # 0 would be a tolerance nothing meets (and a division)
+                raise ValueError(f"{name} must be a positive number, got {value}")
         for name, (lo, hi) in (("pv_limits", self.pv_limits), ("mv_limits", self.mv_limits)):
             if not lo < hi:
                 raise ValueError(f"{name} must be (low, high) with low < high, got ({lo}, {hi})")
