@@ -266,7 +266,7 @@ def test_set_point_steps_after_tuning_the_demo_loops_settle_faster_than_with_the
         assert overshoot <= 0.20, (loop_id, overshoot)
         assert np.all(np.abs(pv[t > 17 * period] - target) <= 0.1), loop_id
         # (What was identified, so that a rare slow settling can be traced to the tuning: once in a loaded suite
-        # run, 2026-12-05, TIC-101 settled in 31 s against 18-21 s in 15 runs of the same code.)
+        # run, 2026-12-05, TIC-101 settled in 31 s against 17-21 s in 8 other runs of the same code.)
         found = {k: status.get(k) for k in ("message", "point", "static_gain", "periods", "gains")}
         assert new < 0.7 * old, (loop_id, new, old, found)
 
