@@ -43,11 +43,12 @@ TS = default_sample_time(parse_process(PLANT)) * 100 / 40
 # Still hundreds of times an SQLite commit on a loaded machine, for the records that must go through.
 RECORD_WAIT = 4.0
 
-# A separate process holding an exclusive lock on an SQLite file until its stdin closes.
+# A separate process holding a lock on an SQLite file until its stdin closes: EXCLUSIVE (no reads, no writes) or
+# IMMEDIATE (reads go on, writes wait).
 LOCKER = """
 import sqlite3, sys
 db = sqlite3.connect(sys.argv[1], isolation_level=None)
-db.execute("BEGIN EXCLUSIVE")
+db.execute("BEGIN " + sys.argv[2])
 print("locked", flush=True)
 sys.stdin.read()
 db.execute("ROLLBACK")
@@ -55,10 +56,10 @@ db.execute("ROLLBACK")
 
 
 @contextmanager
-def locked(path: Path) -> Iterator[None]:
-    """While inside: another process holds an exclusive lock on the SQLite file ``path``."""
-    proc = subprocess.Popen([sys.executable, "-c", LOCKER, str(path)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                            text=True)
+def locked(path: Path, kind: str = "EXCLUSIVE") -> Iterator[None]:
+    """While inside: another process holds a ``kind`` lock (EXCLUSIVE, IMMEDIATE) on the SQLite file ``path``."""
+    proc = subprocess.Popen([sys.executable, "-c", LOCKER, str(path), kind], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout.readline().strip() == "locked"
         yield
@@ -373,7 +374,7 @@ def test_on_a_full_disk_a_guarded_record_is_dropped_at_its_deadline_and_a_sessio
     errors: list[str | None] = []
 
     async def body() -> None:
-        recorder = Recorder(history)
+        recorder = Recorder(history, RECORD_WAIT)
         recorder.on_health = lambda: errors.append(recorder.health.error)
         assert await recorder.durable(history.begin, "s1", "A", "alice", {}) == ""
         disk.fill()
@@ -459,7 +460,7 @@ def test_a_stop_while_the_disk_is_full_gives_the_retried_writes_up_and_says_so(d
     history = History(str(disk.path / "h.db"))
 
     async def body() -> None:
-        recorder = Recorder(history)
+        recorder = Recorder(history, RECORD_WAIT)
         disk.fill()
         begun = recorder.record(history.begin, "s1", "A", "alice", {})
         await recorder.drain(1.0)

@@ -10,6 +10,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -18,7 +19,11 @@ import yaml
 from autotuner.service.configured_loop import cli_user
 from autotuner.service.history import History
 from test_handback import wait_for
-from test_history_faults import SLOW, TS, ThreadedPlc, reconciled_at_start
+from test_history_faults import SLOW, TS, ThreadedPlc, locked, reconciled_at_start
+
+# How long the history's writes are held past the first failed one, wall seconds: beyond the old fixed wait (10 s),
+# well within the config's record_wait (60 s).
+HELD = 15.0
 
 
 def config_for(tmp: Path, plant: ThreadedPlc) -> Path:
@@ -84,5 +89,31 @@ def test_tune_config_killed_after_the_gains_write_is_reconciled_by_the_next_daem
         assert record["applied_by"] == cli_user() and plant.plc.gains == written
         assert record["gains_after"]["pk"] == pytest.approx(written.k, rel=1e-6)
         assert record["gains_after"]["pti"] == pytest.approx(written.ti, rel=1e-6)
+    finally:
+        plant.close()
+
+
+def test_tune_config_waits_for_its_records_as_long_as_the_configs_record_wait(tmp_path: Path):
+    """The config's ``record_wait`` bounds the command's wait for its records as it bounds the daemon's (the
+    command waited its own 10 s whatever the config said): with record_wait 60 s, a history whose writes another
+    process holds for HELD s past the first failed write (longer than the old 10 s) delays the session's saved
+    state, which is then recorded, and the tuning goes on and is applied."""
+    plant = ThreadedPlc(SLOW)
+    try:
+        config = config_for(tmp_path, plant)
+        config.write_text(yaml.safe_dump({**yaml.safe_load(config.read_text()), "record_wait": 60.0}))
+        History(str(tmp_path / "h.db")).close()
+        log = tmp_path / "tune.err"
+        with locked(tmp_path / "h.db", "IMMEDIATE"), log.open("w") as err_file:
+            proc = subprocess.Popen([sys.executable, "-m", "autotuner.cli", "tune", "--config", str(config), "--loop",
+                                     "TIC", "--apply", "--json"], stdout=subprocess.PIPE, stderr=err_file, text=True)
+            wait_for(lambda: "retrying" in log.read_text() or proc.poll() is not None, 120, "a write held")
+            time.sleep(HELD)  # the fault's length, not a wait for a condition
+        out, _ = proc.communicate(timeout=300)
+        result = json.loads(out.strip().splitlines()[-1])
+        assert proc.returncode == 0, (result["message"], log.read_text())
+        [record] = History(str(tmp_path / "h.db")).of_loop("TIC")
+        assert record["state"] == "finished" and record["outcome"] == "success" and record["saved"]["mode"] == "AUTO"
+        assert record["gains_after"]["pk"] == pytest.approx(plant.plc.gains.k, rel=1e-6)
     finally:
         plant.close()

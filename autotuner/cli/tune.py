@@ -253,7 +253,6 @@ def tune_command(
     if config_file is not None:
         from autotuner.service.configured_loop import cli_user, tune_configured
         from autotuner.service.history import History
-        from autotuner.service.session_record import RECORD_WAIT
 
         daemon_config, loop = _configured_loop(ctx, config_file, loop_id)
         request = _explicit_request(ctx, controller.value, amp, hysteresis, phase, ms, apply)
@@ -262,10 +261,10 @@ def tune_command(
         async def start(on_status: Callable[[Status], None] | None) -> TuneResult:
             # The loop's history, as the daemon keeps it (a damaged or unreachable one: ValueError, bad input).
             # Writes are retried for as long as the session waits for them, so the command ends soon after.
-            history = History(daemon_config.history, retry_for=RECORD_WAIT)
+            history = History(daemon_config.history, retry_for=daemon_config.record_wait)
             try:
                 return await tune_configured(loop, request, on_status, daemon_config.handback.session(), history,
-                                             cli_user())
+                                             cli_user(), daemon_config.record_wait)
             finally:
                 history.close()
     elif link is not None:

@@ -23,6 +23,13 @@ if TYPE_CHECKING:  # the session's module is loaded only when a session's hand-b
 
     from autotuner.service.link_session import HandBack
 
+# How long a session waits for the history to record what must be durable before it goes on (the saved state
+# before the loop is touched, a gains intent before the write), and for its end to be recorded before the loop is
+# idle again, wall seconds: `record_wait`'s default, the daemon's and `autotuner tune --config`'s. Beyond it: the
+# loop is not touched / the gains are not written, and those records are dropped, never written late / the end is
+# recorded later (retried in the history's thread; never on the event loop).
+RECORD_WAIT = 10.0
+
 
 class ConfigError(ValueError):
     """The config file cannot be used; the message says where and why."""
@@ -468,8 +475,7 @@ class DaemonConfig(Strict):
     max_sessions: Annotated[int, Field(ge=1, le=100000)] | None = None
     sampler_load: Annotated[float, Field(gt=0.0, le=1.0)] = 0.6
     fleet: FleetConfig | None = None
-    # s; the default is session_record.RECORD_WAIT, `autotuner tune --config`'s bound (not imported: it loads the engine)
-    record_wait: Annotated[float, Field(ge=1.0, le=600.0)] = 10.0
+    record_wait: Annotated[float, Field(ge=1.0, le=600.0)] = RECORD_WAIT
 
     @field_validator("history")
     @classmethod

@@ -36,7 +36,7 @@ from drivers.simplc import run
 from autotuner.engine.experiment.relay import Status
 from autotuner.engine.outcome import MESSAGES, Code
 from autotuner.engine.result import TuneResult
-from autotuner.service.config import DaemonConfig, LoopConfig, TuneRequest
+from autotuner.service.config import RECORD_WAIT, DaemonConfig, LoopConfig, TuneRequest
 from autotuner.service.daemon import Refused, Settings, connector, fresh_check, plan_of, settings_of, simulated_plc
 from autotuner.service.daemon.recorder import Recorder
 from autotuner.service.history import History, downsample
@@ -66,10 +66,12 @@ def cli_user() -> str:
 async def tune_configured(
     loop: LoopConfig, request: TuneRequest, on_status: Callable[[Status], None] | None = None,
     handback: HandBack | None = None, history: History | None = None, user: str = "cli",
+    record_wait: float = RECORD_WAIT,
 ) -> TuneResult:
     """Tune ``loop`` once with ``request`` over the loop's defaults (a simulated loop's plant runs meanwhile),
     handed back as ``handback`` says (the config's ``handback`` section: its watchdog armed as the daemon arms
-    it; None: the defaults), recorded in ``history`` as asked by ``user`` (None: not recorded).
+    it; None: the defaults), recorded in ``history`` as asked by ``user`` (None: not recorded), each record
+    awaited at most ``record_wait`` wall seconds (the config's ``record_wait``).
 
     A loop the daemon's fresh check refuses is not touched: the result is failed with the refusal's code.
     ValueError for an ``amp`` above the loop's bound."""
@@ -92,7 +94,7 @@ async def tune_configured(
         if history is None:
             return await tune_opened(connect(), settings.controller,
                                      lambda link: tune_link(link, plan, SessionHooks(on_status=on_status)))
-        return await _recorded(loop.id, settings, plan, connect, history, user, on_status)
+        return await _recorded(loop.id, settings, plan, connect, Recorder(history, record_wait), user, on_status)
     finally:
         halt.set()
         if plant is not None:
@@ -100,13 +102,13 @@ async def tune_configured(
 
 
 async def _recorded(loop_id: str, settings: Settings, plan: SessionPlan, connect: Callable[[], Link],
-                    history: History, user: str, on_status: Callable[[Status], None] | None) -> TuneResult:
-    """The session (:func:`~autotuner.service.session_runner.run_session`, the daemon's), recorded in ``history``
-    as the daemon records its sessions (the daemon's :class:`~autotuner.service.daemon.recorder.Recorder`: writes
-    in order in a thread of their own, each awaited at most ``RECORD_WAIT`` s, the saved state and a gains intent
-    dropped rather than written after that)."""
+                    recorder: Recorder, user: str, on_status: Callable[[Status], None] | None) -> TuneResult:
+    """The session (:func:`~autotuner.service.session_runner.run_session`, the daemon's), recorded through
+    ``recorder`` (the daemon's :class:`~autotuner.service.daemon.recorder.Recorder`) as the daemon records its
+    sessions: writes in order in a thread of their own, each awaited at most ``recorder.wait`` s, the saved state
+    and a gains intent dropped rather than written after that."""
     sid = uuid.uuid4().hex
-    recorder = Recorder(history)
+    history = recorder.history
     try:
         why = await recorder.durable(history.begin, sid, loop_id, user, settings.as_json())
         if why:

@@ -5,7 +5,7 @@ Before the session touches the loop: its saved state, the relay's MV levels and 
 write, durably (a session that cannot record them ends without touching the loop). Before an MV outside that
 range: the widened range. Before a gains write: its *intent*. After the session: the gains the device holds,
 read back, so that the history says whether the gains were applied. Each record is awaited for at most
-:data:`RECORD_WAIT` seconds; a record not in by then counts as not recorded (the write it guards does not
+the config's ``record_wait`` seconds; a record not in by then counts as not recorded (the write it guards does not
 happen), and the history drops it (it carries that deadline): it is never recorded afterwards.
 
 :class:`Tap` is the link the session writes through: it calls those records before the writes they guard.
@@ -24,12 +24,6 @@ from drivers.link import Link, LinkError, LoopState, Sample
 from autotuner.engine.control.gains import Gains
 from autotuner.engine.result import TuneResult
 
-# How long a session waits for the history to record what must be durable before it goes on (the saved state
-# before the loop is touched, a gains intent before the write), and for its end to be recorded before the loop is
-# idle again, wall seconds. Beyond it: the loop is not touched / the gains are not written, and those records are
-# dropped, never written late / the end is recorded later (retried in the history's thread; never on the event loop).
-RECORD_WAIT = 10.0
-
 # Largest number of points of a stored trace: a whole experiment at full resolution (the demo's take 300–1500
 # samples; a 2-hour experiment at 1 s is 7200), thinned evenly past that.
 TRACE_POINTS = 8000
@@ -41,7 +35,7 @@ Durable = Callable[..., Awaitable[str]]
 log = logging.getLogger("autotuner.service.session_record")
 
 
-async def waited(record: asyncio.Future[Any], wait: float = RECORD_WAIT) -> str:
+async def waited(record: asyncio.Future[Any], wait: float) -> str:
     """Wait up to ``wait`` s for a history write under way (it goes on after); '' once recorded, else why not."""
     try:
         await asyncio.wait_for(asyncio.shield(record), max(wait, 0.0))

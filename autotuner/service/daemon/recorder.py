@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from autotuner.service.history import History, Late
-from autotuner.service.session_record import RECORD_WAIT, waited
+from autotuner.service.session_record import waited
 
 log = logging.getLogger("autotuner.service.daemon")
 
@@ -47,13 +47,14 @@ class HistoryHealth:
 
 class Recorder:
     """Runs ``history``'s methods in one thread of their own, in the order asked (a failing write is retried
-    there); the event loop never waits on the database unless it chooses to, and then within a bound.
+    there); the event loop never waits on the database unless it chooses to, and then within a bound: ``wait``
+    wall seconds for a session's record (the config's ``record_wait``).
 
     ``health`` follows :attr:`History.error`; ``on_health`` (set by the loop
     manager) is called on the event loop when it changes.
     """
 
-    def __init__(self, history: History, wait: float = RECORD_WAIT) -> None:
+    def __init__(self, history: History, wait: float) -> None:
         self.history = history
         self.wait = wait  # how long a session's record is waited for, wall seconds (the config's record_wait)
         self.health = HistoryHealth()
