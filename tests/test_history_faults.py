@@ -117,6 +117,18 @@ def test_a_history_locked_by_another_process_never_leaves_a_loop_busy_nor_stalls
     assert "Traceback" not in daemon.log()
 
 
+def test_a_history_locked_at_the_start_is_said_to_be_locked_not_damaged(tmp_path: Path):
+    """Opening a history another process holds locked fails with a message that says so — not the damaged file's
+    advice to move it away, which would lose a sound history."""
+    from autotuner.service.history import History
+
+    History(str(tmp_path / "h.db")).close()
+    with locked(tmp_path / "h.db"), pytest.raises(ValueError) as raised:
+        History(str(tmp_path / "h.db"))
+    assert "another process holds it locked" in str(raised.value) and "move it away" not in str(raised.value)
+    History(str(tmp_path / "h.db")).close()  # released: it opens
+
+
 def test_a_saved_state_that_cannot_be_recorded_ends_the_session_before_it_touches_the_loop(tmp_path: Path):
     """TUNE while another process locks the history: the session must not take the loop over without its saved
     state on record (a crash would leave nothing to restore it from), so it ends untouched. An external simulated

@@ -241,7 +241,10 @@ class History:
                 _upgrade(db)
         except sa.exc.DatabaseError as exc:
             reason = mask(str(exc.orig) if exc.orig is not None else str(exc), url)
-            hint = "" if file is None else ": restore it from a backup, or move it away to start a new one"
+            hint = ("" if file is None else
+                    # (a backup or another tool holding it: the file is sound, moving it away would lose the history)
+                    ": another process holds it locked; start again once that process lets go" if "locked" in reason
+                    else ": restore it from a backup, or move it away to start a new one")
             raise ValueError(f"history database {self.shown}: {reason}{hint}") from None
         except (sa.exc.SQLAlchemyError, ImportError) as exc:
             raise ValueError(f"history database {self.shown}: {mask(str(exc), url)}") from None
