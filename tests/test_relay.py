@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import cmath
+import gc
 import math
+import pickle
+import weakref
 
 import numpy as np
 import pytest
@@ -288,3 +291,32 @@ def test_mv_rate_limit_is_respected_and_the_point_still_exact():
     point = experiment.result.point
     true = analytic(f, point.omega)
     assert abs(point.value - true) / abs(true) < 0.01
+
+
+def test_an_experiment_holds_no_reference_cycle_so_a_replaced_copy_is_freed_at_once():
+    """A daemon's sampler sends each period's analysis to a worker and goes on with the analysed copy; the copy it
+    replaces must be freed by reference counting. Held in a cycle (its pending analysis was a bound method of
+    itself), every such copy waited for a full collection: at 100 loops those walked ~57 000 dead objects each,
+    70 ms with the sampler's event loop stopped."""
+    sim = PlantSim(parse_process("exp(-s)/(10*s+1)"), 0.1, noise_std=0.002, seed=3)
+    experiment = RelayExperiment(RelayConfig(amp=1.0), mv0=0.0)
+    t, mv, copies = 0.0, 0.0, 0
+    gc.collect()
+    gc.disable()
+    try:
+        while not experiment.done:
+            mv = experiment.step(t, sim.measure())
+            if experiment.analysis_pending:
+                replaced = weakref.ref(experiment)
+                experiment = pickle.loads(pickle.dumps(experiment))  # as a worker's analysis returns it
+                experiment.analyse()
+                assert replaced() is None, f"the copy replaced at t={t:.1f} s is still alive"
+                copies += 1
+            sim.advance(mv)
+            t += 0.1
+        assert experiment.code == Code.OK and experiment.result is not None and copies >= 4
+        finished = weakref.ref(experiment)
+        del experiment
+        assert finished() is None
+    finally:
+        gc.enable()

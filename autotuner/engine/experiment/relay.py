@@ -34,7 +34,6 @@ the analysis of a period that ended at a switch runs in :meth:`analyse`.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import replace
 
 from autotuner.engine.experiment import convergence, endings, load_correction
@@ -89,8 +88,10 @@ class RelayExperiment:
         self._unstable = Unstable(loop, levels, adaptation, estimates, self._load)
         self._runaway = Runaway(loop, switching, levels)
         self._progress = Progress(loop, switching, estimates)
-        # The analysis of the period that ended at a switch, run after the switch is out (see analyse).
-        self._analyse: Callable[[], None] | None = None
+        # The switch whose period awaits its analysis, run after the switch is out (see analyse): 1 rising, −1
+        # falling, 0 none. (A value, not the bound method: the experiment would hold itself, and each copy a
+        # worker's analysis replaces would be left to the garbage collector's full walks.)
+        self._pending = 0
         if levels.high <= mv0 or levels.low >= mv0:
             self._end(endings.mv_range(mv0, levels.low, levels.high, config.amp, config.mv_limits))
 
@@ -137,7 +138,7 @@ class RelayExperiment:
     @property
     def analysis_pending(self) -> bool:
         """True when a period ended at the last sample and :meth:`analyse` has not run yet."""
-        return self._analyse is not None and not self.done
+        return self._pending != 0 and not self.done
 
     def analyse(self) -> None:
         """Analyse the period that ended at the last sample's switch: its estimates, the stopping rule, the load fit.
@@ -151,10 +152,10 @@ class RelayExperiment:
         whatever the record's length (docs/experiment.md, "The analysis's cost
         per period").
         """
-        analyse, self._analyse = self._analyse, None
-        if analyse is not None and not self.done:
+        switched, self._pending = self._pending, 0
+        if switched and not self.done:
             try:
-                analyse()
+                self._on_period() if switched > 0 else self._on_half()
             except Ended as ended:
                 self._end(ended)
 
@@ -244,7 +245,7 @@ class RelayExperiment:
         if switched:
             levels.end_rescue()
             # (The period's end is judged once it is analysed.)
-            self._analyse = self._on_period if switched > 0 else self._on_half
+            self._pending = switched
         else:
             when = switching.watch(adaptation.hysteresis)
             if when is not None:
