@@ -88,7 +88,7 @@ class RelayExperiment:
         self._held = load_correction.Held()  # a followed load's point, while K0 may still wait
         self._unstable = Unstable(loop, levels, adaptation, estimates, self._load)
         self._runaway = Runaway(loop, switching, levels)
-        self._progress = Progress(loop, switching, estimates)
+        self._progress = Progress(loop, switching, estimates, self._load, self._held)
         # The analysis of the period that ended at a switch, run after the switch is out (see analyse).
         self._analyse: Callable[[], None] | None = None
         if levels.high <= mv0 or levels.low >= mv0:
