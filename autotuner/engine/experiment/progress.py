@@ -62,8 +62,8 @@ SCATTER_POWER = 0.57
 NOISY_PHASE_POWER = 0.4
 # A followed load: the periods from the latest rising switch that its stages still need, the medians of the
 # field bench's disturbed runs (every 13th process of the batch, docs/experiment.md "ite under a followed load").
-# A load fit awaiting its confirmation a period later, and every stage after it (6.6 periods at the median, more
-# the later the candidate comes; 8 carries the countdown through the stages that follow).
+# A load fit awaiting its confirmation a period later, and every stage after it (5.1–8.4 periods at the median,
+# more the more estimates came before it; 8 carries the countdown through the stages that follow).
 CANDIDATE_PERIODS = 8.0
 # Followed, no point held yet: the estimates since the step re-read until a rule passes, then K0.
 HOLD_PERIODS = 1.0
@@ -85,8 +85,8 @@ LAST_SHARE = 1.0
 HOLD = 0.35
 # Where the estimate would still push the countdown up, by at most this share, the clock stops instead: a rise that
 # small is the estimate's own scatter from switch to switch, and counting down again later costs less honesty than
-# a countdown that goes up (the batch: never rising 51 → 87 % noise-free, 60 → 81 % at 1 %, within ±30 % the same;
-# docs/experiment.md "ite under a followed load"). A larger rise is news (a load found) and is shown.
+# a countdown that goes up (the batch: never rising 51 → 87 % noise-free, 60 → 81 % at 1 %, within ±30 % 45 → 46 %
+# and 52 → 51 %; docs/experiment.md "ite under a followed load"). A larger rise is news (a load found) and is shown.
 PAUSE = 0.5
 
 
