@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from autotuner.benchmarks.design_bench import default_batch, load_batch, pool_map
-from autotuner.benchmarks.field_bench import SCENARIOS, scenario_sim
+from autotuner.benchmarks.field_bench import SCENARIOS, Scenario, scenario_sim
 from autotuner.engine.experiment.relay import RelayConfig, Status
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.plant.process import Process
@@ -82,15 +82,15 @@ def run_one(expr: str, ident: str, noise: float = 0.0, every: int = 1) -> IteRun
     return statuses(PlantSim(process, ts, noise_std=std, seed=1), config, ident, period, every)
 
 
-def field_one(expr: str, ident: str, every: int = 1) -> list[IteRun | None]:
-    """Every field scenario (field_bench.SCENARIOS) on the process ``expr`` (named ``ident``), statuses every
-    ``every`` samples; None where a run did not tune."""
+def field_one(expr: str, ident: str, every: int = 1, scenarios: tuple[Scenario, ...] = SCENARIOS) -> list[IteRun | None]:
+    """The field ``scenarios`` (every one of field_bench.SCENARIOS unless given) on the process ``expr`` (named
+    ``ident``), statuses every ``every`` samples; None where a run did not tune."""
     process = parse_process(expr)
     period, ts, config = _setting(process)
     _, clean = run_experiment(PlantSim(process, ts), config, status_every=10**9)
     scale = abs(complex(process.freqresp(2.0 * math.pi / period)))  # |F(jω135)|·amp
     runs: list[IteRun | None] = []
-    for scenario in SCENARIOS:
+    for scenario in scenarios:
         sim = scenario_sim(process, ts, period, scenario, scale, float(clean.t[-1]))
         run = statuses(sim, config, ident, period, every)
         runs.append(run if run.ok and len(run.t) > 2 else None)

@@ -5,9 +5,11 @@ period (the caller's ``expected_period``, else a share of the time limit, else
 ``SAMPLES_PER_PERIOD`` samples) less the time run; then the periods the
 stopping rule still needs, at the latest period: on a quiet run the batch's
 median at the same phase error and change of the period, on a noisy one the
-phase error's convergence. The displayed value counts down like a clock within
+phase error's convergence; while a load is followed, at least what its
+stage still needs (confirmation, a held point, K0). The displayed value counts down like a clock within
 ``HOLD`` of that estimate (docs/experiment.md, "ite and progress", "An honest
-ite"). ``ite`` is a report: no decision of the experiment reads it.
+ite", "ite under a followed load"). ``ite`` is a report: no decision of the
+experiment reads it.
 """
 
 from __future__ import annotations
@@ -17,8 +19,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
-from autotuner.engine.experiment.convergence import MIN_PERIODS, SCATTER_MAX, estimate_scatter
+from autotuner.engine.experiment.convergence import MIN_PERIODS, SCATTER_MAX, estimate_scatter, tolerances
 from autotuner.engine.experiment.estimates import GAP, STALL, Estimates
+from autotuner.engine.experiment.load_correction import FITS_AGREE, Held
+from autotuner.engine.experiment.load_following import LoadFollowing
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.switching import Switching
 from autotuner.engine.outcome import Code
@@ -56,11 +60,34 @@ NOISY_MIN_DONE = MIN_PERIODS + 2
 NOISY_PERIODS = 3.0
 SCATTER_POWER = 0.57
 NOISY_PHASE_POWER = 0.4
+# A followed load: the periods from the latest rising switch that its stages still need, the medians of the
+# field bench's disturbed runs (every 13th process of the batch, docs/experiment.md "ite under a followed load").
+# A load fit awaiting its confirmation a period later, and every stage after it (5.1–8.4 periods at the median,
+# more the more estimates came before it; 8 carries the countdown through the stages that follow).
+CANDIDATE_PERIODS = 8.0
+# Followed, no point held yet: the estimates since the step re-read until a rule passes, then K0.
+HOLD_PERIODS = 1.0
+# The point held, K0 not sure: the bias's flip and the fits after it agreeing, less LOAD_FIT_PERIODS per fit made
+# since the levels last changed, at least a period per fit that must agree (load_correction.FITS_AGREE).
+K0_PERIODS = 4.5
+LOAD_FIT_PERIODS = 0.5
+# The point held and K0's standard error within the tolerance: the fits agreeing.
+SURE_PERIODS = 2.2
+# A followed load whose share the estimates keep (noisy, or open-loop unstable): the estimates start again after
+# the step, UNCORRECTED_PERIODS less UNCORRECTED_ESTIMATE per usable estimate since, at least UNCORRECTED_MIN.
+UNCORRECTED_PERIODS = 6.0
+UNCORRECTED_ESTIMATE = 1.4
+UNCORRECTED_MIN = 2.0
 # From two whole periods on, at least this share of the latest period is left while the run goes on.
 LAST_SHARE = 1.0
 # A rise of the raw estimate is held off as long as the countdown stays within this share of it (0.3 → 0.35 with
 # SETTLED_PERIODS: 2–6 points more of the batch's runs never rise, within ±30 % the same).
 HOLD = 0.35
+# Where the estimate would still push the countdown up, by at most this share, the clock stops instead: a rise that
+# small is the estimate's own scatter from switch to switch, and counting down again later costs less honesty than
+# a countdown that goes up (the batch: never rising 51 → 87 % noise-free, 60 → 81 % at 1 %, within ±30 % 45 → 46 %
+# and 52 → 51 %; docs/experiment.md "ite under a followed load"). A larger rise is news (a load found) and is shown.
+PAUSE = 0.5
 
 
 class Stage(str, Enum):
@@ -92,12 +119,16 @@ class Status:
 
 class Progress:
     """The time-left estimate and the progress, which never goes backwards (``loop``, ``switching``,
-    ``estimates``: the loop under test, the relay's switches and the estimates of the point)."""
+    ``estimates``: the loop under test, the relay's switches and the estimates of the point; ``load``, ``held``:
+    the load following and a followed load's held point, read only, None where there are none)."""
 
-    def __init__(self, loop: Loop, switching: Switching, estimates: Estimates) -> None:
+    def __init__(self, loop: Loop, switching: Switching, estimates: Estimates, load: LoadFollowing | None = None,
+                 held: Held | None = None) -> None:
         self.loop = loop
         self.switching = switching
         self.estimates = estimates
+        self.load = load
+        self.held = held
         self._progress = 0.0
         self._shown: tuple[float, float] | None = None  # (elapsed s, ite s) of the latest status
 
@@ -143,7 +174,8 @@ class Progress:
         statuses as a clock would; it is followed where it falls below that,
         and where it rises the countdown is held instead as long as it stays
         within ``HOLD`` of it (a countdown that goes up is what operators
-        complain about; one that lies low is worse).
+        complain about; one that lies low is worse); a rise beyond that of at
+        most ``PAUSE`` of the shown value stops the clock instead.
         """
         raw = self.raw_seconds_left(relaying, longer, phase_error_deg)
         now = self.loop.elapsed()
@@ -152,6 +184,8 @@ class Progress:
         else:
             countdown = self._shown[1] - (now - self._shown[0])
             shown = min(max(countdown, raw / (1.0 + HOLD)), raw * (1.0 + HOLD))
+            if self._shown[1] < shown <= (1.0 + PAUSE) * self._shown[1]:
+                shown = self._shown[1]  # (a small rise: the clock stops instead)
         floor = self.loop.mean_interval() or raw
         shown = max(shown, min(floor, raw))
         self._shown = (now, shown)
@@ -189,7 +223,8 @@ class Progress:
             # fit, or before its first estimate, does not.)
             scatter = estimate_scatter(loop, self.estimates)
             scatter = scatter / c.noise_tol if scatter > SCATTER_MAX * c.gain_tol else 0.0
-            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, ratio, longer, scatter) * period
+            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, ratio, longer, scatter)
+            left = max(left, self.load_periods_left()) * period
             left -= time(-1) - time(switching.rising[-1])
             # The stop comes at a switch, and whether the next one stops the run is not known before it: at
             # least a share of the period stays left until it has.
@@ -198,6 +233,26 @@ class Progress:
         if math.isfinite(c.time_limit):
             left = min(left, max(c.time_limit - loop.elapsed(), 0.0))
         return max(left, dt or 0.0, 1e-9)
+
+    def load_periods_left(self) -> float:
+        """The periods from the latest rising switch that a followed (or a candidate) load still needs, 0 without
+        one: what its stage waits for (the confirming fit, the estimates since the step, K0), counted as the
+        field bench's disturbed runs needed it at the median."""
+        load, held = self.load, self.held
+        if load is None or held is None:
+            return 0.0
+        fit = load.fit
+        if fit is None:
+            return CANDIDATE_PERIODS if load.candidate is not None else 0.0
+        if not load.corrects:
+            since = max(load.discard_before, load.levels.changed_at, self.estimates.stalled_until)
+            usable = len(self.estimates.usable(since))
+            return max(UNCORRECTED_PERIODS - UNCORRECTED_ESTIMATE * usable, UNCORRECTED_MIN)
+        if held.verdict is not None and not held.uncertain(fit, tolerances(self.loop.config)):
+            return SURE_PERIODS
+        fits = sum(1 for when, _ in held.gains if when > load.levels.changed_at)
+        k0 = max(K0_PERIODS - LOAD_FIT_PERIODS * fits, float(FITS_AGREE))
+        return k0 + (HOLD_PERIODS if held.verdict is None else 0.0)
 
     def prior_period(self, dt: float | None, relaying: bool) -> float:
         """The period expected before the estimates measure it (s), given the mean sample interval ``dt`` (s; None

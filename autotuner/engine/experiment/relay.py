@@ -87,7 +87,7 @@ class RelayExperiment:
         self._held = load_correction.Held()  # a followed load's point, while K0 may still wait
         self._unstable = Unstable(loop, levels, adaptation, estimates, self._load)
         self._runaway = Runaway(loop, switching, levels)
-        self._progress = Progress(loop, switching, estimates)
+        self._progress = Progress(loop, switching, estimates, self._load, self._held)
         # The switch whose period awaits its analysis, run after the switch is out (see analyse): 1 rising, −1
         # falling, 0 none. (A value, not the bound method: the experiment would hold itself, and each copy a
         # worker's analysis replaces would be left to the garbage collector's full walks.)
