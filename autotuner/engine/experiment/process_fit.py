@@ -26,7 +26,8 @@ MAX_RATIO = 0.98  # the shorter lag's largest share of the longer (two equal lag
 # The most changes of the held MV the fit takes (each relay switch makes two: its blended sample and the level;
 # an MV rate limit's ramps make more): the fit's cost grows with them.
 MAX_STEPS = 40
-ITERATIONS = 20  # Levenberg–Marquardt's (it settles in 5–15 on the batch's records)  # the search's largest number of model runs over the record (each about 0.1 ms)
+ITERATIONS = 12  # Levenberg–Marquardt's at most (each about five runs of the model over the record)
+SETTLED = 1e-3  # a step gaining less than this share of the cost ends the search
 
 
 @dataclass(frozen=True)
@@ -107,11 +108,7 @@ def fit(history: Samples, mv0: float, period: float) -> ProcessModel | None:
     scale = period / (2.0 * math.pi)
     lower = np.array([math.log(scale) - 8.0, 0.0, 0.0])
     upper = np.array([math.log(scale) + 8.0, MAX_RATIO, period])
-    # The dead time starts at half the time the PV took to leave its level after the first step (a lag answers
-    # slowly at first too).
-    left = np.nonzero((history.t > steps[0][0]) & (np.abs(y - y[0]) > 0.02 * swing))[0]
-    delay = 0.5 * (history.t[left[0]] - steps[0][0]) if len(left) else 0.25 * period
-    found = _levenberg_marquardt(residual, np.array([math.log(scale), 0.5, min(delay, period)]), lower, upper,
+    found = _levenberg_marquardt(residual, np.array([math.log(scale), 0.5, 0.25 * period]), lower, upper,
                                  np.array([1e-4, 1e-4, 1e-4 * scale]))
     res, k0, _ = _project(y, _unit_response(history.t, steps, found))
     t1 = math.exp(found[0])
@@ -126,6 +123,7 @@ def _levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray], x: np.nda
     each; scipy's general solver costs ten times as much on three parameters)."""
     r = residual(x)
     cost, damping = float(r @ r), 1e-3
+    floor = 1e-24 * cost
     for _ in range(ITERATIONS):
         jac = np.empty((len(r), len(x)))
         for i in range(len(x)):
@@ -139,7 +137,9 @@ def _levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray], x: np.nda
             r_trial = residual(trial)
             cost_trial = float(r_trial @ r_trial)
             if cost_trial < cost:
-                done = cost - cost_trial < 1e-10 * cost
+                # (Settled: a step that gains less than SETTLED of the cost moves the aim far less than the
+                # stopping rule's phase tolerance; or a fit within rounding.)
+                done = cost - cost_trial < SETTLED * cost or cost_trial < floor
                 x, r, cost, damping = trial, r_trial, cost_trial, damping / 3.0
                 break
             damping *= 4.0
