@@ -1,6 +1,6 @@
 """A process model fitted to the record by least squares: two lags and a dead time, to aim the phase filter.
 
-``K0·e^{−Ls}/((T1·s + 1)(T2·s + 1))`` (``T2 = r·T1``, ``0 ≤ r ≤ MAX_RATIO``) from
+``K0·e^{−Ls}/((T1·s + 1)(T2·s + 1))`` (``T1 ≥ T2 ≥ 0``) from
 the MV as the process held it to the PV as measured, over the whole record
 (the noise stage's rest and the relay's first period and a half: the start's
 transient is what tells the lags from the dead time). K0 and the PV's level
@@ -22,7 +22,7 @@ import numpy as np
 
 from autotuner.engine.experiment.record import Samples
 
-MAX_RATIO = 0.98  # the shorter lag's largest share of the longer (two equal lags are one double pole)
+DOUBLE = 0.999  # lags closer than this ratio are one double pole
 # The most changes of the held MV the fit takes (each relay switch makes two: its blended sample and the level;
 # an MV rate limit's ramps make more): the fit's cost grows with them.
 MAX_STEPS = 40
@@ -69,16 +69,20 @@ def step_response(t: np.ndarray, t1: float, t2: float) -> np.ndarray:
     t = np.maximum(t, 0.0)
     if t2 <= 1e-9 * t1:
         return -np.expm1(-t / t1)
+    if t2 >= DOUBLE * t1:  # (a double pole: the difference below would lose its digits)
+        tc = 0.5 * (t1 + t2)
+        return 1.0 - (1.0 + t / tc) * np.exp(-t / tc)
     return 1.0 - (t1 * np.exp(-t / t1) - t2 * np.exp(-t / t2)) / (t1 - t2)
 
 
 def _unit_response(times: np.ndarray, steps: tuple[np.ndarray, np.ndarray], params: np.ndarray) -> np.ndarray:
     """The unit-gain model's output at ``times`` (s) for the input's ``steps`` (their times, s, and sizes) and
-    ``params`` = (ln T1, r, L): a sum of step responses, one per change of the held input."""
-    t1 = math.exp(params[0])
+    ``params`` = (ln Ta, ln Tb, L), the lags in either order: a sum of step responses, one per change of the held
+    input."""
+    t1, t2 = sorted((math.exp(params[0]), math.exp(params[1])), reverse=True)
     at, size = steps
     # (A sum over the few steps, not a matrix product: BLAS's threads cost more than the sum on so few.)
-    return (step_response(times[None, :] - at[:, None] - params[2], t1, params[1] * t1) * size[:, None]).sum(axis=0)
+    return (step_response(times[None, :] - at[:, None] - params[2], t1, t2) * size[:, None]).sum(axis=0)
 
 
 def _project(y: np.ndarray, unit: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -106,14 +110,14 @@ def fit(history: Samples, mv0: float, period: float) -> ProcessModel | None:
         return _project(y, _unit_response(history.t, steps, params))[0]
 
     scale = period / (2.0 * math.pi)
-    lower = np.array([math.log(scale) - 8.0, 0.0, 0.0])
-    upper = np.array([math.log(scale) + 8.0, MAX_RATIO, period])
-    found = _levenberg_marquardt(residual, np.array([math.log(scale), 0.5, 0.25 * period]), lower, upper,
-                                 np.array([1e-4, 1e-4, 1e-4 * scale]))
+    lower = np.array([math.log(scale) - 8.0, math.log(scale) - 8.0, 0.0])
+    upper = np.array([math.log(scale) + 8.0, math.log(scale) + 8.0, period])
+    found = _levenberg_marquardt(residual, np.array([math.log(scale), math.log(0.3 * scale), 0.25 * period]),
+                                 lower, upper, np.array([1e-4, 1e-4, 1e-4 * scale]))
     res, k0, _ = _project(y, _unit_response(history.t, steps, found))
-    t1 = math.exp(found[0])
+    t1, t2 = sorted((math.exp(found[0]), math.exp(found[1])), reverse=True)
     misfit = float(np.sqrt(np.mean(res * res))) / swing
-    return ProcessModel(k0, t1, float(found[1]) * t1, float(found[2]), misfit)
+    return ProcessModel(k0, t1, t2, float(found[2]), misfit)
 
 
 def _levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray], x: np.ndarray, lower: np.ndarray,
