@@ -338,14 +338,15 @@ class RelayExperiment:
     def _process_model(self) -> ProcessModel | None:
         """A model of the process fitted to the record (process_fit.py) to aim the filter by, at the first
         MODEL_PERIODS whole periods of a quiet run with the relay's levels as they started; None elsewhere (under
-        noise, a load, a process that is or may be unstable) or where it misfits the record."""
+        noise, a load, a process that is or may be unstable, an inverse response) or where it misfits the
+        record."""
         loop, switching, levels = self._loop, self._switching, self._levels
         if (len(self._adaptation.lags) > MODEL_PERIODS or self._load.fit is not None or self._unstable.unstable
                 or levels.center != loop.mv0 or levels.changed_at > -math.inf):
             return None
         if convergence.too_scattered(loop, switching.peak_error, switching.period()):
             return None
-        model = process_fit.fit(loop.record.all(), loop.mv0, switching.period())
+        model = process_fit.fit(loop.record.all(), loop.mv0, switching.period(), loop.noise)
         return model if model is not None and model.k0 > 0.0 and model.misfit <= MODEL_MISFIT else None
 
     def _judge(self, raw: Samples, detrended: Samples) -> None:
