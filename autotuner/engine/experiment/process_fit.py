@@ -58,8 +58,12 @@ class ProcessModel:
         if self.delay <= 0.0 and lag >= (math.pi if self.t2 > 0.0 else math.pi / 2.0):
             return None
         lo, hi = 0.0, 1.0 / max(self.t1, self.delay, 1e-12)
-        while self.lag(hi) < lag:
+        for _ in range(200):  # (a dead time of a hair lags by π only far up: bounded)
+            if self.lag(hi) >= lag:
+                break
             lo, hi = hi, 2.0 * hi
+        else:
+            return None
         for _ in range(60):  # bisection: the lag rises with ω
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if self.lag(mid) < lag else (lo, mid)
