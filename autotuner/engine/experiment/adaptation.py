@@ -13,8 +13,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
+from autotuner.engine.experiment import relay_cycle
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.phase_filter import PhaseFilter
+from autotuner.engine.experiment.process_fit import ProcessModel
 
 # The largest step of ln ω from one period to the next.
 MAX_LOG_STEP = math.log(3.0)
@@ -96,6 +100,33 @@ class Adaptation:
         omega_next = omega * math.exp(RELAXATION * step)
         now = self.filter.phase(omega_next)
         self.set(now + RELAXATION * (math.pi - target - offset - now), omega_next)
+
+    def aim_from(self, model: ProcessModel, omega: float, lag: float, high: float, low: float) -> bool:
+        """Retune the filter from a ``model`` of the process fitted to the record (process_fit.py) instead of the
+        secant: the cycle at the frequency where the model lags by the target, with the filter phase that makes
+        the relay's cycle periodic there (relay_cycle.py). ``omega`` (rad/s) and ``lag`` (radians): the period
+        just measured, the guess's start; ``high``, ``low``: the relay's levels less its centre (MV units).
+        False (nothing changed) where the model gives no such cycle within the filter's range.
+
+        The measured lag of an early period carries the start's transient and the loop's phase balance is not
+        the describing function's (the relay switches where the filtered error crosses, not its first
+        harmonic): both are what the secant corrects period by period, and what the model knows at once.
+        """
+        target = math.radians(self.target_deg)
+        aimed = model.frequency(target)
+        if aimed is None or abs(math.log(aimed / omega)) > MAX_LOG_STEP:
+            return False
+        guess = math.pi - target - (math.pi - lag - self.filter.phase(omega))
+        response = self.loop.sign * model.response(aimed * np.arange(1, relay_cycle.HARMONICS + 1))
+        # (The switch lags the filtered error's crossing by half a sample: switching.py blends the MV from the
+        # crossing a sample late, and the filter reads each sample as held over the interval before it.)
+        theta = relay_cycle.filter_phase(response, aimed, self.loop.sign * model.k0, high, low, self.hysteresis,
+                                         0.5 * self.loop.dt, guess)
+        if theta is None:
+            return False
+        self.set(theta, aimed)
+        self._last = None  # (the secant restarts from the aimed cycle)
+        return True
 
     def phase_deg(self) -> float:
         """The filter's phase at the frequency it was set for, degrees."""

@@ -1,0 +1,177 @@
+"""A process model fitted to the record by least squares: two lags and a dead time, to aim the phase filter.
+
+``K0·e^{−Ls}/((T1·s + 1)(T2·s + 1))`` (``T1 ≥ T2 ≥ 0``) from
+the MV as the process held it to the PV as measured, over the whole record
+(the noise stage's rest and the relay's first period and a half: the start's
+transient is what tells the lags from the dead time). K0 and the PV's level
+enter linearly and are solved for at each trial of the three others (variable
+projection); those three by a bounded least-squares search from the first
+period's scale. The model only aims the filter (adaptation.py): the point is
+still estimated from the PV as measured and judged by the stopping rules.
+
+Times in s, gains in PV per MV unit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from autotuner.engine.experiment.record import Samples
+
+DOUBLE = 0.999  # lags closer than this ratio are one double pole
+# A PV that first moves against the MV's step by more than this share of its swing has an inverse response (the
+# batch's (1-a*s)/(s+1)^3: 0.1 % at a = 0.1, 3.2 % at 0.5, 7.8 % at 0.9; every other process 0).
+INVERSE = 0.01
+# The most changes of the held MV the fit takes (each relay switch makes two: its blended sample and the level;
+# an MV rate limit's ramps make more): the fit's cost grows with them.
+MAX_STEPS = 40
+ITERATIONS = 12  # Levenberg–Marquardt's at most (each about five runs of the model over the record)
+SETTLED = 1e-3  # a step gaining less than this share of the cost ends the search
+
+
+@dataclass(frozen=True)
+class ProcessModel:
+    """``K0·e^{−Ls}/((T1·s + 1)(T2·s + 1))``: ``k0`` (PV per MV unit), ``t1`` ≥ ``t2`` ≥ 0 and ``delay`` (s);
+    ``misfit``: the fit's RMS residual as a share of the PV's swing over the record."""
+
+    k0: float
+    t1: float
+    t2: float
+    delay: float
+    misfit: float
+
+    def response(self, w: np.ndarray) -> np.ndarray:
+        """F(jω) at the frequencies ``w`` (rad/s)."""
+        jw = 1j * w
+        return self.k0 * np.exp(-jw * self.delay) / ((1.0 + jw * self.t1) * (1.0 + jw * self.t2))
+
+    def lag(self, omega: float) -> float:
+        """The phase lag at ``omega`` (rad/s), radians (K0 > 0)."""
+        return math.atan(omega * self.t1) + math.atan(omega * self.t2) + omega * self.delay
+
+    def frequency(self, lag: float) -> float | None:
+        """The frequency (rad/s) where the model lags by ``lag`` (radians), or None where it never does."""
+        if self.delay <= 0.0 and lag >= (math.pi if self.t2 > 0.0 else math.pi / 2.0):
+            return None
+        lo, hi = 0.0, 1.0 / max(self.t1, self.delay, 1e-12)
+        for _ in range(200):  # (a dead time of a hair lags by π only far up: bounded)
+            if self.lag(hi) >= lag:
+                break
+            lo, hi = hi, 2.0 * hi
+        else:
+            return None
+        for _ in range(60):  # bisection: the lag rises with ω
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if self.lag(mid) < lag else (lo, mid)
+        return 0.5 * (lo + hi)
+
+
+def step_response(t: np.ndarray, t1: float, t2: float) -> np.ndarray:
+    """The unit step response of ``1/((t1·s + 1)(t2·s + 1))`` (``t1`` > ``t2`` ≥ 0, s) at the times ``t`` (s)
+    after the step (zero before it)."""
+    t = np.maximum(t, 0.0)
+    if t2 <= 1e-9 * t1:
+        return -np.expm1(-t / t1)
+    if t2 >= DOUBLE * t1:  # (a double pole: the difference below would lose its digits)
+        tc = 0.5 * (t1 + t2)
+        return 1.0 - (1.0 + t / tc) * np.exp(-t / tc)
+    return 1.0 - (t1 * np.exp(-t / t1) - t2 * np.exp(-t / t2)) / (t1 - t2)
+
+
+def _unit_response(times: np.ndarray, steps: tuple[np.ndarray, np.ndarray], params: np.ndarray) -> np.ndarray:
+    """The unit-gain model's output at ``times`` (s) for the input's ``steps`` (their times, s, and sizes) and
+    ``params`` = (ln Ta, ln Tb, L), the lags in either order: a sum of step responses, one per change of the held
+    input."""
+    t1, t2 = sorted((math.exp(params[0]), math.exp(params[1])), reverse=True)
+    at, size = steps
+    # (A sum over the few steps, not a matrix product: BLAS's threads cost more than the sum on so few.)
+    return (step_response(times[None, :] - at[:, None] - params[2], t1, t2) * size[:, None]).sum(axis=0)
+
+
+def _project(y: np.ndarray, unit: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """(residual, K0, level) of the best ``level + K0·unit`` through ``y``."""
+    du = unit - unit.mean()
+    spread = float(du @ du)
+    k0 = float(du @ y) / spread if spread > 0.0 else 0.0
+    level = float(y.mean()) - k0 * float(unit.mean())
+    return y - level - k0 * unit, k0, level
+
+
+def inverse_response(y: np.ndarray, size: np.ndarray, noise: float) -> bool:
+    """True when the PV ``y`` (PV units, a sample per held MV) moved against the MV's first step (``size``: the
+    held MV's change at each sample, MV units, the relay's start first) before the relay's first switch, by more
+    than INVERSE of its swing and 3 noise standard deviations (``noise``, PV units): a zero in the right
+    half-plane, which lags and dead time cannot model (the cycle's phase balance came out 0.8° off on
+    ``(1-0.9*s)/(s+1)^3``, where the secant's first step landed within 0.2°)."""
+    changes = np.nonzero(size)[0]
+    first = changes[0]
+    # (The first switch: the next change but the start's own; a switch is its blended sample and the level.)
+    later = changes[changes > first + 1]
+    before = y[first:later[0] if len(later) else len(y)] - y[first]
+    against = float(np.max(-np.sign(size[first]) * before))
+    return against > max(INVERSE * float(np.ptp(y)), 3.0 * noise)
+
+
+def fit(history: Samples, mv0: float, period: float, noise: float = 0.0) -> ProcessModel | None:
+    """The model through the record ``history`` (the MV's deviations from ``mv0``, MV units, as held), the
+    first whole period ``period`` (s) setting the search's scale; None where the record does not move or shows
+    an inverse response (:func:`inverse_response`, ``noise``: the PV's noise standard deviation, PV units)."""
+    y = history.y
+    swing = float(np.ptp(y))
+    # The held input as steps from mv0 (the relay's switches and their blended samples).
+    size = np.diff(history.u, prepend=mv0)
+    moved = size != 0.0
+    steps = history.s[moved], size[moved]
+    if swing <= 0.0 or not 0 < len(steps[0]) <= MAX_STEPS or inverse_response(y, size, noise):
+        return None
+
+    def residual(params: np.ndarray) -> np.ndarray:
+        return _project(y, _unit_response(history.t, steps, params))[0]
+
+    scale = period / (2.0 * math.pi)
+    lower = np.array([math.log(scale) - 8.0, math.log(scale) - 8.0, 0.0])
+    upper = np.array([math.log(scale) + 8.0, math.log(scale) + 8.0, period])
+    found = _levenberg_marquardt(residual, np.array([math.log(scale), math.log(0.3 * scale), 0.25 * period]),
+                                 lower, upper, np.array([1e-4, 1e-4, 1e-4 * scale]))
+    res, k0, _ = _project(y, _unit_response(history.t, steps, found))
+    t1, t2 = sorted((math.exp(found[0]), math.exp(found[1])), reverse=True)
+    misfit = float(np.sqrt(np.mean(res * res))) / swing
+    return ProcessModel(k0, t1, t2, float(found[2]), misfit)
+
+
+def _levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray], x: np.ndarray, lower: np.ndarray,
+                         upper: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """The parameters within [``lower``, ``upper``] that least-squares minimise ``residual``, from ``x``:
+    Levenberg–Marquardt with forward differences of ``step``, at most ITERATIONS iterations (a few residuals
+    each; scipy's general solver costs ten times as much on three parameters)."""
+    r = residual(x)
+    cost, damping = float(r @ r), 1e-3
+    floor = 1e-24 * cost
+    for _ in range(ITERATIONS):
+        jac = np.empty((len(r), len(x)))
+        for i in range(len(x)):
+            moved = x.copy()
+            moved[i] += step[i] if moved[i] + step[i] <= upper[i] else -step[i]
+            jac[:, i] = (residual(moved) - r) / (moved[i] - x[i])
+        normal, gradient = jac.T @ jac, jac.T @ r
+        while damping < 1e4:
+            trial = np.clip(x - np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), gradient),
+                            lower, upper)
+            r_trial = residual(trial)
+            cost_trial = float(r_trial @ r_trial)
+            if cost_trial < cost:
+                # (Settled: a step that gains less than SETTLED of the cost moves the aim far less than the
+                # stopping rule's phase tolerance; or a fit within rounding.)
+                done = cost - cost_trial < SETTLED * cost or cost_trial < floor
+                x, r, cost, damping = trial, r_trial, cost_trial, damping / 3.0
+                break
+            damping *= 4.0
+        else:
+            return x
+        if done:
+            return x
+    return x
