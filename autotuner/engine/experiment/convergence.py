@@ -61,31 +61,42 @@ def scatter(noise: float, swing: float, samples: float) -> float:
     return noise * math.sqrt(2.0 / max(samples, 1.0)) / swing if swing > 0.0 else math.inf
 
 
-def noisy(loop: Loop, estimates: Estimates) -> bool:
+def sigma(loop: Loop, estimates: Estimates, pending: float | None = None) -> float:
+    """The measurement noise's σ the stopping rule judges by (PV units): the larger of the noise stage's and the
+    latest period's — ``pending`` (PV units), that of a period whose estimate is being made, else the latest of the
+    ``estimates``' (loop.cycle_noise; none before an estimate)."""
+    if pending is None:
+        pending = estimates.latest.cycle_noise if estimates.items else 0.0
+    return max(loop.noise, pending)
+
+
+def noisy(loop: Loop, estimates: Estimates, pending: float | None = None) -> bool:
     """True when the measured noise of ``loop`` is expected to scatter one period's estimate of the ``estimates``
-    by more than SCATTER_MAX of gain_tol."""
-    return estimate_scatter(loop, estimates) > SCATTER_MAX * loop.config.gain_tol
+    by more than SCATTER_MAX of gain_tol (``pending``: as for :func:`sigma`)."""
+    return estimate_scatter(loop, estimates, pending) > SCATTER_MAX * loop.config.gain_tol
 
 
-def estimate_scatter(loop: Loop, estimates: Estimates) -> float:
-    """:func:`scatter` of the latest of the ``estimates`` of the ``loop`` (0 before one)."""
+def estimate_scatter(loop: Loop, estimates: Estimates, pending: float | None = None) -> float:
+    """:func:`scatter` of the latest of the ``estimates`` of the ``loop`` (0 before one; ``pending``: as for
+    :func:`sigma`)."""
     if not estimates.items:
         return 0.0
     latest = estimates.latest
-    return period_scatter(loop, latest.point.gain * loop.config.amp, latest.end - latest.start)
+    return period_scatter(loop, sigma(loop, estimates, pending), latest.point.gain * loop.config.amp,
+                          latest.end - latest.start)
 
 
-def too_scattered(loop: Loop, swing: float, period: float) -> bool:
-    """True when the noise of ``loop`` scatters one ``period``'s (s) estimate of a cycle whose fundamental is
-    ``swing`` (PV units) by more than SCATTER_MAX of gain_tol (:func:`scatter`)."""
-    return period_scatter(loop, swing, period) > SCATTER_MAX * loop.config.gain_tol
+def too_scattered(loop: Loop, estimates: Estimates, swing: float, period: float) -> bool:
+    """True when the noise of ``loop`` (:func:`sigma` of its ``estimates``) scatters one ``period``'s (s) estimate
+    of a cycle whose fundamental is ``swing`` (PV units) by more than SCATTER_MAX of gain_tol (:func:`scatter`)."""
+    return period_scatter(loop, sigma(loop, estimates), swing, period) > SCATTER_MAX * loop.config.gain_tol
 
 
-def period_scatter(loop: Loop, swing: float, period: float) -> float:
-    """:func:`scatter` of one ``period``'s (s) estimate of the ``loop``'s cycle whose fundamental is ``swing``
-    (PV units)."""
+def period_scatter(loop: Loop, noise: float, swing: float, period: float) -> float:
+    """:func:`scatter` from noise of σ ``noise`` (PV units) of one ``period``'s (s) estimate of the ``loop``'s cycle
+    whose fundamental is ``swing`` (PV units)."""
     samples = period / loop.dt if loop.dt > 0.0 else 1.0
-    return scatter(loop.sigma, swing, samples)
+    return scatter(noise, swing, samples)
 
 
 def unsettled(when: str, loop: Loop, estimates: Estimates, since: float, fit: LoadFit | None,

@@ -6,7 +6,8 @@ measurement noise, and a slope well beyond its standard error is a PV still
 settling when TUNE came (a load step just before, a set point change).
 Twenty samples measure σ to about ±17 % (one in twenty runs 30 % low): each
 whole period of the relay measures it again from the PV's third differences
-(:func:`cycle_noise`), and the stopping rule judges the larger of the two.
+(:func:`cycle_noise`, kept with that period's estimate), and the stopping rule
+judges the larger of the two (convergence.sigma).
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ class Loop:
     sign: −1 for a reverse-acting loop, else 1.
     sp: the relay's set point (the PV's mean over the noise stage), PV units.
     noise: standard deviation of the measurement noise over the noise stage, PV units.
-    cycle_noise: ... over the latest whole period of the relay (:func:`cycle_noise`), PV units.
     dt: the mean sample interval over the noise stage, s.
     settling: (the PV's slope at the start, sign-corrected PV units per s; its time, s), (0, 0) when
         the PV was steady.
@@ -47,7 +47,6 @@ class Loop:
     sign: float = 1.0
     sp: float = 0.0
     noise: float = 0.0
-    cycle_noise: float = 0.0
     dt: float = 0.0
     settling: tuple[float, float] = (0.0, 0.0)
 
@@ -65,12 +64,6 @@ class Loop:
         if abs(slope) > SETTLING_EVIDENCE * slope_std:
             self.settling = (self.sign * float(slope), float(np.mean(t)))
         self.dt = float(t[-1] - t[0]) / (len(t) - 1)
-
-    @property
-    def sigma(self) -> float:
-        """The measurement noise's σ the stopping rule judges by: the larger of the noise stage's and the latest
-        period's, PV units."""
-        return max(self.noise, self.cycle_noise)
 
     def elapsed(self) -> float:
         """Seconds from the first sample to the latest (0 before any)."""

@@ -190,7 +190,7 @@ class RelayExperiment:
                 # the prior for the period; before, the swing is still growing: the first half period from rest
                 # of a lag-dominant process swings a third as much, and a 1 % noise passed for 3 %.)
                 period = self._progress.prior_period(self._loop.mean_interval(), True)
-                longer = convergence.too_scattered(self._loop, self._switching.peak_error, period)
+                longer = convergence.too_scattered(self._loop, self._estimates, self._switching.peak_error, period)
             lags = self._adaptation.lags
             error = abs(math.degrees(lags[-1]) - self._adaptation.target_deg) if lags else None
             ite = self._progress.seconds_left(self.stage is Stage.RELAY, longer, error)
@@ -328,14 +328,15 @@ class RelayExperiment:
         """Estimate the point over the last period and stop if it has converged."""
         loop, crossings, fit = self._loop, self._switching.crossings, self._load.fit
         bounds = crossings[-3:]
-        loop.cycle_noise = cycle_noise(raw.y[raw.t >= bounds[-2]])
-        noisy = convergence.noisy(loop, self._estimates)
+        noise = cycle_noise(raw.y[raw.t >= bounds[-2]])
+        # (Judged with this period's σ and the latest estimate's swing and length.)
+        noisy = convergence.noisy(loop, self._estimates, noise)
         point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x, noisy)
         wide = wide_x(loop, detrended, bounds) if fit is None else x
         quiet = fit is None and not noisy
         alt = alt_point(loop, raw, detrended.y, bounds, (point, x)) if quiet else None
         gap = longest_gap(raw.t, bounds[0], bounds[-1])
-        self._estimates.add(Estimate(point, x, wide, *bounds, alt), gap, loop.dt)
+        self._estimates.add(Estimate(point, x, wide, *bounds, alt, noise), gap, loop.dt)
         self._accept(self._verdict())
 
     def _verdict(self) -> Verdict | None:
