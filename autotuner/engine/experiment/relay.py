@@ -367,9 +367,10 @@ class RelayExperiment:
         return held.result(fit, tol, -math.inf if changed >= now else changed)
 
     def _corrects(self) -> bool:
-        """True when a followed load's estimates shed its share through the model (load_correction.py): a quiet,
-        noise-free run of a process that is not open-loop unstable (whose model would run away)."""
-        self._load.quiet = not self._unstable.unstable and not convergence.noisy(self._loop, self._estimates)
+        """True when a followed load's estimates shed its share through the model (load_correction.py): a quiet run
+        (its noise far below the scatter gate in every period: convergence.far_below) of a process that is not
+        open-loop unstable (whose model would run away)."""
+        self._load.quiet = not self._unstable.unstable and convergence.far_below(self._loop, self._estimates)
         return self._load.corrects
 
     def _reread(self, fit: LoadFit) -> None:
