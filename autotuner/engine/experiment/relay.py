@@ -328,7 +328,8 @@ class RelayExperiment:
         """Estimate the point over the last period and stop if it has converged."""
         loop, crossings, fit = self._loop, self._switching.crossings, self._load.fit
         bounds = crossings[-3:]
-        noise = cycle_noise(raw.y[raw.t >= bounds[-2]])
+        period = raw.t >= bounds[-2]
+        noise = cycle_noise(raw.t[period], raw.y[period])
         # (Judged with this period's σ and the latest estimate's swing and length.)
         noisy = convergence.noisy(loop, self._estimates, noise)
         point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x, noisy)
