@@ -130,3 +130,34 @@ def test_a_two_percent_noise_run_with_a_load_step_is_as_short_as_before_the_merg
     assert abs(ident.point.value - true) / abs(true) < 0.01
     assert abs(-ident.point.phase_deg - 135.0) < 2.0
     assert check_gains(process, result.design.gains, log_grid(omega)).ms <= 1.6
+
+
+def test_status_reads_the_gate_judged_by_the_analysis(monkeypatch) -> None:
+    # status() runs per request (hundreds of clients): the gate (noisy, too_scattered) is judged once per analysis
+    # and at the switches before the first estimate, never by status() itself. Counted on a 2 % noise run through
+    # its first estimate and beyond.
+    process = parse_process("exp(-s)/(4*s+1)")
+    exact = exact_point(process, 135.0)
+    assert exact is not None
+    period = 2.0 * math.pi / exact.omega
+    sim = PlantSim(process, period / 100.0, noise_std=0.02 * exact.gain, seed=1)
+    experiment = RelayExperiment(RelayConfig(amp=1.0, time_limit=200.0 * period), sim.mv0)
+    calls = {"noisy": 0, "too_scattered": 0}
+    for name in calls:
+        judged = getattr(convergence, name)
+
+        def counted(*args, _judged=judged, _name=name, **kwargs):
+            calls[_name] += 1
+            return _judged(*args, **kwargs)
+
+        monkeypatch.setattr(convergence, name, counted)
+    longer = []
+    while not experiment.done:
+        sim.advance(experiment.step(sim.t, sim.measure()))
+        before = dict(calls)
+        experiment.status()
+        assert calls == before
+        longer.append(experiment._longer)
+    assert experiment.code is Code.OK and sum(calls.values()) > 0
+    # Judged noisy (2 % noise: 1.13 of the gate) from the first whole period on.
+    assert any(longer) and longer[-2]
