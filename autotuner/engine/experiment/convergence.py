@@ -7,7 +7,8 @@ quiet, noise-free run the period between the latest falling crossings, which
 overlaps the latest rising one by half, stops it half a period sooner when the
 two agree within ``HALF_TOL`` of the tolerances — from the falling switch after the first estimate on, where
 both transient models' sets must agree. When neither has happened by ``max_periods`` or the time limit,
-:func:`unsettled` says why.
+:func:`unsettled` says why. Which rules judge depends on the noise: :func:`noisy`, a gate on one period's
+expected scatter with hysteresis (QUIET_AGAIN), judged from every period's σ kept with its estimate.
 """
 
 from __future__ import annotations
