@@ -105,10 +105,15 @@ def noise_ratios(loop: Loop, estimates: Estimates, pending: float | None = None)
     gate SCATTER_MAX × gain_tol; none before an estimate."""
     if not estimates.items:
         return []
-    latest, gate = estimates.latest, SCATTER_MAX * loop.config.gain_tol
-    swing, period = latest.point.gain * loop.config.amp, latest.end - latest.start
-    noises = [e.cycle_noise for e in estimates.items] + ([] if pending is None else [pending])
-    return [period_scatter(loop, max(loop.noise, noise), swing, period) / gate for noise in noises]
+    latest = estimates.latest
+    # (scatter is proportional to σ: one division per call, one product per period — the analysis asks several
+    # times per period.)
+    unit = period_scatter(loop, 1.0, latest.point.gain * loop.config.amp, latest.end - latest.start)
+    unit /= SCATTER_MAX * loop.config.gain_tol
+    noises = [max(loop.noise, e.cycle_noise) for e in estimates.items]
+    if pending is not None:
+        noises.append(max(loop.noise, pending))
+    return [unit * noise if noise > 0.0 else 0.0 for noise in noises]
 
 
 def estimate_scatter(loop: Loop, estimates: Estimates, pending: float | None = None) -> float:
