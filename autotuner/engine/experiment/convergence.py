@@ -72,9 +72,9 @@ def scatter(noise: float, swing: float, samples: float) -> float:
 
 
 def sigma(loop: Loop, estimates: Estimates, pending: float | None = None) -> float:
-    """The measurement noise's σ the stopping rule judges by (PV units): the larger of the ``loop``'s noise stage's
-    and the latest period's — ``pending`` (PV units), that of a period whose estimate is being made, else the latest of the
-    ``estimates``' (loop.cycle_noise; none before an estimate)."""
+    """The measurement noise's σ the stopping rule judges by (PV units): the larger of the ``loop``'s noise
+    stage's and the latest period's — ``pending`` (PV units), that of a period whose estimate is being made,
+    else the latest of the ``estimates``' (loop.cycle_noise; none before an estimate)."""
     if pending is None:
         pending = estimates.latest.cycle_noise if estimates.items else 0.0
     return max(loop.noise, pending)
