@@ -60,7 +60,26 @@ def test_the_cycles_noise_is_measured_from_the_relay_period_alone(sigma) -> None
     rng = np.random.default_rng(3)
     t = np.arange(100) / 100.0
     clean = np.where(t < 0.5, 1.0 - 2.0 * np.exp(-t / 0.2), -1.0 + 2.0 * np.exp(-(t - 0.5) / 0.2))
-    measured = [cycle_noise(clean + sigma * rng.standard_normal(100)) for _ in range(20)]
+    measured = [cycle_noise(t, clean + sigma * rng.standard_normal(100)) for _ in range(20)]
     assert all(m == pytest.approx(sigma, rel=0.4) for m in measured)
     assert np.mean(measured) == pytest.approx(sigma, rel=0.08)
-    assert cycle_noise(clean) < 1e-4
+    assert cycle_noise(t, clean) < 1e-4
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.01])
+def test_the_cycles_noise_is_not_read_from_the_sampling_times_jitter(sigma) -> None:
+    # A field session samples with ±30 % jitter on its interval: the plain third difference of such samples reads
+    # the cycle's slope times the jitter as noise (on a noise-free relay record 1–1.5 of the scatter gate, which
+    # held tests/test_field_experiment.py's stalling session noisy for 40 periods). Third divided differences at
+    # the samples' own times, each scaled to unit noise, read the noise alone.
+    rng = np.random.default_rng(5)
+    t = np.sort((np.arange(100) + rng.uniform(-0.3, 0.3, 100)) / 100.0)
+    clean = np.where(t < 0.5, 1.0 - 2.0 * np.exp(-t / 0.2), -1.0 + 2.0 * np.exp(-(t - 0.5) / 0.2))
+    measured = [cycle_noise(t, clean + sigma * rng.standard_normal(100)) for _ in range(20)]
+    if sigma:
+        assert np.mean(measured) == pytest.approx(sigma, rel=0.1)
+    else:
+        assert max(measured) < 1e-4
+        # (What the plain third difference reads from the jitter alone.)
+        d3 = np.diff(clean, 3)
+        assert 1.4826 * float(np.median(np.abs(d3 - np.median(d3)))) / math.sqrt(20.0) > 20 * max(measured)

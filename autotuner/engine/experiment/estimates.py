@@ -48,6 +48,7 @@ class Estimate:
     before, start, end: the crossing times that bound the two periods, s.
     alt: the point and |F|/K0 with the transient's share read off the second model (transient.ALT_RATIO), on a
         quiet, noise-free run; else None.
+    cycle_noise: σ of the measurement noise over the period ``[start, end]`` (loop.cycle_noise), PV units.
     """
 
     point: Point
@@ -57,6 +58,7 @@ class Estimate:
     start: float
     end: float
     alt: tuple[Point, float] | None = None
+    cycle_noise: float = 0.0
 
 
 @dataclass

@@ -100,6 +100,8 @@ class RelayExperiment:
         # falling, 0 none. (A value, not the bound method: the experiment would hold itself, and each copy a
         # worker's analysis replaces would be left to the garbage collector's full walks.)
         self._pending = 0
+        # ite's "longer" (a disturbed or noisy run's length), judged after each analysis (_judge_longer).
+        self._longer = False
         if levels.high <= mv0 or levels.low >= mv0:
             self._end(endings.mv_range(mv0, levels.low, levels.high, config.amp, config.mv_limits))
 
@@ -164,6 +166,7 @@ class RelayExperiment:
         if switched and not self.done:
             try:
                 self._on_period() if switched > 0 else self._on_half()
+                self._longer = self._judge_longer()
             except Ended as ended:
                 self._end(ended)
 
@@ -193,20 +196,24 @@ class RelayExperiment:
         if self.done:
             ite, progress = final_ite(self.code), 1.0
         else:
-            longer = self._load.fit is not None or convergence.noisy(self._loop, self._estimates)
-            if not self._estimates.items and len(self._switching.rising) >= 2:
-                # (Before an estimate, the filtered error's swing over the first whole period stands for the PV's,
-                # the prior for the period; before, the swing is still growing: the first half period from rest
-                # of a lag-dominant process swings a third as much, and a 1 % noise passed for 3 %.)
-                period = self._progress.prior_period(self._loop.mean_interval(), True)
-                longer = convergence.too_scattered(self._loop, self._switching.peak_error, period)
             lags = self._adaptation.lags
             error = abs(math.degrees(lags[-1]) - self._adaptation.target_deg) if lags else None
-            ite = self._progress.seconds_left(self.stage is Stage.RELAY, longer, error)
+            ite = self._progress.seconds_left(self.stage is Stage.RELAY, self._longer, error)
             progress = self._progress.fraction(ite)
         return Status(stage=self.stage, progress=progress, ite=ite, relay=self._switching.relay,
                       filter_phase_deg=self._adaptation.phase_deg(), periods=max(self._switching.periods, 0),
                       code=self.code, message=self.message)
+
+    def _judge_longer(self) -> bool:
+        """True when the run will take a disturbed or noisy run's length (ite's ``longer``): a followed load, or
+        noise the scatter gate calls noisy. Judged once per analysis: :meth:`status` runs per request."""
+        if not self._estimates.items and len(self._switching.rising) >= 2:
+            # (Before an estimate, the filtered error's swing over the first whole period stands for the PV's,
+            # the prior for the period; before, the swing is still growing: the first half period from rest
+            # of a lag-dominant process swings a third as much, and a 1 % noise passed for 3 %.)
+            period = self._progress.prior_period(self._loop.mean_interval(), True)
+            return convergence.too_scattered(self._loop, self._estimates, self._switching.peak_error, period)
+        return self._load.fit is not None or convergence.noisy(self._loop, self._estimates)
 
     # -- each sample ------------------------------------------------------
 
@@ -254,6 +261,9 @@ class RelayExperiment:
             levels.end_rescue()
             # (The period's end is judged once it is analysed.)
             self._pending = switched
+            if not self._estimates.items:
+                # (Before an estimate ite's "longer" reads the first whole period's swing, from the switch on.)
+                self._longer = self._judge_longer()
         else:
             when = switching.watch(adaptation.hysteresis)
             if when is not None:
@@ -346,7 +356,7 @@ class RelayExperiment:
         if (len(self._adaptation.lags) > MODEL_PERIODS or self._load.fit is not None or self._unstable.unstable
                 or levels.center != loop.mv0 or levels.changed_at > -math.inf):
             return None
-        if convergence.too_scattered(loop, switching.peak_error, switching.period()):
+        if convergence.too_scattered(loop, self._estimates, switching.peak_error, switching.period()):
             return None
         model = process_fit.fit(loop.record.all(), loop.mv0, switching.period(), loop.noise)
         return model if model is not None and loop.sign * model.k0 > 0.0 and model.misfit <= MODEL_MISFIT else None
@@ -355,14 +365,16 @@ class RelayExperiment:
         """Estimate the point over the last period and stop if it has converged."""
         loop, crossings, fit = self._loop, self._switching.crossings, self._load.fit
         bounds = crossings[-3:]
-        loop.cycle_noise = cycle_noise(raw.y[raw.t >= bounds[-2]])
-        noisy = convergence.noisy(loop, self._estimates)
+        period = raw.t >= bounds[-2]
+        noise = cycle_noise(raw.t[period], raw.y[period])
+        # (Judged with this period's σ and the latest estimate's swing and length.)
+        noisy = convergence.noisy(loop, self._estimates, noise)
         point, x = period_point(loop, raw, detrended.y, bounds, None if fit is None else fit.x, noisy)
         wide = wide_x(loop, detrended, bounds) if fit is None else x
         quiet = fit is None and not noisy
         alt = alt_point(loop, raw, detrended.y, bounds, (point, x)) if quiet else None
         gap = longest_gap(raw.t, bounds[0], bounds[-1])
-        self._estimates.add(Estimate(point, x, wide, *bounds, alt), gap, loop.dt)
+        self._estimates.add(Estimate(point, x, wide, *bounds, alt, noise), gap, loop.dt)
         self._accept(self._verdict())
 
     def _verdict(self) -> Verdict | None:
@@ -393,9 +405,10 @@ class RelayExperiment:
         return held.result(fit, tol, -math.inf if changed >= now else changed)
 
     def _corrects(self) -> bool:
-        """True when a followed load's estimates shed its share through the model (load_correction.py): a quiet,
-        noise-free run of a process that is not open-loop unstable (whose model would run away)."""
-        self._load.quiet = not self._unstable.unstable and not convergence.noisy(self._loop, self._estimates)
+        """True when a followed load's estimates shed its share through the model (load_correction.py): a quiet run
+        (its noise far below the scatter gate in every period: convergence.far_below) of a process that is not
+        open-loop unstable (whose model would run away)."""
+        self._load.quiet = not self._unstable.unstable and convergence.far_below(self._loop, self._estimates)
         return self._load.corrects
 
     def _reread(self, fit: LoadFit) -> None:
