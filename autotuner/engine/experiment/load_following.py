@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 
 from autotuner.engine.experiment import endings
 from autotuner.engine.experiment.estimates import Estimates, lag
+from autotuner.engine.experiment.convergence import tolerances
 from autotuner.engine.experiment.levels import Levels
+from autotuner.engine.experiment.load_correction import unsure
 from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
 from autotuner.engine.experiment.loop import Loop
 from autotuner.engine.experiment.point import Point
@@ -37,11 +39,6 @@ SHIFT_STEP = 0.03
 JUMP = 0.05
 # A fit whose |F|/K0 is this uncertain describes no disturbance reliably enough to act on.
 X_STD_MAX = 0.1
-# On a quiet run (the estimates shed the load's share: load_correction.py) one fit is evidence enough when its
-# |F|/K0 is this certain: the wrong first fits of the traces (a step placed before the real one, with a ramp
-# to make up for it, three periods in) were at 0.09–0.22, the right ones at 0.0003–0.05 (docs/experiment.md,
-# "Finding a load").
-X_STD_SURE = 0.05
 # On a run whose estimates shed the load's share (load_correction.py: quiet, noise-free), the relay's centre stays
 # where it is while the load is within this share of the weaker level's amplitude (amp·(1 − 2·bias)): the cycle
 # goes on around it, and every step of the levels is a new transient in the estimates.
@@ -211,14 +208,19 @@ class LoadFollowing:
 
     def _sure(self, fit: LoadFit) -> bool:
         """True when one ``fit`` is evidence enough for a disturbance: a quiet run (the estimates since a step
-        shed the load's share and must still pass the quiet rules; its K0 is taken only once two later fits
-        agree, load_correction.Held), a fit as certain as X_STD_SURE, and a step (if any) with at least a
-        period of the record after it.
+        shed the load's share and must still pass the quiet rules; K0 is taken only once two fits after it
+        agree, load_correction.Held), a fit whose |F|/K0 is as sure as a followed load's K0 must be
+        (load_correction.unsure), and a step (if any) with at least a period of the record after it.
+
+        The wrong first fits of the traces (a step placed before the real one with a ramp to make up for it,
+        three periods in) had standard errors of 0.09–0.22, the right ones 0.0003–0.05; a random load's ramp
+        taken at 0.049 led to K0 five times off (docs/experiment.md, "Finding a load").
 
         A stalled link's odd period stays out: the record marks a stall (estimates.stalled_until), and the
         two-fit rule still holds on noisy runs.
         """
-        if not self.quiet or fit.x_std > X_STD_SURE or fit.x < -self.loop.config.static_tol:
+        tol = tolerances(self.loop.config)
+        if not self.quiet or fit.x < -tol.static_tol or unsure(fit.x_std, fit.x, tol):
             return False
         if fit.step_time is None:
             return True
