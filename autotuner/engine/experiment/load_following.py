@@ -148,9 +148,7 @@ class LoadFollowing:
         """The load fitter of the whole record with the latest estimate's point (None before one, or resonant)."""
         if not self.estimates.items or len(self.switching.crossings) < 4:
             return None
-        if self.fit is None and self._resonant():
-            # (Once a load is followed, the re-read estimates' |F|/K0 is the fit's own K0 at their |F|: a K0 a
-            # little low reads above 1 there, and would stop the refits that correct it.)
+        if self._resonant():
             return None
         loop = self.loop
         point = self.estimates.latest.point if self.point is None else self.point
