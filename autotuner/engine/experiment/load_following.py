@@ -107,7 +107,9 @@ class LoadFollowing:
         agreed = previous is not None and self._agree(previous, fit)
         if not agreed and not self._sure(fit):
             return True  # look again next period before accepting anything
-        self.confirmed = previous if agreed else None
+        # (A sure fit confirms itself: its K0 counts as the confirming candidate's, as the same fit asked twice
+        # in one analysis — before a quiet result is accepted and on the period's look — always did.)
+        self.confirmed = previous if agreed else fit
         self._accept(fit)
         return True
 
@@ -206,8 +208,8 @@ class LoadFollowing:
 
     def _sure(self, fit: LoadFit) -> bool:
         """True when one ``fit`` is evidence enough for a disturbance: a quiet run (the estimates since a step
-        shed the load's share and must still pass the quiet rules; K0 is taken only once two fits after it
-        agree, load_correction.Held), a fit whose |F|/K0 is as sure as a followed load's K0 must be
+        shed the load's share and must still pass the quiet rules; after a flip of the bias K0 is taken only
+        once two fits agree, load_correction.Held), a fit whose |F|/K0 is as sure as a followed load's K0 must be
         (load_correction.unsure), and a step (if any) with at least a period of the record after it.
 
         The wrong first fits of the traces (a step placed before the real one with a ramp to make up for it,
