@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 from autotuner.engine.experiment import endings
 from autotuner.engine.experiment.estimates import Estimates, lag
-from autotuner.engine.experiment.convergence import tolerances
+from autotuner.engine.experiment.convergence import SCATTER_MAX, estimate_scatter, tolerances
 from autotuner.engine.experiment.levels import Levels
 from autotuner.engine.experiment.load_correction import unsure
 from autotuner.engine.experiment.load_fit import LoadFit, LoadFitter
@@ -220,7 +220,10 @@ class LoadFollowing:
         two-fit rule still holds on noisy runs.
         """
         tol = tolerances(self.loop.config)
-        if not self.quiet or fit.x < -tol.static_tol or unsure(fit.x_std, fit.x, tol):
+        # (Quiet with a margin: near the scatter gate, at 2 % noise, a run flips between noisy and quiet from
+        # period to period, and a quiet spell's single fit is a noisy record's.)
+        calm = estimate_scatter(self.loop, self.estimates) <= 0.5 * SCATTER_MAX * tol.gain_tol
+        if not (self.quiet and calm) or fit.x < -tol.static_tol or unsure(fit.x_std, fit.x, tol):
             return False
         if fit.step_time is None:
             return True
