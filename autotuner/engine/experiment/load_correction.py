@@ -99,10 +99,15 @@ class Held:
         return replace(verdict, x=x)
 
     def uncertain(self, fit: LoadFit, tol: Tolerances) -> bool:
-        """True when the ``fit``'s standard error of |F|/K0 at the held point is beyond the tolerances ``tol``:
-        one static_tol, as a followed load's K0 always had; on a slow mode (|F|/K0 below 0.5) relative to it,
-        twice the settled rule's bound (an error of 0.019 at 0.053 — K0 five times off, under a random load the
-        step-and-ramp fit does not describe — is no estimate of K0)."""
+        """True when the ``fit``'s standard error of |F|/K0 at the held point is beyond the tolerances ``tol``
+        (:func:`unsure`)."""
         gain = fit.static_gain * fit.x if self.verdict is None else self.verdict.point.gain
-        x = fitted_x(gain, fit.static_gain)
-        return fit.x_std > (tol.static_tol if x >= 0.1 else min(tol.static_tol, 2.0 * static_bound(tol, x)))
+        return unsure(fit.x_std, fitted_x(gain, fit.static_gain), tol)
+
+
+def unsure(x_std: float, x: float, tol: Tolerances) -> bool:
+    """True when a standard error ``x_std`` of |F|/K0 at ``x`` is beyond the tolerances ``tol``: one static_tol,
+    as a followed load's K0 always had; on a slow mode (|F|/K0 below 0.1) relative to it, twice the settled
+    rule's bound (an error of 0.019 at 0.053 — K0 five times off, under a random load the step-and-ramp fit does
+    not describe — is no estimate of K0)."""
+    return x_std > (tol.static_tol if x >= 0.1 else min(tol.static_tol, 2.0 * static_bound(tol, x)))
