@@ -34,10 +34,10 @@ from autotuner.engine.outcome import Code
 LIMIT_SHARE = 200.0
 # ... and without a time limit, from this many samples.
 SAMPLES_PER_PERIOD = 100.0
-# Before two whole periods, the periods from the relay's start to the end: a quiet run's whose settled point is one
-# estimate (CLEAN), one whose point is the mean of the latest two (stopping.MEAN_SCATTER: the batch's 1 % runs), a
-# noisy run's. Fitted on the batch's runs since the model aim (docs/experiment.md, "ite after the model aim"; 4 and
-# 6 since "An honest ite").
+# Before two whole periods, the periods from the relay's start to the end: TYPICAL_PERIODS[False] for a quiet run
+# whose settled point is the mean of the latest two estimates (stopping.MEAN_SCATTER: the batch's 1 % runs),
+# [True] for a noisy run (docs/experiment.md, "An honest ite"), CLEAN_TYPICAL_PERIODS for a quiet run whose point is
+# one estimate (the noise-free runs since the model aim, "ite after the model aim").
 TYPICAL_PERIODS = {False: 4.0, True: 6.0}
 CLEAN_TYPICAL_PERIODS = 2.97
 
@@ -107,7 +107,7 @@ UNCORRECTED_MIN = 2.0
 # From two whole periods on, at least this share of the latest period is left while the run goes on.
 LAST_SHARE = 1.0
 # A rise of the raw estimate is held off as long as the countdown stays within this share of it (0.3 → 0.35 with
-# SETTLED_PERIODS: 2–6 points more of the batch's runs never rise, within ±30 % the same).
+# the quiet fit (AVERAGED_FIT): 2–6 points more of the batch's runs never rise, within ±30 % the same).
 HOLD = 0.35
 # Where the estimate would still push the countdown up, by at most this share, the clock stops instead: a rise that
 # small is the estimate's own scatter from switch to switch, and counting down again later costs less honesty than
@@ -244,7 +244,7 @@ class Progress:
         else:
             period = switching.period()
             # (A period still growing, a lag-dominant process's cycle slowing down to the target, grows on: the
-            # periods left count that in, GROWTH_POWER.)
+            # periods left count that in, QuietFit.growth_power.)
             ratio = period / (time(switching.rising[-2]) - time(switching.rising[-3]))
             # (Only a run the scatter gate calls noisy waits for the averaged rule; one labelled so for its load
             # fit, or before its first estimate, does not.)
