@@ -12,7 +12,9 @@ rose (judged) in 2 of the 11 noise-free runs and 6 of the 1 % ones. Since branch
 left are the batch's median at the same phase error and change of the period (progress.SETTLED_PERIODS): within
 ±30 % on 59 % of the statuses noise-free and 59 % at 1 % noise, p10 0.50 and 0.45, never rising in 5 and 6 of 11.
 Since branch ite-loads a rise of at most half the shown value stops the clock instead (progress.PAUSE): within
-±30 % on 63 % and 57 %, p10 0.50 and 0.45, never rising in 9 and 7 of 11.
+±30 % on 63 % and 57 %, p10 0.50 and 0.45, never rising in 9 and 7 of 11. After the model aim (shorter noise-free
+runs) 42 % and 59 %; since branch ite-refit a quiet run whose settled point is one estimate has its own count
+(progress.CLEAN_FIT, CLEAN_TYPICAL_PERIODS): 66 % and 59 %, p10 0.65 and 0.46, never rising in 9 and 7 of 11.
 """
 
 from __future__ import annotations

@@ -4,11 +4,12 @@ The time left: before two whole periods, a typical run's length at the prior
 period (the caller's ``expected_period``, else a share of the time limit, else
 ``SAMPLES_PER_PERIOD`` samples) less the time run; then the periods the
 stopping rule still needs, at the latest period: on a quiet run the batch's
-median at the same phase error and change of the period, on a noisy one the
+median at the same phase error and change of the period (fitted apart for a
+settled point of one estimate and one of the mean of two), on a noisy one the
 phase error's convergence; while a load is followed, at least what its
 stage still needs (confirmation, a held point, K0). The displayed value counts down like a clock within
 ``HOLD`` of that estimate (docs/experiment.md, "ite and progress", "An honest
-ite", "ite under a followed load"). ``ite`` is a report: no decision of the
+ite", "ite under a followed load", "ite after the model aim"). ``ite`` is a report: no decision of the
 experiment reads it.
 """
 
@@ -19,11 +20,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
-from autotuner.engine.experiment.convergence import MIN_PERIODS, SCATTER_MAX, estimate_scatter, tolerances
+from autotuner.engine.experiment.convergence import (MIN_PERIODS, SCATTER_MAX, estimate_scatter, period_scatter,
+                                                       tolerances)
 from autotuner.engine.experiment.estimates import GAP, STALL, Estimates
 from autotuner.engine.experiment.load_correction import FITS_AGREE, Held
 from autotuner.engine.experiment.load_following import LoadFollowing
 from autotuner.engine.experiment.loop import Loop
+from autotuner.engine.experiment.stopping import MEAN_SCATTER
 from autotuner.engine.experiment.switching import Switching
 from autotuner.engine.outcome import Code
 
@@ -31,20 +34,43 @@ from autotuner.engine.outcome import Code
 LIMIT_SHARE = 200.0
 # ... and without a time limit, from this many samples.
 SAMPLES_PER_PERIOD = 100.0
-# Before a whole period, the periods from the relay's start to the end (quiet, longer): the batch's medians,
-# 4.05 noise-free and 4.57 at 1 % noise (a quiet run since the scatter gate), 6.2 for a noisy one
-# (docs/experiment.md, "An honest ite").
+# Before two whole periods, the periods from the relay's start to the end: TYPICAL_PERIODS[False] for a quiet run
+# whose settled point is the mean of the latest two estimates (stopping.MEAN_SCATTER: the batch's 1 % runs),
+# [True] for a noisy run (docs/experiment.md, "An honest ite"), CLEAN_TYPICAL_PERIODS for a quiet run whose point is
+# one estimate (the noise-free runs since the model aim, "ite after the model aim").
 TYPICAL_PERIODS = {False: 4.0, True: 6.0}
-# A quiet run's periods left at a rising switch, the median of the batch's (noise-free and 1 % noise pooled,
-# fitted in log; docs/experiment.md, "An honest ite"): SETTLED_PERIODS[whole periods done, 4 for more] times
-# (phase error / tolerance) ** PHASE_POWER times (the latest period's change / PERIOD_STEP) ** CHANGE_POWER times
-# (latest period / the one before) ** GROWTH_POWER. The period's change predicts best: a cycle whose period
-# still moves is still settling, and the stop waits on |F|, which settles with it. Fewer whole periods count
-# less: the start's transient inflates both errors of a run that ends early too.
-SETTLED_PERIODS = {2: 0.23, 3: 0.42, 4: 0.60}
-PHASE_POWER = 0.28
-CHANGE_POWER = 0.47
-GROWTH_POWER = 0.165
+CLEAN_TYPICAL_PERIODS = 2.97
+
+
+@dataclass(frozen=True)
+class QuietFit:
+    """A quiet run's periods left at a rising switch, the batch's median at the same errors (fitted in log):
+    ``settled[whole periods done, the largest key for more]`` times (phase error / tolerance) ** ``phase_power``
+    times (the latest period's change / PERIOD_STEP) ** ``change_power`` times (latest period / the one before)
+    ** ``growth_power`` (each power dimensionless). The period's change predicts best: a cycle whose period still
+    moves is still settling, and the stop waits on |F|, which settles with it."""
+
+    settled: dict[int, float]
+    phase_power: float
+    change_power: float
+    growth_power: float
+
+    def periods(self, done: int, error: float, change: float, ratio: float) -> float:
+        """The periods left after ``done`` whole periods, the phase ``error`` and the period's ``change`` as shares
+        of their tolerances, the latest period ``ratio`` times the one before."""
+        keys = self.settled
+        return (keys[min(max(done, min(keys)), max(keys))] * error ** self.phase_power
+                * change ** self.change_power * ratio ** self.growth_power)
+
+
+# A settled point that is the mean of the latest two estimates (the batch's 1 % noise runs): the fit on the batch
+# before the model aim (noise-free and 1 % pooled, docs/experiment.md "ite after the shorter experiment"); the
+# 1 % runs still fit it (within ±30 % 58 % of their statuses).
+AVERAGED_FIT = QuietFit({2: 0.23, 3: 0.42, 4: 0.60}, phase_power=0.28, change_power=0.47, growth_power=0.165)
+# A settled point that is one estimate (noise-free): since the model aim the first two periods step by a third and
+# the short runs end at 3–4 periods, so a large change of the period after two or three says less than it did, and
+# the runs still going after four are the long lag-dominant ones (docs/experiment.md, "ite after the model aim").
+CLEAN_FIT = QuietFit({2: 0.27, 3: 0.32, 4: 1.08, 5: 1.53}, phase_power=0.18, change_power=0.49, growth_power=0.265)
 # A change of the period below this share counts as none.
 PERIOD_STEP = 0.01
 # A noisy or disturbed run: the phase error's decay per period, the periods after it is within the tolerance
@@ -81,7 +107,7 @@ UNCORRECTED_MIN = 2.0
 # From two whole periods on, at least this share of the latest period is left while the run goes on.
 LAST_SHARE = 1.0
 # A rise of the raw estimate is held off as long as the countdown stays within this share of it (0.3 → 0.35 with
-# SETTLED_PERIODS: 2–6 points more of the batch's runs never rise, within ±30 % the same).
+# the quiet fit (AVERAGED_FIT): 2–6 points more of the batch's runs never rise, within ±30 % the same).
 HOLD = 0.35
 # Where the estimate would still push the countdown up, by at most this share, the clock stops instead: a rise that
 # small is the estimate's own scatter from switch to switch, and counting down again later costs less honesty than
@@ -212,18 +238,20 @@ class Progress:
             noise_left = max(c.noise_samples - len(loop.record), 0) * (dt or 0.0)
             prior = self.prior_period(dt, relaying)
             ran = time(-1) - time(switching.start) if relaying else 0.0
-            typical = TYPICAL_PERIODS[longer]
+            averaged = longer or self.averaged_point(relaying)
+            typical = TYPICAL_PERIODS[longer] if averaged else CLEAN_TYPICAL_PERIODS
             left = noise_left + max(typical * prior - ran, 0.5 * prior)
         else:
             period = switching.period()
             # (A period still growing, a lag-dominant process's cycle slowing down to the target, grows on: the
-            # periods left count that in, GROWTH_POWER.)
+            # periods left count that in, QuietFit.growth_power.)
             ratio = period / (time(switching.rising[-2]) - time(switching.rising[-3]))
             # (Only a run the scatter gate calls noisy waits for the averaged rule; one labelled so for its load
             # fit, or before its first estimate, does not.)
             scatter = estimate_scatter(loop, self.estimates)
             scatter = scatter / c.noise_tol if scatter > SCATTER_MAX * c.gain_tol else 0.0
-            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, ratio, longer, scatter)
+            averaged = self.averaged_point(relaying)
+            left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, ratio, longer, scatter, averaged)
             left = max(left, self.load_periods_left()) * period
             left -= time(-1) - time(switching.rising[-1])
             # The stop comes at a switch, and whether the next one stops the run is not known before it: at
@@ -233,6 +261,22 @@ class Progress:
         if math.isfinite(c.time_limit):
             left = min(left, max(c.time_limit - loop.elapsed(), 0.0))
         return max(left, dt or 0.0, 1e-9)
+
+    def averaged_point(self, relaying: bool) -> bool:
+        """True when the stopping rule's settled point will be the mean of the latest two estimates, which takes a
+        quiet run longer: the noise scatters one estimate beyond ``stopping.MEAN_SCATTER`` of gain_tol (the
+        latest estimate's, before one the first period's at the filtered error's swing so far and the prior
+        period). ``relaying``: the relay has started; before, the noise is not measured yet and the longer count
+        is taken (a countdown that falls when the relay starts on a quiet loop rather than one that rises)."""
+        if not relaying:
+            return True
+        loop = self.loop
+        if self.estimates.items:
+            scatter = estimate_scatter(loop, self.estimates)
+        else:
+            swing, period = self.switching.peak_error, self.prior_period(loop.mean_interval(), True)
+            scatter = period_scatter(loop, swing, period)
+        return scatter > MEAN_SCATTER * loop.config.gain_tol
 
     def load_periods_left(self) -> float:
         """The periods from the latest rising switch that a followed (or a candidate) load still needs, 0 without
@@ -277,18 +321,20 @@ class Progress:
 
 
 def periods_left(done: int, phase_error_deg: float, phase_tol_deg: float, ratio: float, longer: bool,
-                 scatter: float = 0.0) -> float:
+                 scatter: float = 0.0, averaged: bool = True) -> float:
     """The periods the stopping rule still needs after ``done`` whole periods (from the first rising switch),
     the latest one's lag ``phase_error_deg`` off the target (degrees) with the tolerance ``phase_tol_deg``
     (degrees), the latest period ``ratio`` times the one before (1: unchanged); ``longer``: a noisy or disturbed
-    run; ``scatter``: the latest estimate's expected scatter as a share of ``noise_tol`` (0 before one).
+    run; ``scatter``: the latest estimate's expected scatter as a share of ``noise_tol`` (0 before one);
+    ``averaged``: the settled point will be the mean of the latest two estimates (:meth:`Progress.averaged_point`).
 
-    A quiet run's: the batch's median at the same errors (``SETTLED_PERIODS``).
+    A quiet run's: the batch's median at the same errors (``AVERAGED_FIT``, ``CLEAN_FIT`` for one whose point is
+    one estimate).
     A noisy one waits for the cycle's phase, which converges geometrically
     (``NOISY_CONVERGENCE``), for ``NOISY_MIN_DONE`` periods (the averaged
     rule's) and for the average of scattered estimates (``NOISY_PERIODS``).
     Calibrated on the batch (docs/experiment.md, "An honest ite", "ite after
-    the shorter experiment").
+    the shorter experiment", "ite after the model aim").
     """
     error = max(phase_error_deg, phase_tol_deg) / phase_tol_deg
     if longer:
@@ -298,8 +344,7 @@ def periods_left(done: int, phase_error_deg: float, phase_tol_deg: float, ratio:
         # that in already.)
         return max(max(NOISY_MIN_DONE - done, NOISY_AFTER_CONVERGED + converging, 0.5) * max(ratio, 1.0), averaging)
     change = max(abs(ratio - 1.0), PERIOD_STEP) / PERIOD_STEP
-    return (SETTLED_PERIODS[min(max(done, 2), 4)] * error ** PHASE_POWER * change ** CHANGE_POWER
-            * ratio ** GROWTH_POWER)
+    return (AVERAGED_FIT if averaged else CLEAN_FIT).periods(done, error, change, ratio)
 
 
 def period_cap(max_periods: int, switching: Switching, time: Callable[[int], float]) -> float:
