@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 from autotuner.engine.experiment.convergence import (MIN_PERIODS, SCATTER_MAX, estimate_scatter, period_scatter,
-                                                       tolerances)
+                                                       sigma, tolerances)
 from autotuner.engine.experiment.estimates import GAP, STALL, Estimates
 from autotuner.engine.experiment.load_correction import FITS_AGREE, Held
 from autotuner.engine.experiment.load_following import LoadFollowing
@@ -275,7 +275,7 @@ class Progress:
             scatter = estimate_scatter(loop, self.estimates)
         else:
             swing, period = self.switching.peak_error, self.prior_period(loop.mean_interval(), True)
-            scatter = period_scatter(loop, swing, period)
+            scatter = period_scatter(loop, sigma(loop, self.estimates), swing, period)
         return scatter > MEAN_SCATTER * loop.config.gain_tol
 
     def load_periods_left(self) -> float:
