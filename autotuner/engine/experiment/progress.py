@@ -235,6 +235,10 @@ class Progress:
         time = loop.record.time
         rising = len(switching.rising)
         if rising < 3 or phase_error_deg is None:
+            if relaying and rising >= 2 and not self.estimates.items:
+                # (The relay judges "longer" at the switch, before the first period's swing has grown to its
+                # size: at 1 % noise that passes for noisy until the next switch. The swing at this status says.)
+                longer = self.first_scatter() > SCATTER_MAX * c.gain_tol
             noise_left = max(c.noise_samples - len(loop.record), 0) * (dt or 0.0)
             prior = self.prior_period(dt, relaying)
             ran = time(-1) - time(switching.start) if relaying else 0.0
@@ -271,12 +275,15 @@ class Progress:
         if not relaying:
             return True
         loop = self.loop
-        if self.estimates.items:
-            scatter = estimate_scatter(loop, self.estimates)
-        else:
-            swing, period = self.switching.peak_error, self.prior_period(loop.mean_interval(), True)
-            scatter = period_scatter(loop, sigma(loop, self.estimates), swing, period)
+        scatter = estimate_scatter(loop, self.estimates) if self.estimates.items else self.first_scatter()
         return scatter > MEAN_SCATTER * loop.config.gain_tol
+
+    def first_scatter(self) -> float:
+        """Before an estimate, the scatter (gain's share) the noise gives the first period's estimate: at the
+        filtered error's swing so far and the prior period (:meth:`prior_period`), once the relay has started."""
+        loop = self.loop
+        swing, period = self.switching.peak_error, self.prior_period(loop.mean_interval(), True)
+        return period_scatter(loop, sigma(loop, self.estimates), swing, period)
 
     def load_periods_left(self) -> float:
         """The periods from the latest rising switch that a followed (or a candidate) load still needs, 0 without
