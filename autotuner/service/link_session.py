@@ -326,12 +326,14 @@ class Overload:
     experiment's stall tolerance) is late by the session's fault; the session
     can no longer keep its schedule when more than :data:`OVERLOAD_COUNT` of
     the last :data:`OVERLOAD_WINDOW` samples are. ``count``: such samples so
-    far; ``worst``: the longest such delay, wall seconds.
+    far; ``longest``: the longest own delay of any sample, whatever the tolerance then (early in a
+    run the period is not known yet, and the tolerance is wider than the
+    experiment's at its end), wall seconds.
     """
 
     def __init__(self) -> None:
         self.count = 0
-        self.worst = 0.0
+        self.longest = 0.0
         self.io_end = -math.inf  # when the session's last link call ended (monotonic)
         self._samples = 0
         self._late: collections.deque[int] = collections.deque()  # the numbers of the late samples in the window
@@ -350,9 +352,9 @@ class Overload:
         """Something of the latest sample's the session did ``delay`` wall seconds late by its own fault — its
         read, or its MV's write (a relay switch, stepped only once the last period's analysis was over) —, judged
         against ``tolerance`` (wall seconds)."""
+        self.longest = max(self.longest, delay)
         if delay > tolerance:
             self.count += 1
-            self.worst = max(self.worst, delay)
             self._late.append(self._samples)
 
     @property
@@ -362,8 +364,10 @@ class Overload:
 
     def message(self, speed: float) -> str:
         """The overload's message (what the experiment saw, in plant seconds)."""
-        return (f"{MESSAGES[Code.OVERLOADED]}: {self.count} samples were taken (or their relay switches written) "
-                f"later than the experiment tolerates by the tuner itself (the longest {self.worst * speed:.3g} s "
+        late = (f"{self.count} samples were taken (or their relay switches written)" if self.count else
+                "a sample was taken (or its relay switch written)")
+        return (f"{MESSAGES[Code.OVERLOADED]}: {late} "
+                f"later than the experiment tolerates by the tuner itself (the longest {self.longest * speed:.3g} s "
                 "late, not the link's delay): its "
                 "machine or process is loaded beyond what the experiment tolerates; the loop was handed back — "
                 "retry when fewer loops tune at once")
@@ -680,7 +684,8 @@ class _Sampling:
         """What the design gets: the ended experiment's, or an overload's when the verdict may be the tuner's."""
         plan, overload = self.plan, self.overload
         job = DesignJob.of(self.experiment, plan.controller, plan.ms)
-        if overload.count and job.code in BLAMES_PROCESS:
+        # (Also a delay the tolerance of its moment let pass, beyond what the experiment tolerates at its end.)
+        if job.code in BLAMES_PROCESS and (overload.count or overload.longest > self._tolerance):
             job = DesignJob(None, Code.OVERLOADED, f"{overload.message(plan.speed)} (the experiment had ended: "
                             f"{job.message})", plan.controller, plan.ms, plan.relay.amp)
         return job
