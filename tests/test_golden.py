@@ -156,7 +156,8 @@ def test_a_changed_constant_moves_the_traces(monkeypatch):
     from autotuner.engine.experiment import adaptation
 
     monkeypatch.setattr(adaptation, "RELAXATION", adaptation.RELAXATION * 1.001)
-    moved = [c.name for c in CASES[:6] if run_case(c) != _references()[c.name]]
+    # (The first six cases are the model rule's, model_rule.py: they stop before the secant's relaxation acts.)
+    moved = [c.name for c in CASES[6:10] if run_case(c) != _references()[c.name]]
     assert moved, "no golden trace moved when a constant of the experiment did"
 
 

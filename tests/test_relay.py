@@ -133,7 +133,7 @@ def test_status_counts_down_and_reports_the_code_at_the_end():
     while not experiment.done:
         sim.advance(experiment.step(sim.t, sim.measure()))
         status = experiment.status()
-        if status.stage is Stage.RELAY and status.periods >= 2:
+        if status.stage is Stage.RELAY and status.periods >= 1:
             lefts.append(status.ite)
         progress.append(status.progress)
     assert all(0.0 <= p <= 1.0 for p in progress)
@@ -199,8 +199,9 @@ def test_not_converged_when_the_phase_is_out_of_reach():
 
 
 def test_not_converged_after_max_periods():
-    # Lag-dominant: its first estimates are still converging after 3 periods (it settles after 5).
-    sim = PlantSim(parse_process("10*exp(-0.3*s)/((10*s+1)*(0.7*s+1))"), 0.05)
+    # Lag-dominant and of third order (two lags and a dead time, the model rule's, would stop it within two
+    # periods): its first estimates are still converging after 3 periods.
+    sim = PlantSim(parse_process("10*exp(-0.3*s)/((10*s+1)*(0.7*s+1)*(0.3*s+1))"), 0.05)
     experiment = RelayExperiment(RelayConfig(amp=1.0, max_periods=3), mv0=0.0)
     run_until_done(experiment, sim)
     assert experiment.code is Code.NOT_CONVERGED

@@ -71,14 +71,13 @@ class Honesty:
 
 
 def run_one(expr: str, ident: str, noise: float = 0.0, every: int = 1) -> IteRun:
-    """Run the experiment on the process ``expr`` (named ``ident``) with noise ``noise`` × the clean run's PV
-    amplitude, reading the status every ``every`` samples."""
+    """Run the experiment on the process ``expr`` (named ``ident``) with noise of σ ``noise`` × |F(jω135)|·amp (the
+    PV's oscillation at the point, as ``autotuner bench`` sets it), reading the status every ``every`` samples."""
     process = parse_process(expr)
     period, ts, config = _setting(process)
     if noise <= 0.0:
         return statuses(PlantSim(process, ts), config, ident, period, every)
-    _, clean = run_experiment(PlantSim(process, ts), config, status_every=10**9)
-    std = noise * 0.5 * float(np.ptp(clean.pv[len(clean.pv) // 2:]))
+    std = noise * abs(complex(process.freqresp(2.0 * math.pi / period))) * config.amp  # (as autotuner bench's)
     return statuses(PlantSim(process, ts, noise_std=std, seed=1), config, ident, period, every)
 
 
@@ -202,7 +201,7 @@ def main() -> None:
     """Print the table for the batch (``--noise``, ``--every``, ``--sample``, ``--workers``)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--noise", type=_at_least(0.0, float), default=0.0,
-                        help="σ of white measurement noise as a share of the clean run's PV amplitude (default 0)")
+                        help="σ of white measurement noise as a share of |F(jω135)|·amp (default 0)")
     parser.add_argument("--every", type=_at_least(1, int), default=7, help="a status every this many samples")
     parser.add_argument("--sample", type=_at_least(1, int), default=1, help="every this many-th process of the batch")
     parser.add_argument("--workers", type=_at_least(1, int), default=None,

@@ -31,6 +31,10 @@ INVERSE = 0.01
 MAX_STEPS = 40
 ITERATIONS = 12  # Levenberg–Marquardt's at most (each about five runs of the model over the record)
 SETTLED = 1e-3  # a step gaining less than this share of the cost ends the search
+# A search started from an earlier switch's model stands where it misfits by at most this share of the swing (the
+# model rule's misfits are a hundredth of it: model_rule.py); elsewhere the search from the period's scale does, as
+# without an earlier model (the filter's aim on the batch's higher orders is the same).
+WARM = 1e-3
 
 
 @dataclass(frozen=True)
@@ -116,10 +120,16 @@ def inverse_response(y: np.ndarray, size: np.ndarray, noise: float) -> bool:
     return against > max(INVERSE * float(np.ptp(y)), 3.0 * noise)
 
 
-def fit(history: Samples, mv0: float, period: float, noise: float = 0.0) -> ProcessModel | None:
+def fit(history: Samples, mv0: float, period: float, noise: float = 0.0,
+        start: ProcessModel | None = None) -> ProcessModel | None:
     """The model through the record ``history`` (the MV's deviations from ``mv0``, MV units, as held), the
     first whole period ``period`` (s) setting the search's scale; None where the record does not move or shows
-    an inverse response (:func:`inverse_response`, ``noise``: the PV's noise standard deviation, PV units)."""
+    an inverse response (:func:`inverse_response`, ``noise``: the PV's noise standard deviation, PV units).
+
+    ``start``: a model fitted to the same record at an earlier switch. The search starts from it first, and
+    its result stands where it misfits by at most WARM (a slow process's cold searches settle in a local
+    minimum one switch in two: ``exp(-s)/(10*s+1)^2`` misfit 1e-7, then 2e-2, then 1e-7); elsewhere the search
+    starts from the period's scale as without one."""
     y = history.y
     swing = float(np.ptp(y))
     # The held input as steps from mv0 (the relay's switches and their blended samples).
@@ -135,12 +145,19 @@ def fit(history: Samples, mv0: float, period: float, noise: float = 0.0) -> Proc
     scale = period / (2.0 * math.pi)
     lower = np.array([math.log(scale) - 8.0, math.log(scale) - 8.0, 0.0])
     upper = np.array([math.log(scale) + 8.0, math.log(scale) + 8.0, period])
-    found = _levenberg_marquardt(residual, np.array([math.log(scale), math.log(0.3 * scale), 0.25 * period]),
-                                 lower, upper, np.array([1e-4, 1e-4, 1e-4 * scale]))
-    res, k0, _ = _project(y, _unit_response(history.t, steps, found))
-    t1, t2 = sorted((math.exp(found[0]), math.exp(found[1])), reverse=True)
-    misfit = float(np.sqrt(np.mean(res * res))) / swing
-    return ProcessModel(k0, t1, t2, float(found[2]), misfit)
+    step = np.array([1e-4, 1e-4, 1e-4 * scale])
+
+    def search(x: np.ndarray) -> ProcessModel:
+        found = _levenberg_marquardt(residual, np.clip(x, lower, upper), lower, upper, step)
+        res, k0, _ = _project(y, _unit_response(history.t, steps, found))
+        t1, t2 = sorted((math.exp(found[0]), math.exp(found[1])), reverse=True)
+        return ProcessModel(k0, t1, t2, float(found[2]), float(np.sqrt(np.mean(res * res))) / swing)
+
+    if start is not None and start.t1 > 0.0:
+        warm = search(np.array([math.log(start.t1), math.log(max(start.t2, 1e-9 * start.t1)), start.delay]))
+        if warm.misfit <= WARM:
+            return warm
+    return search(np.array([math.log(scale), math.log(0.3 * scale), 0.25 * period]))
 
 
 def _levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray], x: np.ndarray, lower: np.ndarray,

@@ -26,6 +26,7 @@ from autotuner.engine.experiment.estimates import GAP, STALL, Estimates
 from autotuner.engine.experiment.load_correction import FITS_AGREE, Held
 from autotuner.engine.experiment.load_following import LoadFollowing
 from autotuner.engine.experiment.loop import Loop
+from autotuner.engine.experiment.model_rule import Fit
 from autotuner.engine.experiment.stopping import MEAN_SCATTER
 from autotuner.engine.experiment.switching import Switching
 from autotuner.engine.outcome import Code
@@ -37,9 +38,11 @@ SAMPLES_PER_PERIOD = 100.0
 # Before two whole periods, the periods from the relay's start to the end: TYPICAL_PERIODS[False] for a quiet run
 # whose settled point is the mean of the latest two estimates (stopping.MEAN_SCATTER: the batch's 1 % runs),
 # [True] for a noisy run (docs/experiment.md, "An honest ite"), CLEAN_TYPICAL_PERIODS for a quiet run whose point is
-# one estimate (the noise-free runs since the model aim, "ite after the model aim").
+# one estimate or the model's (model_rule.py), by what the latest fit says (model_rule.Fit): no fit yet (the batch's
+# median), and from the first rising switch on (the first look's) where the model explains the record (the median of
+# the batch's runs the model rule stopped: 1.34, p10–p90 1.2–1.6) or does not (of the others).
 TYPICAL_PERIODS = {False: 4.0, True: 6.0}
-CLEAN_TYPICAL_PERIODS = 2.97
+CLEAN_TYPICAL_PERIODS = {Fit.UNKNOWN: 2.11, Fit.EXPLAINS: 1.34, Fit.NO: 3.36}
 
 
 @dataclass(frozen=True)
@@ -109,6 +112,10 @@ LAST_SHARE = 1.0
 # A rise of the raw estimate is held off as long as the countdown stays within this share of it (0.3 → 0.35 with
 # the quiet fit (AVERAGED_FIT): 2–6 points more of the batch's runs never rise, within ±30 % the same).
 HOLD = 0.35
+# A fall of the raw estimate is followed down to this share above it: a countdown held 35 % high (HOLD) from the
+# longer count of the noise stage (averaged_point) stayed there through a quiet run now that the model rule ends
+# one in 1.1–1.6 periods from its first rising switch (docs/experiment.md, "Three periods, the model rule").
+FALL = 0.1
 # Where the estimate would still push the countdown up, by at most this share, the clock stops instead: a rise that
 # small is the estimate's own scatter from switch to switch, and counting down again later costs less honesty than
 # a countdown that goes up (the batch: never rising 51 → 87 % noise-free, 60 → 81 % at 1 %, within ±30 % 45 → 46 %
@@ -191,10 +198,12 @@ class Progress:
         dt = self.loop.mean_interval()
         return max(STALL * self.period_guess(dt, relaying), GAP * (dt or 0.0))
 
-    def seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None) -> float:
+    def seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None,
+                     fit: Fit = Fit.UNKNOWN) -> float:
         """Estimated seconds to the end, never rising by more than its uncertainty (``relaying``: the relay has
         started; ``longer``: a disturbed or noisy run; ``phase_error_deg``: how far the latest whole period's
-        process lag is from the target, degrees, None before one).
+        process lag is from the target, degrees, None before one; ``fit``: what the latest fit of the model rule
+        says of the run's length, model_rule.py).
 
         The raw estimate (:meth:`raw_seconds_left`) counts down between
         statuses as a clock would; it is followed where it falls below that,
@@ -203,13 +212,16 @@ class Progress:
         complain about; one that lies low is worse); a rise beyond that of at
         most ``PAUSE`` of the shown value stops the clock instead.
         """
-        raw = self.raw_seconds_left(relaying, longer, phase_error_deg)
+        if fit is Fit.NEXT:
+            raw = self.switch_left()
+        else:
+            raw = self.raw_seconds_left(relaying, longer, phase_error_deg, fit)
         now = self.loop.elapsed()
         if self._shown is None:
             shown = raw
         else:
             countdown = self._shown[1] - (now - self._shown[0])
-            shown = min(max(countdown, raw / (1.0 + HOLD)), raw * (1.0 + HOLD))
+            shown = min(max(countdown, raw / (1.0 + HOLD)), raw * (1.0 + FALL))
             if self._shown[1] < shown <= (1.0 + PAUSE) * self._shown[1]:
                 shown = self._shown[1]  # (a small rise: the clock stops instead)
         floor = self.loop.mean_interval() or raw
@@ -217,9 +229,11 @@ class Progress:
         self._shown = (now, shown)
         return shown
 
-    def raw_seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None) -> float:
+    def raw_seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None,
+                         fit: Fit = Fit.UNKNOWN) -> float:
         """The seconds left as the record says now (``relaying``: the relay has started; ``longer``: a disturbed or
-        noisy run; ``phase_error_deg``: the latest whole period's lag off the target, degrees, None before one).
+        noisy run; ``phase_error_deg``: the latest whole period's lag off the target, degrees, None before one;
+        ``fit``: as for :meth:`seconds_left`).
 
         Before two whole periods: the noise stage's rest and ``TYPICAL_PERIODS``
         of the prior period (:meth:`prior_period`) less the time the relay has
@@ -243,7 +257,9 @@ class Progress:
             prior = self.prior_period(dt, relaying)
             ran = time(-1) - time(switching.start) if relaying else 0.0
             averaged = longer or self.averaged_point(relaying)
-            typical = TYPICAL_PERIODS[longer] if averaged else CLEAN_TYPICAL_PERIODS
+            typical = TYPICAL_PERIODS[longer] if averaged else CLEAN_TYPICAL_PERIODS[fit]
+            if not averaged and fit is not Fit.UNKNOWN:
+                ran = time(-1) - time(switching.rising[0])  # (counted from the first look's switch)
             left = noise_left + max(typical * prior - ran, 0.5 * prior)
         else:
             period = switching.period()
@@ -265,6 +281,14 @@ class Progress:
         if math.isfinite(c.time_limit):
             left = min(left, max(c.time_limit - loop.elapsed(), 0.0))
         return max(left, dt or 0.0, 1e-9)
+
+    def switch_left(self) -> float:
+        """The seconds to the next switch, the latest half period's length after the latest switch (at least a
+        sample interval): where the model fitted at the latest switch explains the record (model_rule.py), the next
+        switch's fit stops the run if it agrees, as it does wherever the model holds the process."""
+        time, switches = self.loop.record.time, self.switching.switches
+        half = time(switches[-1]) - time(switches[-2])
+        return max(half - (time(-1) - time(switches[-1])), self.loop.mean_interval() or 0.0, 1e-9)
 
     def averaged_point(self, relaying: bool) -> bool:
         """True when the stopping rule's settled point will be the mean of the latest two estimates, which takes a

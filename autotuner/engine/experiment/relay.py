@@ -36,12 +36,14 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from autotuner.engine.experiment import convergence, endings, load_correction, process_fit
+import numpy as np
+
+from autotuner.engine.experiment import convergence, endings, load_correction, model_rule, process_fit
 from autotuner.engine.experiment.adaptation import Adaptation
 from autotuner.engine.experiment.config import RelayConfig
 from autotuner.engine.experiment.endings import Ended
-from autotuner.engine.experiment.estimates import (Estimate, Estimates, alt_point, drift, lag, longest_gap, mean_x,
-                                                   period_point, response, wide_x)
+from autotuner.engine.experiment.estimates import (GAP, Estimate, Estimates, alt_point, drift, lag, longest_gap,
+                                                   mean_x, period_point, response, wide_x)
 from autotuner.engine.experiment.identification import Identification, identification
 from autotuner.engine.experiment.levels import Levels, listed
 from autotuner.engine.experiment.load_fit import LoadFit
@@ -102,6 +104,12 @@ class RelayExperiment:
         self._pending = 0
         # ite's "longer" (a disturbed or noisy run's length), judged after each analysis (_judge_longer).
         self._longer = False
+        # The model rule's point at the latest switch (model_rule.py), None where its fit did not explain the record.
+        self._model_point: model_rule.ModelPoint | None = None
+        # The latest model fitted to the record (process_fit.py; the next fit's search starts from it).
+        self._model: ProcessModel | None = None
+        # What the latest fit says of the run's length (ite's, progress.py).
+        self._fit_hint = model_rule.Fit.UNKNOWN
         if levels.high <= mv0 or levels.low >= mv0:
             self._end(endings.mv_range(mv0, levels.low, levels.high, config.amp, config.mv_limits))
 
@@ -198,7 +206,8 @@ class RelayExperiment:
         else:
             lags = self._adaptation.lags
             error = abs(math.degrees(lags[-1]) - self._adaptation.target_deg) if lags else None
-            ite = self._progress.seconds_left(self.stage is Stage.RELAY, self._longer, error)
+            ite = self._progress.seconds_left(self.stage is Stage.RELAY, self._longer, error,
+                                              self._fit_hint)
             progress = self._progress.fraction(ite)
         return Status(stage=self.stage, progress=progress, ite=ite, relay=self._switching.relay,
                       filter_phase_deg=self._adaptation.phase_deg(), periods=max(self._switching.periods, 0),
@@ -299,7 +308,10 @@ class RelayExperiment:
             # (A PV still settling at TUNE makes any process's first |F|/K0 negative: the load fit judges it.)
             self._unstable.suspect(mean_x(self._loop, raw, ta, tb, abs(value)), omega)
         self._unstable.recognise(self._since())
-        self._adapt(ta, omega, period_lag)
+        model = self._fit_record(aim=True)
+        self._by_model(model)
+        aims = model is not None and model.misfit <= MODEL_MISFIT and len(self._adaptation.lags) <= MODEL_PERIODS
+        self._adapt(ta, omega, period_lag, model if aims else None)
         if len(switching.rising) >= 3:
             self._judge(raw, detrended)
         if self._load.fit is None and self._load.due():
@@ -314,6 +326,8 @@ class RelayExperiment:
         if self._unstable.slow_return(half, switching.react):
             self._unstable.enter()  # as after a rescue, until the estimates say otherwise
         self._adaptation.start(half, switching.peak_error, self._unstable.unstable)
+        # ite's first look: whether the model rule is likely to stop the run at its first chances.
+        self._fit_hint = model_rule.first_look(self._fit_record(aim=False), convergence.tolerances(self.config))
 
     def _period_samples(self) -> tuple[Samples, Samples]:
         """The samples of this period's estimates as recorded and with the PV's drift removed (refitting a
@@ -334,32 +348,56 @@ class RelayExperiment:
             return raw, raw
         return raw, replace(raw, y=raw.y - drift(raw.t, raw.y, crossings[-3:]))
 
-    def _adapt(self, ta: float, omega: float, period_lag: float) -> None:
-        """Correct the filter from the period that started at ``ta`` (s), unless it was a transient."""
+    def _adapt(self, ta: float, omega: float, period_lag: float, model: ProcessModel | None) -> None:
+        """Correct the filter from the period that started at ``ta`` (s), unless it was a transient: aimed from the
+        ``model`` fitted to the record where there is one (:meth:`_fit_record`), else by the secant."""
         changed_at = self._levels.changed_at
         # (A change of the levels made just now, at the end of the period, leaves the period clean.)
         clean = ta >= changed_at or changed_at >= self._loop.record.time(-1)
         # Nor, on a process that is or may be unstable, before an estimate has said which phase it reaches.
         if clean and not (self._unstable.unstable and not self._unstable.aimed):
-            model = self._process_model()
             levels = self._levels
             if model is None or not self._adaptation.aim_from(model, omega, period_lag, levels.high - levels.center,
                                                               levels.low - levels.center):
                 self._adaptation.adapt(omega, period_lag)
 
-    def _process_model(self) -> ProcessModel | None:
-        """A model of the process fitted to the record (process_fit.py) to aim the filter by, at the first
-        MODEL_PERIODS whole periods of a quiet run with the relay's levels as they started; None elsewhere (under
-        noise, a load, a process that is or may be unstable, an inverse response) or where it misfits the
-        record."""
-        loop, switching, levels = self._loop, self._switching, self._levels
-        if (len(self._adaptation.lags) > MODEL_PERIODS or self._load.fit is not None or self._unstable.unstable
-                or levels.center != loop.mv0 or levels.changed_at > -math.inf):
+    def _fit_record(self, aim: bool) -> ProcessModel | None:
+        """A model of the process fitted to the whole record at this switch (process_fit.py), on a quiet run with
+        the relay's levels as they started, when the filter's aim wants one (``aim``: a rising switch of the first
+        MODEL_PERIODS whole periods) or the model rule does (model_rule.py: from the first rising switch, ite's
+        first look, to model_rule.PERIODS whole periods, noise low enough for its misfit); None elsewhere (under
+        noise, a load, a process that is or may be unstable, an inverse response, a gain of the wrong sign)."""
+        loop, switching, levels, estimates = self._loop, self._switching, self._levels, self._estimates
+        if (self._load.fit is not None or self._unstable.unstable or levels.center != loop.mv0
+                or levels.changed_at > -math.inf or not switching.rising):
             return None
-        if convergence.too_scattered(loop, self._estimates, switching.peak_error, switching.period()):
+        if not switching.periods and switching.switches[-1] != switching.rising[0]:
+            return None  # (before a whole period, only the first rising switch: ite's first look)
+        record = loop.record.all()
+        # (A stall of the session leaves the rule out, as it leaves the estimates over it out: estimates.STALL.)
+        rule = (switching.periods <= model_rule.PERIODS and model_rule.could_explain(
+            convergence.sigma(loop, estimates), float(np.ptp(record.y)), convergence.tolerances(self.config))
+            and longest_gap(record.t, record.t[0], record.t[-1]) <= GAP * loop.dt)
+        if not (rule or aim and len(self._adaptation.lags) <= MODEL_PERIODS):
             return None
-        model = process_fit.fit(loop.record.all(), loop.mv0, switching.period(), loop.noise)
-        return model if model is not None and loop.sign * model.k0 > 0.0 and model.misfit <= MODEL_MISFIT else None
+        time = loop.record.time
+        # (At the first rising switch only half a period is known.)
+        period = (switching.period() if switching.periods
+                  else 2.0 * (time(switching.rising[0]) - time(switching.switches[-2])))
+        if convergence.too_scattered(loop, estimates, switching.peak_error, period):
+            return None
+        model = self._model = process_fit.fit(record, loop.mv0, period, loop.noise, self._model)
+        return model if model is not None and loop.sign * model.k0 > 0.0 else None
+
+    def _by_model(self, model: ProcessModel | None) -> None:
+        """The model rule (model_rule.py) on the ``model`` fitted at this switch and the previous switch's: stop with
+        the model's point when both explain the record and agree."""
+        tol = convergence.tolerances(self.config)
+        latest = model_rule.model_point(model, self._loop.sign, self._adaptation.target_deg, tol)
+        previous, self._model_point = self._model_point, latest
+        period = self._switching.period()
+        self._fit_hint = model_rule.hint(latest, period)
+        self._accept(model_rule.judge(previous, latest, period, tol))
 
     def _judge(self, raw: Samples, detrended: Samples) -> None:
         """Estimate the point over the last period and stop if it has converged."""
@@ -425,6 +463,8 @@ class RelayExperiment:
     def _on_half(self) -> None:
         """A falling switch: a quiet run may stop half a period sooner."""
         if self._load.fit is None:
+            if self._switching.periods > 0:
+                self._by_model(self._fit_record(aim=False))
             self._accept(convergence.at_falling(self._loop, self._switching, self._estimates, self._since(),
                                                 self._adaptation.target_deg))
 
