@@ -20,8 +20,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
-from autotuner.engine.experiment.convergence import (MIN_PERIODS, SCATTER_MAX, estimate_scatter, period_scatter,
-                                                       sigma, tolerances)
+from autotuner.engine.experiment import convergence
+from autotuner.engine.experiment.convergence import MIN_PERIODS, SCATTER_MAX, estimate_scatter, tolerances
 from autotuner.engine.experiment.estimates import GAP, STALL, Estimates
 from autotuner.engine.experiment.load_correction import FITS_AGREE, Held
 from autotuner.engine.experiment.load_following import LoadFollowing
@@ -157,6 +157,7 @@ class Progress:
         self.held = held
         self._progress = 0.0
         self._shown: tuple[float, float] | None = None  # (elapsed s, ite s) of the latest status
+        self._noisy = False  # the scatter gate (convergence.noisy) at the latest analysis (judge)
 
     def period_guess(self, dt: float | None, relaying: bool) -> float:
         """The oscillation period as well as it is known now (s), given the mean sample interval ``dt`` (s;
@@ -191,10 +192,31 @@ class Progress:
         dt = self.loop.mean_interval()
         return max(STALL * self.period_guess(dt, relaying), GAP * (dt or 0.0))
 
-    def seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None) -> float:
+    def judge(self) -> None:
+        """Judge the scatter gate (:func:`convergence.noisy`) for :meth:`longer`; the experiment calls it after each
+        analysis, the only time the estimates change. (Not per status: status() runs per request, and the gate walks
+        every period's σ.)"""
+        self._noisy = convergence.noisy(self.loop, self.estimates)
+
+    def longer(self, relaying: bool) -> bool:
+        """True when the run will take a disturbed or noisy run's length (``relaying``: the relay has started): a
+        followed load, or noise the scatter gate called noisy at the latest analysis (:meth:`judge`).
+
+        Before the first estimate, from the second rising switch on: noise that scatters the first period's
+        estimate beyond the gate (:func:`convergence.too_scattered`) at its swing and length as known now
+        (:meth:`first_cycle`), judged at each status: the swing still grows after the switch that ends the first
+        whole period (judged there, a 1 % noise passed for noisy until the next switch), and before that switch
+        it is no measure (the first half period from rest of a lag-dominant process swings a third as much: a
+        1 % noise passed for 3 %). The stopping rule does not read it.
+        """
+        if relaying and len(self.switching.rising) >= 2 and not self.estimates.items:
+            return convergence.too_scattered(self.loop, self.estimates, *self.first_cycle())
+        return self._noisy or (self.load is not None and self.load.fit is not None)
+
+    def seconds_left(self, relaying: bool, phase_error_deg: float | None) -> float:
         """Estimated seconds to the end, never rising by more than its uncertainty (``relaying``: the relay has
-        started; ``longer``: a disturbed or noisy run; ``phase_error_deg``: how far the latest whole period's
-        process lag is from the target, degrees, None before one).
+        started; ``phase_error_deg``: how far the latest whole period's process lag is from the target, degrees,
+        None before one).
 
         The raw estimate (:meth:`raw_seconds_left`) counts down between
         statuses as a clock would; it is followed where it falls below that,
@@ -203,7 +225,7 @@ class Progress:
         complain about; one that lies low is worse); a rise beyond that of at
         most ``PAUSE`` of the shown value stops the clock instead.
         """
-        raw = self.raw_seconds_left(relaying, longer, phase_error_deg)
+        raw = self.raw_seconds_left(relaying, phase_error_deg)
         now = self.loop.elapsed()
         if self._shown is None:
             shown = raw
@@ -217,9 +239,10 @@ class Progress:
         self._shown = (now, shown)
         return shown
 
-    def raw_seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None) -> float:
-        """The seconds left as the record says now (``relaying``: the relay has started; ``longer``: a disturbed or
-        noisy run; ``phase_error_deg``: the latest whole period's lag off the target, degrees, None before one).
+    def raw_seconds_left(self, relaying: bool, phase_error_deg: float | None) -> float:
+        """The seconds left as the record says now (``relaying``: the relay has started; ``phase_error_deg``: the
+        latest whole period's lag off the target, degrees, None before one), a disturbed or noisy run's
+        (:meth:`longer`) or a quiet one's.
 
         Before two whole periods: the noise stage's rest and ``TYPICAL_PERIODS``
         of the prior period (:meth:`prior_period`) less the time the relay has
@@ -234,11 +257,8 @@ class Progress:
         dt = loop.mean_interval()
         time = loop.record.time
         rising = len(switching.rising)
+        longer = self.longer(relaying)
         if rising < 3 or phase_error_deg is None:
-            if relaying and rising >= 2 and not self.estimates.items:
-                # (The relay judges "longer" at the switch, before the first period's swing has grown to its
-                # size: at 1 % noise that passes for noisy until the next switch. The swing at this status says.)
-                longer = self.first_scatter() > SCATTER_MAX * c.gain_tol
             noise_left = max(c.noise_samples - len(loop.record), 0) * (dt or 0.0)
             prior = self.prior_period(dt, relaying)
             ran = time(-1) - time(switching.start) if relaying else 0.0
@@ -275,15 +295,17 @@ class Progress:
         if not relaying:
             return True
         loop = self.loop
-        scatter = estimate_scatter(loop, self.estimates) if self.estimates.items else self.first_scatter()
+        if self.estimates.items:
+            scatter = estimate_scatter(loop, self.estimates)
+        else:
+            scatter = convergence.swing_scatter(loop, self.estimates, *self.first_cycle())
         return scatter > MEAN_SCATTER * loop.config.gain_tol
 
-    def first_scatter(self) -> float:
-        """Before an estimate, the scatter (gain's share) the noise gives the first period's estimate: at the
-        filtered error's swing so far and the prior period (:meth:`prior_period`), once the relay has started."""
-        loop = self.loop
-        swing, period = self.switching.peak_error, self.prior_period(loop.mean_interval(), True)
-        return period_scatter(loop, sigma(loop, self.estimates), swing, period)
+    def first_cycle(self) -> tuple[float, float]:
+        """Before an estimate, once the relay has started, the first whole period as known now: its swing, the
+        filtered error's so far (PV units, standing for the PV's), and its length, the prior period (s,
+        :meth:`prior_period`)."""
+        return self.switching.peak_error, self.prior_period(self.loop.mean_interval(), True)
 
     def load_periods_left(self) -> float:
         """The periods from the latest rising switch that a followed (or a candidate) load still needs, 0 without
