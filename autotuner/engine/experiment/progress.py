@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 from autotuner.engine.experiment import convergence
-from autotuner.engine.experiment.convergence import MIN_PERIODS, SCATTER_MAX, estimate_scatter, tolerances
+from autotuner.engine.experiment.convergence import MIN_PERIODS, estimate_scatter, tolerances
 from autotuner.engine.experiment.estimates import GAP, STALL, Estimates
 from autotuner.engine.experiment.load_correction import FITS_AGREE, Held
 from autotuner.engine.experiment.load_following import LoadFollowing
@@ -270,10 +270,9 @@ class Progress:
             # (A period still growing, a lag-dominant process's cycle slowing down to the target, grows on: the
             # periods left count that in, QuietFit.growth_power.)
             ratio = period / (time(switching.rising[-2]) - time(switching.rising[-3]))
-            # (Only a run the scatter gate calls noisy waits for the averaged rule; one labelled so for its load
-            # fit, or before its first estimate, does not.)
-            scatter = estimate_scatter(loop, self.estimates)
-            scatter = scatter / c.noise_tol if scatter > SCATTER_MAX * c.gain_tol else 0.0
+            # (Only a run the scatter gate calls noisy, with its hysteresis, waits for the averaged rule; one
+            # labelled so for its load fit, or before its first estimate, does not.)
+            scatter = estimate_scatter(loop, self.estimates) / c.noise_tol if self._noisy else 0.0
             averaged = self.averaged_point(relaying)
             left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, ratio, longer, scatter, averaged)
             left = max(left, self.load_periods_left()) * period
