@@ -133,9 +133,10 @@ def test_a_two_percent_noise_run_with_a_load_step_is_as_short_as_before_the_merg
 
 
 def test_status_reads_the_gate_judged_by_the_analysis(monkeypatch) -> None:
-    # status() runs per request (hundreds of clients): the gate (noisy, too_scattered) is judged once per analysis
-    # and at the switches before the first estimate, never by status() itself. Counted on a 2 % noise run through
-    # its first estimate and beyond.
+    # status() runs per request (hundreds of clients): the gate (noisy, which walks every period's σ) is judged once
+    # per analysis, never by status() itself; status() judges the first period's scatter (too_scattered, a few
+    # products) at its own swing before the first estimate only. Counted on a 2 % noise run through its first
+    # estimate and beyond.
     process = parse_process("exp(-s)/(4*s+1)")
     exact = exact_point(process, 135.0)
     assert exact is not None
@@ -156,8 +157,10 @@ def test_status_reads_the_gate_judged_by_the_analysis(monkeypatch) -> None:
         sim.advance(experiment.step(sim.t, sim.measure()))
         before = dict(calls)
         experiment.status()
-        assert calls == before
-        longer.append(experiment._longer)
+        assert calls["noisy"] == before["noisy"]
+        if experiment._estimates.items:
+            assert calls == before
+        longer.append(experiment._progress.longer(relaying=True))
     assert experiment.code is Code.OK and sum(calls.values()) > 0
     # Judged noisy (2 % noise: 1.13 of the gate) from the first whole period on.
     assert any(longer) and longer[-2]

@@ -451,7 +451,8 @@ async def _take_over(link: Link, saved: LoopState, plan: SessionPlan) -> None:
 
 class _Sampling:
     """The experiment driven through ``link`` on the schedule of ``plan``, reported through ``hooks``; the
-    samples it took (``t`` plant seconds, ``pv``, ``mv``) and its own lateness (``overload``)."""
+    samples it took (``t`` plant seconds, ``pv``, ``mv``) and its own lateness (``overload``, judged against
+    ``tolerance``: :meth:`observe`)."""
 
     def __init__(self, link: Link, experiment: RelayExperiment, plan: SessionPlan, hooks: SessionHooks) -> None:
         self.link, self.experiment, self.plan, self.hooks = link, experiment, plan, hooks
@@ -474,8 +475,9 @@ class _Sampling:
         self._written = experiment.mv0  # the MV last written to the device (the saved one at the take-over)
         self._analysis: asyncio.Future[tuple[RelayExperiment, float]] | None = None  # the period's, off the loop
         self._elsewhere = False  # whether that analysis runs in another process
-        self._status = experiment.status()  # the experiment's status after its latest step outside an analysis
-        self._tolerance = experiment.stall_tolerance / plan.speed  # the own lateness it tolerates, wall seconds
+        self._status: Status  # the experiment's status after its latest step outside an analysis (observe)
+        self.tolerance = 0.0  # the own lateness it tolerated then, wall seconds (observe)
+        self.observe()
 
     async def run(self) -> None:
         """Sample until the experiment ends (or ``hooks.stop`` aborts it); LinkError if the link fails."""
@@ -503,11 +505,11 @@ class _Sampling:
         experiment's steps and the MV written; False once the experiment has ended."""
         link, speed, hooks = self.link, self.plan.speed, self.hooks
         before = time.monotonic()
-        own = self.overload.sample(due, before, self._tolerance)
+        own = self.overload.sample(due, before, self.tolerance)
         sample = await link.read_sample()
         after = time.monotonic()
         if hooks.on_timing is not None:
-            hooks.on_timing(after - due, own, self._tolerance)
+            hooks.on_timing(after - due, own, self.tolerance)
         if self.overload.exceeded:
             await self._fail(Code.OVERLOADED, self.overload.message(speed))
             return False
@@ -561,7 +563,7 @@ class _Sampling:
             experiment.applied(arrived)
             self._written = mv
             if moved is not None:
-                self.overload.delayed((arrived - moved) / speed, self._tolerance)
+                self.overload.delayed((arrived - moved) / speed, self.tolerance)
                 moved = None
             if experiment.analysis_pending:
                 # A period ended: its analysis runs off the event loop, so the other loops of this process and
@@ -576,12 +578,18 @@ class _Sampling:
                         return False
                 break
         if self._analysis is None:
-            self._status = experiment.status()
-            self._tolerance = experiment.stall_tolerance / speed
+            self.observe()
         if self.hooks.on_status is not None:
             self.hooks.on_status(self._status)
         await self._handshake(self._status)
         return True
+
+    def observe(self) -> None:
+        """Read the experiment after its latest steps, outside an analysis: its status (what the handshake
+        publishes) and the own lateness it tolerates now (``tolerance``, wall seconds: its stall tolerance, wide
+        while the period is not known, narrower once it is measured)."""
+        self._status = self.experiment.status()
+        self.tolerance = self.experiment.stall_tolerance / self.plan.speed
 
     async def settled(self) -> None:
         """Wait for the period's analysis in flight, if any: nothing else touches the experiment while a worker
@@ -685,7 +693,7 @@ class _Sampling:
         plan, overload = self.plan, self.overload
         job = DesignJob.of(self.experiment, plan.controller, plan.ms)
         # (Also a delay the tolerance of its moment let pass, beyond what the experiment tolerates at its end.)
-        if job.code in BLAMES_PROCESS and (overload.count or overload.longest > self._tolerance):
+        if job.code in BLAMES_PROCESS and (overload.count or overload.longest > self.tolerance):
             job = DesignJob(None, Code.OVERLOADED, f"{overload.message(plan.speed)} (the experiment had ended: "
                             f"{job.message})", plan.controller, plan.ms, plan.relay.amp)
         return job

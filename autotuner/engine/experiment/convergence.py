@@ -129,7 +129,13 @@ def estimate_scatter(loop: Loop, estimates: Estimates, pending: float | None = N
 def too_scattered(loop: Loop, estimates: Estimates, swing: float, period: float) -> bool:
     """True when the noise of ``loop`` (:func:`sigma` of its ``estimates``) scatters one ``period``'s (s) estimate
     of a cycle whose fundamental is ``swing`` (PV units) by more than SCATTER_MAX of gain_tol (:func:`scatter`)."""
-    return period_scatter(loop, sigma(loop, estimates), swing, period) > SCATTER_MAX * loop.config.gain_tol
+    return swing_scatter(loop, estimates, swing, period) > SCATTER_MAX * loop.config.gain_tol
+
+
+def swing_scatter(loop: Loop, estimates: Estimates, swing: float, period: float) -> float:
+    """:func:`period_scatter` at the σ the stopping rule judges by (:func:`sigma` of the ``estimates`` of ``loop``):
+    one ``period``'s (s) estimate of a cycle whose fundamental is ``swing`` (PV units)."""
+    return period_scatter(loop, sigma(loop, estimates), swing, period)
 
 
 def period_scatter(loop: Loop, noise: float, swing: float, period: float) -> float:

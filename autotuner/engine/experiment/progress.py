@@ -20,8 +20,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
-from autotuner.engine.experiment.convergence import (MIN_PERIODS, SCATTER_MAX, estimate_scatter, period_scatter,
-                                                       sigma, tolerances)
+from autotuner.engine.experiment import convergence
+from autotuner.engine.experiment.convergence import MIN_PERIODS, estimate_scatter, tolerances
 from autotuner.engine.experiment.estimates import GAP, STALL, Estimates
 from autotuner.engine.experiment.load_correction import FITS_AGREE, Held
 from autotuner.engine.experiment.load_following import LoadFollowing
@@ -164,6 +164,7 @@ class Progress:
         self.held = held
         self._progress = 0.0
         self._shown: tuple[float, float] | None = None  # (elapsed s, ite s) of the latest status
+        self._noisy = False  # the scatter gate (convergence.noisy) at the latest analysis (judge)
 
     def period_guess(self, dt: float | None, relaying: bool) -> float:
         """The oscillation period as well as it is known now (s), given the mean sample interval ``dt`` (s;
@@ -198,12 +199,31 @@ class Progress:
         dt = self.loop.mean_interval()
         return max(STALL * self.period_guess(dt, relaying), GAP * (dt or 0.0))
 
-    def seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None,
-                     fit: Fit = Fit.UNKNOWN) -> float:
+    def judge(self) -> None:
+        """Judge the scatter gate (:func:`convergence.noisy`) for :meth:`longer`; the experiment calls it after each
+        analysis, the only time the estimates change. (Not per status: status() runs per request, and the gate walks
+        every period's σ.)"""
+        self._noisy = convergence.noisy(self.loop, self.estimates)
+
+    def longer(self, relaying: bool) -> bool:
+        """True when the run will take a disturbed or noisy run's length (``relaying``: the relay has started): a
+        followed load, or noise the scatter gate called noisy at the latest analysis (:meth:`judge`).
+
+        Before the first estimate, from the second rising switch on: noise that scatters the first period's
+        estimate beyond the gate (:func:`convergence.too_scattered`) at its swing and length as known now
+        (:meth:`first_cycle`), judged at each status: the swing still grows after the switch that ends the first
+        whole period (judged there, a 1 % noise passed for noisy until the next switch), and before that switch
+        it is no measure (the first half period from rest of a lag-dominant process swings a third as much: a
+        1 % noise passed for 3 %). The stopping rule does not read it.
+        """
+        if relaying and len(self.switching.rising) >= 2 and not self.estimates.items:
+            return convergence.too_scattered(self.loop, self.estimates, *self.first_cycle())
+        return self._noisy or (self.load is not None and self.load.fit is not None)
+
+    def seconds_left(self, relaying: bool, phase_error_deg: float | None, fit: Fit = Fit.UNKNOWN) -> float:
         """Estimated seconds to the end, never rising by more than its uncertainty (``relaying``: the relay has
-        started; ``longer``: a disturbed or noisy run; ``phase_error_deg``: how far the latest whole period's
-        process lag is from the target, degrees, None before one; ``fit``: what the latest fit of the model rule
-        says of the run's length, model_rule.py).
+        started; ``phase_error_deg``: how far the latest whole period's process lag is from the target, degrees,
+        None before one; ``fit``: what the latest fit of the model rule says of the run's length, model_rule.py).
 
         The raw estimate (:meth:`raw_seconds_left`) counts down between
         statuses as a clock would; it is followed where it falls below that,
@@ -215,7 +235,7 @@ class Progress:
         if fit is Fit.NEXT:
             raw = self.switch_left()
         else:
-            raw = self.raw_seconds_left(relaying, longer, phase_error_deg, fit)
+            raw = self.raw_seconds_left(relaying, phase_error_deg, fit)
         now = self.loop.elapsed()
         if self._shown is None:
             shown = raw
@@ -229,11 +249,10 @@ class Progress:
         self._shown = (now, shown)
         return shown
 
-    def raw_seconds_left(self, relaying: bool, longer: bool, phase_error_deg: float | None,
-                         fit: Fit = Fit.UNKNOWN) -> float:
-        """The seconds left as the record says now (``relaying``: the relay has started; ``longer``: a disturbed or
-        noisy run; ``phase_error_deg``: the latest whole period's lag off the target, degrees, None before one;
-        ``fit``: as for :meth:`seconds_left`).
+    def raw_seconds_left(self, relaying: bool, phase_error_deg: float | None, fit: Fit = Fit.UNKNOWN) -> float:
+        """The seconds left as the record says now (``relaying``: the relay has started; ``phase_error_deg``: the
+        latest whole period's lag off the target, degrees, None before one; ``fit``: as for :meth:`seconds_left`),
+        a disturbed or noisy run's (:meth:`longer`) or a quiet one's.
 
         Before two whole periods: the noise stage's rest and ``TYPICAL_PERIODS``
         of the prior period (:meth:`prior_period`) less the time the relay has
@@ -248,11 +267,8 @@ class Progress:
         dt = loop.mean_interval()
         time = loop.record.time
         rising = len(switching.rising)
+        longer = self.longer(relaying)
         if rising < 3 or phase_error_deg is None:
-            if relaying and rising >= 2 and not self.estimates.items:
-                # (The relay judges "longer" at the switch, before the first period's swing has grown to its
-                # size: at 1 % noise that passes for noisy until the next switch. The swing at this status says.)
-                longer = self.first_scatter() > SCATTER_MAX * c.gain_tol
             noise_left = max(c.noise_samples - len(loop.record), 0) * (dt or 0.0)
             prior = self.prior_period(dt, relaying)
             ran = time(-1) - time(switching.start) if relaying else 0.0
@@ -266,10 +282,9 @@ class Progress:
             # (A period still growing, a lag-dominant process's cycle slowing down to the target, grows on: the
             # periods left count that in, QuietFit.growth_power.)
             ratio = period / (time(switching.rising[-2]) - time(switching.rising[-3]))
-            # (Only a run the scatter gate calls noisy waits for the averaged rule; one labelled so for its load
-            # fit, or before its first estimate, does not.)
-            scatter = estimate_scatter(loop, self.estimates)
-            scatter = scatter / c.noise_tol if scatter > SCATTER_MAX * c.gain_tol else 0.0
+            # (Only a run the scatter gate calls noisy, with its hysteresis, waits for the averaged rule; one
+            # labelled so for its load fit, or before its first estimate, does not.)
+            scatter = estimate_scatter(loop, self.estimates) / c.noise_tol if self._noisy else 0.0
             averaged = self.averaged_point(relaying)
             left = periods_left(rising - 1, phase_error_deg, c.phase_tol_deg, ratio, longer, scatter, averaged)
             left = max(left, self.load_periods_left()) * period
@@ -299,15 +314,17 @@ class Progress:
         if not relaying:
             return True
         loop = self.loop
-        scatter = estimate_scatter(loop, self.estimates) if self.estimates.items else self.first_scatter()
+        if self.estimates.items:
+            scatter = estimate_scatter(loop, self.estimates)
+        else:
+            scatter = convergence.swing_scatter(loop, self.estimates, *self.first_cycle())
         return scatter > MEAN_SCATTER * loop.config.gain_tol
 
-    def first_scatter(self) -> float:
-        """Before an estimate, the scatter (gain's share) the noise gives the first period's estimate: at the
-        filtered error's swing so far and the prior period (:meth:`prior_period`), once the relay has started."""
-        loop = self.loop
-        swing, period = self.switching.peak_error, self.prior_period(loop.mean_interval(), True)
-        return period_scatter(loop, sigma(loop, self.estimates), swing, period)
+    def first_cycle(self) -> tuple[float, float]:
+        """Before an estimate, once the relay has started, the first whole period as known now: its swing, the
+        filtered error's so far (PV units, standing for the PV's), and its length, the prior period (s,
+        :meth:`prior_period`)."""
+        return self.switching.peak_error, self.prior_period(self.loop.mean_interval(), True)
 
     def load_periods_left(self) -> float:
         """The periods from the latest rising switch that a followed (or a candidate) load still needs, 0 without

@@ -102,8 +102,6 @@ class RelayExperiment:
         # falling, 0 none. (A value, not the bound method: the experiment would hold itself, and each copy a
         # worker's analysis replaces would be left to the garbage collector's full walks.)
         self._pending = 0
-        # ite's "longer" (a disturbed or noisy run's length), judged after each analysis (_judge_longer).
-        self._longer = False
         # The model rule's point at the latest switch (model_rule.py), None where its fit did not explain the record.
         self._model_point: model_rule.ModelPoint | None = None
         # The latest model fitted to the record (process_fit.py; the next fit's search starts from it).
@@ -174,7 +172,7 @@ class RelayExperiment:
         if switched and not self.done:
             try:
                 self._on_period() if switched > 0 else self._on_half()
-                self._longer = self._judge_longer()
+                self._progress.judge()
             except Ended as ended:
                 self._end(ended)
 
@@ -206,23 +204,11 @@ class RelayExperiment:
         else:
             lags = self._adaptation.lags
             error = abs(math.degrees(lags[-1]) - self._adaptation.target_deg) if lags else None
-            ite = self._progress.seconds_left(self.stage is Stage.RELAY, self._longer, error,
-                                              self._fit_hint)
+            ite = self._progress.seconds_left(self.stage is Stage.RELAY, error, self._fit_hint)
             progress = self._progress.fraction(ite)
         return Status(stage=self.stage, progress=progress, ite=ite, relay=self._switching.relay,
                       filter_phase_deg=self._adaptation.phase_deg(), periods=max(self._switching.periods, 0),
                       code=self.code, message=self.message)
-
-    def _judge_longer(self) -> bool:
-        """True when the run will take a disturbed or noisy run's length (ite's ``longer``): a followed load, or
-        noise the scatter gate calls noisy. Judged once per analysis: :meth:`status` runs per request."""
-        if not self._estimates.items and len(self._switching.rising) >= 2:
-            # (Before an estimate, the filtered error's swing over the first whole period stands for the PV's,
-            # the prior for the period; before, the swing is still growing: the first half period from rest
-            # of a lag-dominant process swings a third as much, and a 1 % noise passed for 3 %.)
-            period = self._progress.prior_period(self._loop.mean_interval(), True)
-            return convergence.too_scattered(self._loop, self._estimates, self._switching.peak_error, period)
-        return self._load.fit is not None or convergence.noisy(self._loop, self._estimates)
 
     # -- each sample ------------------------------------------------------
 
@@ -270,9 +256,6 @@ class RelayExperiment:
             levels.end_rescue()
             # (The period's end is judged once it is analysed.)
             self._pending = switched
-            if not self._estimates.items:
-                # (Before an estimate ite's "longer" reads the first whole period's swing, from the switch on.)
-                self._longer = self._judge_longer()
         else:
             when = switching.watch(adaptation.hysteresis)
             if when is not None:
