@@ -15,6 +15,10 @@ Since branch ite-loads a rise of at most half the shown value stops the clock in
 ±30 % on 63 % and 57 %, p10 0.50 and 0.45, never rising in 9 and 7 of 11. After the model aim (shorter noise-free
 runs) 42 % and 59 %; since branch ite-refit a quiet run whose settled point is one estimate has its own count
 (progress.CLEAN_FIT, CLEAN_TYPICAL_PERIODS): 66 % and 59 %, p10 0.65 and 0.46, never rising in 9 and 7 of 11.
+Since the model rule (model_rule.py: the quiet runs the model explains end at 1.4–2.9 periods) the quiet runs are
+judged on every fourth process (QUIET_SAMPLE, below), where ite counts by what the model's first look says
+(progress.CLEAN_TYPICAL_PERIODS): within ±30 % on 70 % and 65 % of the statuses, p10 0.66 and 0.53, median 1.06 and
+0.91, p90 1.54 and 1.32, never rising in 29 and 29 of 34.
 """
 
 from __future__ import annotations
@@ -28,16 +32,23 @@ from autotuner.benchmarks.ite_bench import HONEST, field_one, judge, run_one, su
 from autotuner.engine.experiment.relay import RelayConfig, RelayExperiment
 
 SAMPLE = load_batch(default_batch())[::13]
+# The quiet runs' sample: every fourth process (34). Since the model rule (model_rule.py) a quiet run's length
+# depends on whether the model explains the record, and ite's count on what its first look says: eleven processes
+# are too few to judge that by (on the eleven, 2026-12-05: within ±30 % on 71 % of the statuses, p90 1.87 — the
+# dead-time-dominant P1-014 and P7-092 before their first rising switch, 0.8 periods in — and ite never rising in 8
+# of 11; on every fourth: 70 %, p90 1.54, never rising in 29 of 34).
+QUIET_SAMPLE = load_batch(default_batch())[::4]
 
 
 @pytest.mark.parametrize("noise, within, never_rising", [(0.0, 0.6, 0.8), (0.01, 0.57, 0.6)])
 def test_ite_is_within_30_percent_of_the_time_really_left_on_most_statuses(noise: float, within: float,
                                                                            never_rising: float) -> None:
-    runs = [run_one(row["expr"], row["id"], noise, every=7) for row in SAMPLE]
+    runs = [run_one(row["expr"], row["id"], noise, every=7) for row in QUIET_SAMPLE]
     judged = [judge(run) for run in runs]
     # Independent of the engine's estimate: the true time left is the trace's end minus the status's time.
     for run, honesty in zip(runs, judged):
-        assert run.ok and len(honesty.ratios) > 5, run.id
+        # (A status every 7 samples: the shortest runs, 1.5 periods, have 4 judged.)
+        assert run.ok and len(honesty.ratios) > 3, run.id
         assert np.all(run.end - run.t > 0.0) and np.all(run.ite > 0.0), run.id
     summary = summarise(judged)
     assert summary.within >= within, summary

@@ -31,9 +31,9 @@ INVERSE = 0.01
 MAX_STEPS = 40
 ITERATIONS = 12  # Levenberg–Marquardt's at most (each about five runs of the model over the record)
 SETTLED = 1e-3  # a step gaining less than this share of the cost ends the search
-# A search started from an earlier switch's model stands where it misfits by at most this share of the swing (the
-# model rule's misfits are a hundredth of it: model_rule.py); elsewhere the search from the period's scale does, as
-# without an earlier model (the filter's aim on the batch's higher orders is the same).
+# A search started from an earlier switch's model stands where it misfits by at most this share of the swing (over
+# three times the model rule's bound: model_rule.py); elsewhere the search from the period's scale does, as without
+# an earlier model (the filter's aim on the batch's higher orders is the same).
 WARM = 1e-3
 
 

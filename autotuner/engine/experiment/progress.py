@@ -42,7 +42,7 @@ SAMPLES_PER_PERIOD = 100.0
 # median), and from the first rising switch on (the first look's) where the model explains the record (the median of
 # the batch's runs the model rule stopped: 1.34, p10–p90 1.2–1.6) or does not (of the others).
 TYPICAL_PERIODS = {False: 4.0, True: 6.0}
-CLEAN_TYPICAL_PERIODS = {Fit.UNKNOWN: 2.11, Fit.EXPLAINS: 1.34, Fit.NO: 3.36}
+CLEAN_TYPICAL_PERIODS = {Fit.UNKNOWN: 2.8, Fit.EXPLAINS: 1.34, Fit.NO: 3.36}
 
 
 @dataclass(frozen=True)
@@ -232,10 +232,7 @@ class Progress:
         complain about; one that lies low is worse); a rise beyond that of at
         most ``PAUSE`` of the shown value stops the clock instead.
         """
-        if fit is Fit.NEXT:
-            raw = self.switch_left()
-        else:
-            raw = self.raw_seconds_left(relaying, phase_error_deg, fit)
+        raw = self.raw_seconds_left(relaying, phase_error_deg, fit)
         now = self.loop.elapsed()
         if self._shown is None:
             shown = raw
@@ -254,21 +251,25 @@ class Progress:
         latest whole period's lag off the target, degrees, None before one; ``fit``: as for :meth:`seconds_left`),
         a disturbed or noisy run's (:meth:`longer`) or a quiet one's.
 
-        Before two whole periods: the noise stage's rest and ``TYPICAL_PERIODS``
-        of the prior period (:meth:`prior_period`) less the time the relay has
-        run: the first half periods of a lag-dominant process are 5–10 times
-        shorter than its period, and the first whole period's lag carries the
-        start's transient. From then on the periods left (:func:`periods_left`)
-        of the latest whole period, less the time since it ended, and at least
+        Where the model rule may stop the run at the next switch (``fit`` NEXT): the time to that switch. Before
+        two whole periods, and while the model explains the record but the cycle has not reached the target:
+        the noise stage's rest and ``TYPICAL_PERIODS`` (``CLEAN_TYPICAL_PERIODS`` by ``fit`` on a quiet run) of
+        the prior period (:meth:`prior_period`) less the time the relay has run (from the first look's switch on a
+        quiet run that has one): the first half periods of a lag-dominant process are 5–10 times shorter than its
+        period, and the first whole period's lag carries the start's transient. From then on the periods left
+        (:func:`periods_left`) of the latest whole period, less the time since it ended, and at least
         ``LAST_SHARE`` of it.
         """
+        if fit is Fit.NEXT:
+            return self.switch_left()
         loop, switching = self.loop, self.switching
         c = loop.config
         dt = loop.mean_interval()
         time = loop.record.time
         rising = len(switching.rising)
         longer = self.longer(relaying)
-        if rising < 3 or phase_error_deg is None:
+        # (A run the model explains waits for the cycle to reach the target, not for estimates: its typical count.)
+        if rising < 3 or phase_error_deg is None or fit is Fit.EXPLAINS and not longer:
             noise_left = max(c.noise_samples - len(loop.record), 0) * (dt or 0.0)
             prior = self.prior_period(dt, relaying)
             ran = time(-1) - time(switching.start) if relaying else 0.0

@@ -356,11 +356,11 @@ class RelayExperiment:
             return None
         if not switching.periods and switching.switches[-1] != switching.rising[0]:
             return None  # (before a whole period, only the first rising switch: ite's first look)
-        record = loop.record.all()
+        record, tol = loop.record.all(), convergence.tolerances(self.config)
         # (A stall of the session leaves the rule out, as it leaves the estimates over it out: estimates.STALL.)
-        rule = (switching.periods <= model_rule.PERIODS and model_rule.could_explain(
-            convergence.sigma(loop, estimates), float(np.ptp(record.y)), convergence.tolerances(self.config))
-            and longest_gap(record.t, record.t[0], record.t[-1]) <= GAP * loop.dt)
+        rule = (switching.periods <= model_rule.PERIODS and model_rule.worth_fitting(self._model, tol)
+                and model_rule.could_explain(convergence.sigma(loop, estimates), float(np.ptp(record.y)), tol)
+                and longest_gap(record.t, record.t[0], record.t[-1]) <= GAP * loop.dt)
         if not (rule or aim and len(self._adaptation.lags) <= MODEL_PERIODS):
             return None
         time = loop.record.time
@@ -379,8 +379,8 @@ class RelayExperiment:
         latest = model_rule.model_point(model, self._loop.sign, self._adaptation.target_deg, tol)
         previous, self._model_point = self._model_point, latest
         period = self._switching.period()
-        self._fit_hint = model_rule.hint(latest, period)
-        self._accept(model_rule.judge(previous, latest, period, tol))
+        self._fit_hint = model_rule.hint(model, latest, period, tol)
+        self._accept(model_rule.judge(previous, latest, period, tol), explained=True)
 
     def _judge(self, raw: Samples, detrended: Samples) -> None:
         """Estimate the point over the last period and stop if it has converged."""
@@ -451,12 +451,15 @@ class RelayExperiment:
             self._accept(convergence.at_falling(self._loop, self._switching, self._estimates, self._since(),
                                                 self._adaptation.target_deg))
 
-    def _accept(self, verdict: Verdict | None) -> None:
+    def _accept(self, verdict: Verdict | None, explained: bool = False) -> None:
+        """End the experiment with the ``verdict`` (nothing without one), unless the record holds a load: a quiet
+        result is first looked through for one (load_following.py), but not where a model ``explained`` the whole
+        record (model_rule.py: a load would misfit it)."""
         if verdict is None:
             return
         # Before accepting a quiet result, make sure the record holds no
         # disturbance that the simple means would have mixed in.
-        if self._load.fit is None and self._load.look(self._unstable.unstable):
+        if not explained and self._load.fit is None and self._load.look(self._unstable.unstable):
             if self._load.fit is not None and self._corrects():
                 # Just accepted: the estimates since its step may pass as they are, its share taken out.
                 self._accept(self._verdict())
