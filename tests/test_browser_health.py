@@ -295,8 +295,9 @@ def test_a_press_on_tune_now_while_the_card_is_redrawn_tunes_the_loop(browser, d
 
 def test_sorted_by_health_no_row_moves_under_the_pointer_until_it_leaves_the_table(browser, daemon):
     """Sorted by health, the pointer on the sticky valve's link: its rank changes (tuned, its health is collecting
-    again: rank 0, the last place) and its row stays under the pointer; once the pointer leaves the table, the
-    order is the daemon's (``GET /loop-health``)."""
+    again: rank 0, the last place) and its row stays under the pointer, where it was in the table to the pixel
+    (the tuning's new contents in its cells would change every column's width, and so the height of the rows
+    above it); once the pointer leaves the table, the order is the daemon's (``GET /loop-health``)."""
     assessed(daemon, STICKY, "check_valve")
     row = f"#loops tr[data-loop={STICKY}]"
     with page_of(browser, daemon) as page:
@@ -309,6 +310,7 @@ def test_sorted_by_health_no_row_moves_under_the_pointer_until_it_leaves_the_tab
         box = page.locator(f"{row} a.loop-id").bounding_box()
         x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
         table_top = page.locator("#loops").bounding_box()["y"]
+        in_table = page.locator(row).bounding_box()["y"] - table_top
         shown = shown_order(page)
         r = httpx.post(f"{daemon.base}/loops/{STICKY}/tune", headers=daemon.headers, timeout=30)
         assert r.status_code == 202, r.text
@@ -319,6 +321,8 @@ def test_sorted_by_health_no_row_moves_under_the_pointer_until_it_leaves_the_tab
             # The rows stay put within the table. (What is above the table may move it as a whole: the stream-lost
             # banner of a reconnect on a loaded machine moved it down a row once, 2026-12-05 in CI; not the sort's.)
             shift = page.locator("#loops").bounding_box()["y"] - table_top
+            # Within one layout unit (1/64 px): the same place, not a place near it.
+            assert page.locator(row).bounding_box()["y"] - table_top - shift == pytest.approx(in_table, abs=1 / 64)
             assert page.evaluate("([x, y]) => document.elementFromPoint(x, y)?.closest('tr')?.dataset.loop",
                                  [x, y + shift]) == STICKY
             page.mouse.move(1, 1)  # off the table (the page's header)

@@ -6,8 +6,12 @@ import { clock, gainsBrief, modeBadge, outcomeBadge, progressBar, restoreBox, st
   when } from "./display.js";
 import { $, esc, fill, h, main } from "./dom.js";
 import { healthCell } from "./health.js";
+import { boxOf, boxed, hold, release, sameContents } from "./hold.js";
 import { banner } from "./notices.js";
 import { mvText, pvText, unitsOf } from "./units.js";
+
+const cell = (attrs, ...children) => boxed("td", attrs, ...children);
+const head = (text, attrs = {}) => boxed("th", attrs, text);
 
 // Whether the overview is sorted by health: kept while the page is open (coming back from a loop keeps the order).
 let byHealth = false;
@@ -16,9 +20,8 @@ export function overviewView() {
   const tbody = h("tbody");
   const table = h("table", { class: "loops", id: "loops" },
     h("thead", {}, h("tr", {},
-      h("th", {}, "Loop"), h("th", {}, "Mode"), h("th", { class: "num" }, "PV"), h("th", { class: "num" }, "SP"),
-      h("th", { class: "num" }, "MV"), h("th", {}, "Health"), h("th", {}, "Tuning (TBSY / TE / ite)"), h("th", {}, "Last tuning"),
-      h("th", {}, "Gains"))),
+      head("Loop"), head("Mode"), head("PV", { class: "num" }), head("SP", { class: "num" }), head("MV", { class: "num" }),
+      head("Health"), head("Tuning (TBSY / TE / ite)"), head("Last tuning"), head("Gains"))),
     tbody);
   const sortButton = h("button", { type: "button", class: "ghost sort", id: "sort-health", onclick: () => {
     byHealth = !byHealth;
@@ -29,11 +32,20 @@ export function overviewView() {
       h("div", { class: "head-tools" }, sortButton, h("span", { class: "muted", id: "updated" }, ""))), table));
   const rows = new Map();
   const order = []; // the loops' ids as the daemon lists them (the config's order)
-  // While the pointer is over the table, sorted by health, a new rank moves no row: the order waits until the
-  // pointer leaves (a row moving under it turned a click aimed at one loop into a click on another).
+  // While the pointer is over the table no row moves (a row moving under it turned a click aimed at one loop into a
+  // click on another): sorted by health, a new rank waits until the pointer leaves; and no row changes height,
+  // its cells held (hold.js) until the pointer leaves, or held anew for a new width of the page.
   let pointed = false;
-  table.addEventListener("pointerenter", () => { pointed = true; });
-  table.addEventListener("pointerleave", () => { pointed = false; if (byHealth) sort(); });
+  const point = (over) => {
+    pointed = over;
+    table.classList.toggle("held", over);
+    if (over) hold(table);
+    else release(table);
+  };
+  const resized = () => { if (pointed) { release(table); hold(table); } };
+  table.addEventListener("pointerenter", () => point(true));
+  table.addEventListener("pointerleave", () => { point(false); if (byHealth) sort(); });
+  window.addEventListener("resize", resized);
 
   // Worst first by the daemon's rank (then loop id, as GET /loop-health), or as configured.
   function sort() {
@@ -50,18 +62,18 @@ export function overviewView() {
     const st = statusOf(loop);
     const u = unitsOf(loop);
     const tr = h("tr", { "data-loop": loop.id, class: `st-${st.cls}` },
-      h("td", {}, h("a", { href: `#/loop/${esc(loop.id)}`, class: "loop-id" }, loop.id),
+      cell({}, h("a", { href: `#/loop/${esc(loop.id)}`, class: "loop-id" }, loop.id),
         h("div", { class: "muted small" }, loop.description || ""),
         loop.monitor_error ? h("div", { class: "bad small" }, `monitor: ${loop.monitor_error}`) : null),
-      h("td", { "data-col": "mode", "data-label": "Mode" }, modeBadge(loop.mode)),
-      h("td", { class: "num", "data-col": "pv", "data-label": "PV" }, pvText(loop.pv, u)),
-      h("td", { class: "num", "data-col": "sp", "data-label": "SP" }, pvText(loop.sp, u)),
-      h("td", { class: "num", "data-col": "mv", "data-label": "MV" }, mvText(loop.mv, u)),
-      h("td", { "data-col": "health", "data-label": "Health" }, healthCell(loop.health ?? null)),
-      h("td", { "data-col": "status", "data-label": "Tuning" }, statusCell(loop, st)),
-      h("td", { "data-col": "last", "data-label": "Last tuning" }, loop.last_tuned_at ? h("div", {}, when(loop.last_tuned_at)) : h("div", { class: "muted" }, "never"),
+      cell({ "data-col": "mode", "data-label": "Mode" }, modeBadge(loop.mode)),
+      cell({ class: "num", "data-col": "pv", "data-label": "PV" }, pvText(loop.pv, u)),
+      cell({ class: "num", "data-col": "sp", "data-label": "SP" }, pvText(loop.sp, u)),
+      cell({ class: "num", "data-col": "mv", "data-label": "MV" }, mvText(loop.mv, u)),
+      cell({ "data-col": "health", "data-label": "Health" }, healthCell(loop.health ?? null)),
+      cell({ "data-col": "status", "data-label": "Tuning" }, statusCell(loop, st)),
+      cell({ "data-col": "last", "data-label": "Last tuning" }, loop.last_tuned_at ? h("div", {}, when(loop.last_tuned_at)) : h("div", { class: "muted" }, "never"),
         loop.last_outcome ? outcomeBadge(loop.last_outcome) : null),
-      h("td", { "data-col": "gains", "data-label": "Gains" }, gainsBrief(loop.current_gains || null, u),
+      cell({ "data-col": "gains", "data-label": "Gains" }, gainsBrief(loop.current_gains || null, u),
         loop.pending_gains ? h("div", {}, h("span", { class: "badge pending" }, "new gains to apply")) : null));
     return tr;
   }
@@ -76,27 +88,29 @@ export function overviewView() {
     const tr = rows.get(loop.id);
     if (!tr) return;
     const u = unitsOf(loop);
-    $("[data-col=pv]", tr).textContent = pvText(loop.pv, u);
-    $("[data-col=sp]", tr).textContent = pvText(loop.sp, u);
-    $("[data-col=mv]", tr).textContent = mvText(loop.mv, u);
-    fill($("[data-col=mode]", tr), modeBadge(loop.mode));
-    if (loop.tbsy) fill($("[data-col=status]", tr), statusCell(loop, statusOf(loop)));
+    $("[data-col=pv] > .cell", tr).textContent = pvText(loop.pv, u);
+    $("[data-col=sp] > .cell", tr).textContent = pvText(loop.sp, u);
+    $("[data-col=mv] > .cell", tr).textContent = mvText(loop.mv, u);
+    fill($("[data-col=mode] > .cell", tr), modeBadge(loop.mode));
+    if (loop.tbsy) fill($("[data-col=status] > .cell", tr), statusCell(loop, statusOf(loop)));
     $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
   }
 
   // The row drawn anew for a loop's new state or health (`tr`) into the row on the page (`old`): only the cells
-  // whose contents changed are refilled, and the loop's link is never taken out of the page (a press on it that
-  // spans a health event, every few seconds a loop, would otherwise open nothing).
+  // whose contents changed are refilled (into the cell's box, which keeps any height held), and the loop's link is
+  // never taken out of the page (a press on it that spans a health event, every few seconds a loop, would
+  // otherwise open nothing).
   function merge(old, tr) {
     old.className = tr.className;
     old.dataset.rank = tr.dataset.rank;
     [...tr.cells].forEach((td, i) => {
-      const cell = old.cells[i];
-      if (cell.isEqualNode(td)) return;
-      const link = $("a.loop-id", cell);
-      if (!link) return cell.replaceChildren(...td.childNodes);
+      const box = boxOf(old.cells[i]);
+      const now = boxOf(td);
+      if (sameContents(box, now)) return;
+      const link = $("a.loop-id", box);
+      if (!link) return box.replaceChildren(...now.childNodes);
       while (link.nextSibling) link.nextSibling.remove();
-      link.after(...[...td.childNodes].slice(1)); // the same loop: the same link
+      link.after(...[...now.childNodes].slice(1)); // the same loop: the same link
     });
   }
 
@@ -110,7 +124,12 @@ export function overviewView() {
     tr.dataset.rank = String(loop.health?.rank ?? "");
     const rankChanged = old && tr.dataset.rank !== old.dataset.rank;
     if (old) merge(old, tr);
-    else { tbody.appendChild(tr); order.push(loop.id); rows.set(loop.id, tr); }
+    else {
+      tbody.appendChild(tr);
+      order.push(loop.id);
+      rows.set(loop.id, tr);
+      if (pointed) hold(tr);
+    }
     if (byHealth && (!old || rankChanged) && !pointed) sort();
     $("#updated").textContent = `updated ${clock(Date.now() / 1000)}`;
   }
@@ -136,5 +155,5 @@ export function overviewView() {
       tbody.classList.toggle("stale", !connected);
     },
   });
-  return () => { stream.close(); banner("overview", null); };
+  return () => { stream.close(); banner("overview", null); window.removeEventListener("resize", resized); };
 }
