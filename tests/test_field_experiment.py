@@ -75,6 +75,25 @@ def test_a_small_load_step_against_the_bias_is_not_taken_for_a_resonance(expr: s
     assert experiment.result.disturbance
 
 
+@pytest.mark.parametrize("at", [0.8, 1.2, 1.5])
+def test_an_early_small_load_step_against_the_bias_is_estimated_through(at: float) -> None:
+    # −0.1 × amp before the first estimate: every estimate's |F|/K0 read 1.4–1.6, none below 1, the fit that
+    # had found the step (|F|/K0 0.391 ± 0.008 at 1.2) was skipped as "a resonance", and the runs ended "ok"
+    # after 6.7 periods with K0 0.257 (true 1) and no disturbance. At 0.8 the step time, between the search's
+    # grid points, was refined apart from |F|/K0: 0.83 periods and K0 0.947.
+    experiment, _, process = _run("exp(-s)/(2*s+1)", loads=[(at, -0.1)])
+    _assert_accurate(experiment, process, 0.05)
+    assert experiment.result.disturbance and experiment.result.load_estimate == pytest.approx(-0.1, abs=0.01)
+
+
+def test_a_resonance_is_not_taken_for_a_load() -> None:
+    # |F|/K0 1.68 at the 135° point: the estimates read above 1 as under a load against the bias, and the fit
+    # invents one (|F|/K0 0.33–0.59 ± 0.10–0.23): taken only when as sure as a followed load's K0 must be.
+    experiment, _, process = _run("exp(-0.1*s)/(s^2+0.4*s+1)")
+    _assert_accurate(experiment, process, 0.01)
+    assert not experiment.result.disturbance
+
+
 def test_a_load_that_cancels_the_bias_on_a_dead_time_process_is_not_taken_for_a_resonance() -> None:
     # −0.2 × amp cancels the relay's mean: |F|/K0 ran away above 1 (1.1, 1.8, 2.9, 5.9, …) with |F|
     # unchanged, the load fit was skipped as "a resonance" and the run ended with ite 11. At 2.8 periods: the
