@@ -582,6 +582,21 @@ class LoadFitter:
         sums = np.einsum("ij,ij->j", rb[:, None] - rs * coef, rb[:, None] - rs * coef)
         return np.where(finite & np.isfinite(sums), sums, math.inf)
 
+    def misfit(self, num: tuple[float, ...], den: tuple[float, ...], delay: float) -> float:
+        """How far the model ``num/den·e^{−delay·s}`` (``delay`` in s) alone, no load, misses the record's slow
+        part: the root mean square of the one-period averages of the PV less its response to the MV from rest,
+        an offset fitted (PV units; compare :meth:`averaged_rms`)."""
+        b, a, _ = scipy.signal.cont2discrete((num, den), self.dt, method="zoh")
+        m = int(round(delay / self.dt))
+        u = np.concatenate((np.zeros(m + 1), self.u - self.u0))[: len(self.t)]
+        r = _average((self.y - scipy.signal.lfilter(np.ravel(b), a, u))[:, None], self.n)[:, 0]
+        r = r - r.mean()
+        return float(np.sqrt(r @ r / len(r)))
+
+    def averaged_rms(self, fit: LoadFit) -> float:
+        """The root mean square of ``fit``'s one-period averaged residual over this record (PV units)."""
+        return fit.residual_std * math.sqrt(max(len(self.t) - self.n, 1) / len(self._ends))
+
     # -- model selection ----------------------------------------------------
 
     # (An unstable candidate's residual can overflow: see _responses. Set once here for the search's many calls.)
