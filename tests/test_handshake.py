@@ -185,7 +185,7 @@ def test_tune_from_the_hmi_runs_the_experiment_then_a_set_point_step_settles(cap
     # ite counts down the seconds left (rough until the first periods are measured).
     ites = [s["ite"] for s in busy]
     peak = int(np.argmax(ites))
-    assert len(ites) - peak >= 3 and ites[-1] < 0.5 * ites[peak], ites
+    assert len(ites) - peak >= 3 and ites[-1] < 0.5 * ites[peak], str(ites)
     assert status["te"] is False and status["ite"] == 0, status["message"]
     assert record["user"] == PLC_USER and record["outcome"] == "success" and record["request"]["apply"] is True
     gains = Gains.from_json(status["gains"])

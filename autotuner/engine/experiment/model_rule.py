@@ -71,6 +71,7 @@ class Fit(Enum):
     UNKNOWN = "no fit yet"
     EXPLAINS = "the model explains the record (the first look, or a cycle not yet within REACH of the target)"
     NEXT = "the model explains the record near the target: the next switch's fit stops the run if it agrees"
+    JUDGING = "that next switch has come, its analysis is pending"
     NO = "the model does not explain the record"
 
 

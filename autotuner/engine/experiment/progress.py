@@ -251,7 +251,8 @@ class Progress:
         latest whole period's lag off the target, degrees, None before one; ``fit``: as for :meth:`seconds_left`),
         a disturbed or noisy run's (:meth:`longer`) or a quiet one's.
 
-        Where the model rule may stop the run at the next switch (``fit`` NEXT): the time to that switch. Before
+        Where the model rule may stop the run at the next switch (``fit`` NEXT): the time to that switch; once it
+        has come and its analysis is pending (JUDGING), a sample interval. Before
         two whole periods, and while the model explains the record but the cycle has not reached the target:
         the noise stage's rest and ``TYPICAL_PERIODS`` (``CLEAN_TYPICAL_PERIODS`` by ``fit`` on a quiet run) of
         the prior period (:meth:`prior_period`) less the time the relay has run (from the first look's switch on a
@@ -262,6 +263,8 @@ class Progress:
         """
         if fit is Fit.NEXT:
             return self.switch_left()
+        if fit is Fit.JUDGING:
+            return max(self.loop.mean_interval() or 0.0, 1e-9)
         loop, switching = self.loop, self.switching
         c = loop.config
         dt = loop.mean_interval()

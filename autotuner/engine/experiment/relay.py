@@ -204,7 +204,12 @@ class RelayExperiment:
         else:
             lags = self._adaptation.lags
             error = abs(math.degrees(lags[-1]) - self._adaptation.target_deg) if lags else None
-            ite = self._progress.seconds_left(self.stage is Stage.RELAY, error, self._fit_hint)
+            fit = self._fit_hint
+            if fit is model_rule.Fit.NEXT and self._pending:
+                # (A status between that switch and its analysis — a field session's, whose analysis runs in a
+                # worker after the write — read a whole half period more.)
+                fit = model_rule.Fit.JUDGING
+            ite = self._progress.seconds_left(self.stage is Stage.RELAY, error, fit)
             progress = self._progress.fraction(ite)
         return Status(stage=self.stage, progress=progress, ite=ite, relay=self._switching.relay,
                       filter_phase_deg=self._adaptation.phase_deg(), periods=max(self._switching.periods, 0),
