@@ -48,7 +48,8 @@ class ProcessModel:
     delay: float
     misfit: float
     # A load at the process input the fit explained too (:func:`fit_load`): a ramp from the record's ``start`` (s)
-    # of ``ramp`` MV units per s, or a step of ``step`` MV units at ``step_time`` (s); none on a plain fit.
+    # of ``ramp`` MV units per s and a step of ``step`` MV units at ``step_time`` (s: the start where the ramp is
+    # fitted, its own time elsewhere); none on a plain fit.
     start: float = 0.0
     ramp: float = 0.0
     step: float = 0.0
@@ -257,7 +258,7 @@ def fit_load(history: Samples, mv0: float, period: float, plain: ProcessModel, e
     tries = [lambda: x0, lambda: np.append(x0, _scan_step(problem, x0))]
     if start is not None and start.loaded:
         warm = _params(start)
-        tries.insert(0, lambda: warm if start.step_time is None else np.append(warm, start.step_time))
+        tries.insert(0, lambda: warm if start.ramp != 0.0 else np.append(warm, start.step_time))
     best: ProcessModel | None = None
     for x in tries:
         model = _search_load(problem, x())
@@ -278,38 +279,43 @@ def _search_load(problem: _Problem, x: np.ndarray) -> ProcessModel | None:
         step = np.append(step, 1e-4 * problem.scale)
     found = _levenberg_marquardt(lambda p: _loaded_residual(problem, p)[0], np.clip(x, lower, upper), lower, upper,
                                  step)
-    res, (k0, load) = _loaded_residual(problem, found)
+    res, coef = _loaded_residual(problem, found)
+    k0 = float(coef[0])
     if k0 == 0.0:
         return None
     t1, t2 = _lags(found)
-    model = ProcessModel(k0, t1, t2, float(found[2]), problem.misfit(res), start=float(problem.t[0]))
+    start = float(problem.t[0])
+    model = ProcessModel(k0, t1, t2, float(found[2]), problem.misfit(res), start=start)
     if len(found) == 4:
-        return replace(model, step=load / k0, step_time=float(found[3]))
-    return replace(model, ramp=load / k0)
+        return replace(model, step=float(coef[1]) / k0, step_time=float(found[3]))
+    return replace(model, ramp=float(coef[1]) / k0, step=float(coef[2]) / k0, step_time=start)
 
 
 # The step's candidate times a scan tries at most (each a column of the record's length).
 SCAN = 200
 
 
-def _load_column(problem: _Problem, params: np.ndarray) -> np.ndarray:
-    """The unit-gain model's response to its load (``params`` = (ln Ta, ln Tb, L) a unit-rate ramp from the
-    record's start; (…, t_s) a unit step at t_s, s) at the record's times."""
+def _load_columns(problem: _Problem, params: np.ndarray) -> np.ndarray:
+    """The unit-gain model's responses to its load's parts at the record's times: with ``params`` = (ln Ta, ln Tb,
+    L), a ramp of unit rate from the record's start and a unit step there (the ramp's start is known to a sample:
+    a load held at each sample is a ramp half a sample late, and a drift's phase in its samples is unknown); with
+    (…, t_s), a unit step at t_s (s)."""
     t1, t2 = _lags(params)
     if len(params) == 3:
-        return ramp_response(problem.t - problem.t[0] - params[2], t1, t2)
-    return step_response(problem.t - params[3] - params[2], t1, t2)
+        since = problem.t - problem.t[0] - params[2]
+        return np.vstack((ramp_response(since, t1, t2), step_response(since, t1, t2)))
+    return step_response(problem.t - params[3] - params[2], t1, t2)[None, :]
 
 
-def _loaded_residual(problem: _Problem, params: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
-    """(residual, (K0, K0 × load)) of the best ``level + K0·unit + K0·load·column`` through the PV at ``params``
-    (:func:`_load_column`)."""
-    columns = np.vstack((_unit_response(problem.t, problem.steps, params[:3]), _load_column(problem, params)))
+def _loaded_residual(problem: _Problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(residual, coefficients) of the best ``level + K0·unit + K0·Σ loadᵢ·columnᵢ`` through the PV at ``params``
+    (:func:`_load_columns`); the coefficients K0 and K0·loadᵢ."""
+    columns = np.vstack((_unit_response(problem.t, problem.steps, params[:3]), _load_columns(problem, params)))
     centred = columns - columns.mean(axis=1)[:, None]
     y = problem.y - problem.y.mean()
     # (lstsq: a step after the record's end leaves its column zero.)
     coef = np.linalg.lstsq(centred @ centred.T, centred @ y, rcond=1e-12)[0]
-    return y - coef @ centred, (float(coef[0]), float(coef[1]))
+    return y - coef @ centred, coef
 
 
 def _scan_step(problem: _Problem, params: np.ndarray) -> float:

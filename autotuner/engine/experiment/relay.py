@@ -361,8 +361,10 @@ class RelayExperiment:
             return None, None  # (before a whole period, only the first rising switch: ite's first look)
         record, tol = loop.record.all(), convergence.tolerances(self.config)
         # (A stall of the session leaves the rule out, as it leaves the estimates over it out: estimates.STALL.)
-        rule = (switching.periods <= model_rule.PERIODS
-                and model_rule.worth_fitting(self._model if self._loaded is None else self._loaded, tol)
+        # (Worth it while the plain model or, where that misfits, the load's may explain the record: no load fit
+        # yet, as when the noise gate kept the rule out of the first switches, lets it try one.)
+        worth = model_rule.worth_fitting(self._model, tol) or model_rule.worth_fitting(self._loaded, tol)
+        rule = (switching.periods <= model_rule.PERIODS and worth
                 and model_rule.could_explain(convergence.sigma(loop, estimates), float(np.ptp(record.y)), tol)
                 and longest_gap(record.t, record.t[0], record.t[-1]) <= GAP * loop.dt)
         if not (rule or aim and len(self._adaptation.lags) <= MODEL_PERIODS):
