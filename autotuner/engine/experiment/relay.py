@@ -381,17 +381,15 @@ class RelayExperiment:
         return model, self._explaining(model, record, period) if rule else model
 
     def _explaining(self, model: ProcessModel, record: Samples, period: float) -> ProcessModel:
-        """The plain ``model`` fitted to the ``record`` (``period``: the fit's scale, s) where it explains it within
-        the model rule's bound; else the fit with a load at the process input (process_fit.fit_load) where that
-        misfits less."""
+        """The plain ``model`` fitted to the ``record`` (``period``: the fit's scale, s), unless it misfits beyond the
+        model rule's bound and the fit with a load at the process input (process_fit.fit_load) explains the record
+        within it. (A load fit that does not, e.g. on three lags, tells ite nothing the plain one does not.)"""
         bound = model_rule.MISFIT_SHARE * convergence.tolerances(self.config).gain_tol
         if model.misfit <= bound:
             self._loaded = None
             return model
         loaded = self._loaded = process_fit.fit_load(record, self._loop.mv0, period, model, bound, self._loaded)
-        if loaded is None or loaded.misfit >= model.misfit or self._loop.sign * loaded.k0 <= 0.0:
-            return model
-        return loaded
+        return loaded if loaded is not None and loaded.misfit <= bound and self._loop.sign * loaded.k0 > 0.0 else model
 
     def _by_model(self, model: ProcessModel | None) -> None:
         """The model rule (model_rule.py) on the ``model`` fitted at this switch and the previous switch's: stop with
