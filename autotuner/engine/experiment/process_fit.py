@@ -9,6 +9,12 @@ projection); those three by a bounded least-squares search from the first
 period's scale. The model only aims the filter (adaptation.py): the point is
 still estimated from the PV as measured and judged by the stopping rules.
 
+:func:`fit_load` explains a load at the process input too, for the model rule
+(model_rule.py), where the plain model misfits: a ramp from the record's start
+(with a step there) or a step at a time of its own, through the same lags and
+dead time, each one more linear regressor (its coefficient K0 × the load); the
+step's time one more parameter of the search, started from a scan.
+
 Times in s, gains in PV per MV unit.
 """
 
