@@ -41,6 +41,8 @@ SETTLED = 1e-3  # a step gaining less than this share of the cost ends the searc
 # three times the model rule's bound: model_rule.py); elsewhere the search from the period's scale does, as without
 # an earlier model (the filter's aim on the batch's higher orders is the same).
 WARM = 1e-3
+# The candidate times of a load step a scan tries at most (fit_load: each a column of the record's length).
+SCAN = 200
 
 
 @dataclass(frozen=True)
@@ -264,6 +266,7 @@ def fit_load(history: Samples, mv0: float, period: float, plain: ProcessModel, e
     tries = [lambda: x0, lambda: np.append(x0, _scan_step(problem, x0))]
     if start is not None and start.loaded:
         warm = _params(start)
+        # (A fitted ramp is never exactly nought: the ramp's model, else the step's.)
         tries.insert(0, lambda: warm if start.ramp != 0.0 else np.append(warm, start.step_time))
     best: ProcessModel | None = None
     for x in tries:
@@ -295,10 +298,6 @@ def _search_load(problem: _Problem, x: np.ndarray) -> ProcessModel | None:
     if len(found) == 4:
         return replace(model, step=float(coef[1]) / k0, step_time=float(found[3]))
     return replace(model, ramp=float(coef[1]) / k0, step=float(coef[2]) / k0, step_time=start)
-
-
-# The step's candidate times a scan tries at most (each a column of the record's length).
-SCAN = 200
 
 
 def _load_columns(problem: _Problem, params: np.ndarray) -> np.ndarray:
