@@ -256,14 +256,21 @@ def fit_load(history: Samples, mv0: float, period: float, plain: ProcessModel, e
 
     Each load is one more linear regressor (the model's response to it, its coefficient K0 × the load), solved
     for with K0 and the PV's level at each trial; the step's time is one more nonlinear parameter, started from
-    the best of a scan of candidate times at the plain model's lags. The searches start from ``start`` (a load
-    model fitted to the same record at an earlier switch), then the ramp, then the scanned step (both from the
-    plain model's lags), until one misfits by at most ``enough`` (a share of the PV's swing); the best of them."""
+    the best of a scan of candidate times at the plain model's lags. The searches start from ``start`` (a model
+    fitted to the same record at an earlier switch) where it has a load, then the ramp, then the scanned step
+    (both from the plain model's lags or ``start``'s, whichever explains more), until one misfits by at most
+    ``enough`` (a share of the PV's swing); the best of them."""
     problem = _Problem.of(history, mv0, period)
     if problem is None:
         return None
-    x0 = _params(plain)
-    tries = [lambda: x0, lambda: np.append(x0, _scan_step(problem, x0))]
+
+    def cost(x: np.ndarray) -> float:
+        return float(np.sum(_loaded_residual(problem, x)[0] ** 2))
+
+    # The lags and dead time to start from: the plain model's, or the earlier model's where they explain more (a
+    # plain search that lost the earlier switch's exact model to a load settles far from it).
+    bases = [_params(plain)] + ([_params(start)] if start is not None else [])
+    tries = [lambda: min(bases, key=cost), lambda: min((np.append(b, _scan_step(problem, b)) for b in bases), key=cost)]
     if start is not None and start.loaded:
         warm = _params(start)
         # (A fitted ramp is never exactly nought: the ramp's model, else the step's.)

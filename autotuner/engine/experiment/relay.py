@@ -349,14 +349,17 @@ class RelayExperiment:
     def _fit_record(self, aim: bool) -> tuple[ProcessModel | None, ProcessModel | None]:
         """Models of the process fitted to the whole record at this switch (process_fit.py), on a quiet run with
         the relay's levels as they started, when the filter's aim wants one (``aim``: a rising switch of the first
-        MODEL_PERIODS whole periods) or the model rule does (model_rule.py: from the first rising switch, ite's
-        first look, to model_rule.PERIODS whole periods, noise low enough for its misfit); None elsewhere (under
-        noise, a load followed, a process that is or may be unstable, an inverse response, a gain of the wrong
-        sign). The first is the plain model (the aim's), the second the rule's (:meth:`_explaining`)."""
+        MODEL_PERIODS whole periods, the relay's levels as they started) or the model rule does (model_rule.py:
+        from the first rising switch, ite's first look, to model_rule.PERIODS whole periods, noise low enough for
+        its misfit); None elsewhere (under noise, a load followed, a process that is or may be unstable, an inverse
+        response, a gain of the wrong sign). The first is the plain model (the aim's), the second the rule's
+        (:meth:`_explaining`)."""
         loop, switching, levels, estimates = self._loop, self._switching, self._levels, self._estimates
-        if (self._load.fit is not None or self._unstable.unstable or levels.center != loop.mv0
-                or levels.changed_at > -math.inf or not switching.rising):
+        if self._load.fit is not None or self._unstable.unstable or not switching.rising:
             return None, None
+        # The aim wants the relay's levels as they started; the rule's fit takes the MV as held, whatever its levels
+        # (a relay strengthened while a drift looked like an unstable process's runaway: runaway.py).
+        aim = aim and levels.center == loop.mv0 and levels.changed_at == -math.inf
         if not switching.periods and switching.switches[-1] != switching.rising[0]:
             return None, None  # (before a whole period, only the first rising switch: ite's first look)
         record, tol = loop.record.all(), convergence.tolerances(self.config)
@@ -375,20 +378,24 @@ class RelayExperiment:
                   else 2.0 * (time(switching.rising[0]) - time(switching.switches[-2])))
         if convergence.too_scattered(loop, estimates, switching.peak_error, period):
             return None, None
-        model = self._model = process_fit.fit(record, loop.mv0, period, loop.noise, self._model)
+        earlier = self._model
+        model = self._model = process_fit.fit(record, loop.mv0, period, loop.noise, earlier)
         if model is None or loop.sign * model.k0 <= 0.0:
             return None, None
-        return model, self._explaining(model, record, period) if rule else model
+        return model if aim else None, self._explaining(model, earlier, record, period) if rule else model
 
-    def _explaining(self, model: ProcessModel, record: Samples, period: float) -> ProcessModel:
+    def _explaining(self, model: ProcessModel, earlier: ProcessModel | None, record: Samples,
+                    period: float) -> ProcessModel:
         """The plain ``model`` fitted to the ``record`` (``period``: the fit's scale, s), unless it misfits beyond the
-        model rule's bound and the fit with a load at the process input (process_fit.fit_load) explains the record
-        within it. (A load fit that does not, e.g. on three lags, tells ite nothing the plain one does not.)"""
+        model rule's bound and the fit with a load at the process input (process_fit.fit_load, from the latest load
+        fit or the ``earlier`` plain one) explains the record within it. (A load fit that does not, e.g. on three
+        lags, tells ite nothing the plain one does not.)"""
         bound = model_rule.MISFIT_SHARE * convergence.tolerances(self.config).gain_tol
         if model.misfit <= bound:
             self._loaded = None
             return model
-        loaded = self._loaded = process_fit.fit_load(record, self._loop.mv0, period, model, bound, self._loaded)
+        start = self._loaded if self._loaded is not None else earlier
+        loaded = self._loaded = process_fit.fit_load(record, self._loop.mv0, period, model, bound, start)
         return loaded if loaded is not None and loaded.misfit <= bound and self._loop.sign * loaded.k0 > 0.0 else model
 
     def _by_model(self, model: ProcessModel | None) -> None:
