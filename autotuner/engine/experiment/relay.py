@@ -352,14 +352,15 @@ class RelayExperiment:
         MODEL_PERIODS whole periods, the relay's levels as they started) or the model rule does (model_rule.py:
         from the first rising switch, ite's first look, to model_rule.PERIODS whole periods, noise low enough for
         its misfit); None elsewhere (under noise, a load followed, a process that is or may be unstable, an inverse
-        response, a gain of the wrong sign). The first is the plain model (the aim's), the second the rule's
-        (:meth:`_explaining`)."""
+        response, a gain of the wrong sign). The first is the plain model (the aim's and ite's first look's, with the
+        levels as they started only), the second the rule's (:meth:`_explaining`)."""
         loop, switching, levels, estimates = self._loop, self._switching, self._levels, self._estimates
         if self._load.fit is not None or self._unstable.unstable or not switching.rising:
             return None, None
         # The aim wants the relay's levels as they started; the rule's fit takes the MV as held, whatever its levels
         # (a relay strengthened while a drift looked like an unstable process's runaway: runaway.py).
-        aim = aim and levels.center == loop.mv0 and levels.changed_at == -math.inf
+        started = levels.center == loop.mv0 and levels.changed_at == -math.inf
+        aim = aim and started
         if not switching.periods and switching.switches[-1] != switching.rising[0]:
             return None, None  # (before a whole period, only the first rising switch: ite's first look)
         record, tol = loop.record.all(), convergence.tolerances(self.config)
@@ -382,7 +383,7 @@ class RelayExperiment:
         model = self._model = process_fit.fit(record, loop.mv0, period, loop.noise, earlier)
         if model is None or loop.sign * model.k0 <= 0.0:
             return None, None
-        return model if aim else None, self._explaining(model, earlier, record, period) if rule else model
+        return model if started else None, self._explaining(model, earlier, record, period) if rule else model
 
     def _explaining(self, model: ProcessModel, earlier: ProcessModel | None, record: Samples,
                     period: float) -> ProcessModel:
