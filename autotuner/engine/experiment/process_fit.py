@@ -9,6 +9,12 @@ projection); those three by a bounded least-squares search from the first
 period's scale. The model only aims the filter (adaptation.py): the point is
 still estimated from the PV as measured and judged by the stopping rules.
 
+:func:`fit_load` explains a load at the process input too, for the model rule
+(model_rule.py), where the plain model misfits: a ramp from the record's start
+(with a step there) or a step at a time of its own, through the same lags and
+dead time, each one more linear regressor (its coefficient K0 × the load); the
+step's time one more parameter of the search, started from a scan.
+
 Times in s, gains in PV per MV unit.
 """
 
@@ -16,7 +22,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -35,6 +41,8 @@ SETTLED = 1e-3  # a step gaining less than this share of the cost ends the searc
 # three times the model rule's bound: model_rule.py); elsewhere the search from the period's scale does, as without
 # an earlier model (the filter's aim on the batch's higher orders is the same).
 WARM = 1e-3
+# The candidate times of a load step a scan tries at most (fit_load: each a column of the record's length).
+SCAN = 200
 
 
 @dataclass(frozen=True)
@@ -47,6 +55,23 @@ class ProcessModel:
     t2: float
     delay: float
     misfit: float
+    # A load at the process input the fit explained too (:func:`fit_load`): a ramp from the record's ``start`` (s)
+    # of ``ramp`` MV units per s and a step of ``step`` MV units at ``step_time`` (s: the start where the ramp is
+    # fitted, its own time elsewhere); none on a plain fit.
+    start: float = 0.0
+    ramp: float = 0.0
+    step: float = 0.0
+    step_time: float | None = None
+
+    @property
+    def loaded(self) -> bool:
+        """True when the fit explained a load at the process input."""
+        return self.ramp != 0.0 or self.step_time is not None
+
+    def load_at(self, t: float) -> float:
+        """The fitted load at the process input at time ``t`` (s), MV units."""
+        load = self.ramp * (t - self.start)
+        return load + self.step if self.step_time is not None and t >= self.step_time else load
 
     def response(self, w: np.ndarray) -> np.ndarray:
         """F(jω) at the frequencies ``w`` (rad/s)."""
@@ -86,11 +111,23 @@ def step_response(t: np.ndarray, t1: float, t2: float) -> np.ndarray:
     return 1.0 - (t1 * np.exp(-t / t1) - t2 * np.exp(-t / t2)) / (t1 - t2)
 
 
+def ramp_response(t: np.ndarray, t1: float, t2: float) -> np.ndarray:
+    """The response of ``1/((t1·s + 1)(t2·s + 1))`` (``t1`` > ``t2`` ≥ 0, s) to a ramp of unit rate at its input,
+    at the times ``t`` (s) after the ramp's start (zero before it): the integral of :func:`step_response`."""
+    t = np.maximum(t, 0.0)
+    if t2 <= 1e-9 * t1:
+        return t + t1 * np.expm1(-t / t1)
+    if t2 >= DOUBLE * t1:
+        tc = 0.5 * (t1 + t2)
+        return t - 2.0 * tc + (t + 2.0 * tc) * np.exp(-t / tc)
+    return t - (t1 + t2) + (t1 * t1 * np.exp(-t / t1) - t2 * t2 * np.exp(-t / t2)) / (t1 - t2)
+
+
 def _unit_response(times: np.ndarray, steps: tuple[np.ndarray, np.ndarray], params: np.ndarray) -> np.ndarray:
     """The unit-gain model's output at ``times`` (s) for the input's ``steps`` (their times, s, and sizes) and
     ``params`` = (ln Ta, ln Tb, L), the lags in either order: a sum of step responses, one per change of the held
     input."""
-    t1, t2 = sorted((math.exp(params[0]), math.exp(params[1])), reverse=True)
+    t1, t2 = _lags(params)
     at, size = steps
     # (A sum over the few steps, not a matrix product: BLAS's threads cost more than the sum on so few.)
     return (step_response(times[None, :] - at[:, None] - params[2], t1, t2) * size[:, None]).sum(axis=0)
@@ -130,34 +167,192 @@ def fit(history: Samples, mv0: float, period: float, noise: float = 0.0,
     its result stands where it misfits by at most WARM (a slow process's cold searches settle in a local
     minimum one switch in two: ``exp(-s)/(10*s+1)^2`` misfit 1e-7, then 2e-2, then 1e-7); elsewhere the search
     starts from the period's scale as without one."""
-    y = history.y
-    swing = float(np.ptp(y))
-    # The held input as steps from mv0 (the relay's switches and their blended samples).
-    size = np.diff(history.u, prepend=mv0)
-    moved = size != 0.0
-    steps = history.s[moved], size[moved]
-    if swing <= 0.0 or not 0 < len(steps[0]) <= MAX_STEPS or inverse_response(y, size, noise):
+    problem = _Problem.of(history, mv0, period)
+    if problem is None or inverse_response(history.y, np.diff(history.u, prepend=mv0), noise):
         return None
+    y, t, steps = problem.y, problem.t, problem.steps
 
     def residual(params: np.ndarray) -> np.ndarray:
-        return _project(y, _unit_response(history.t, steps, params))[0]
+        return _project(y, _unit_response(t, steps, params))[0]
 
-    scale = period / (2.0 * math.pi)
-    lower = np.array([math.log(scale) - 8.0, math.log(scale) - 8.0, 0.0])
-    upper = np.array([math.log(scale) + 8.0, math.log(scale) + 8.0, period])
-    step = np.array([1e-4, 1e-4, 1e-4 * scale])
+    lower, upper, step = problem.lower, problem.upper, problem.step
 
     def search(x: np.ndarray) -> ProcessModel:
         found = _levenberg_marquardt(residual, np.clip(x, lower, upper), lower, upper, step)
-        res, k0, _ = _project(y, _unit_response(history.t, steps, found))
-        t1, t2 = sorted((math.exp(found[0]), math.exp(found[1])), reverse=True)
-        return ProcessModel(k0, t1, t2, float(found[2]), float(np.sqrt(np.mean(res * res))) / swing)
+        res, k0, _ = _project(y, _unit_response(t, steps, found))
+        t1, t2 = _lags(found)
+        return ProcessModel(k0, t1, t2, float(found[2]), problem.misfit(res))
 
     if start is not None and start.t1 > 0.0:
-        warm = search(np.array([math.log(start.t1), math.log(max(start.t2, 1e-9 * start.t1)), start.delay]))
+        warm = search(_params(start))
         if warm.misfit <= WARM:
             return warm
+    scale = problem.scale
     return search(np.array([math.log(scale), math.log(0.3 * scale), 0.25 * period]))
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """A record to fit: sample times ``t`` (s) and PV ``y``, the held input's ``steps`` (their times, s, and sizes,
+    MV units) from mv0, the PV's ``swing`` (its range) and the search's scale (s) and bounds on (ln Ta, ln Tb, L)
+    and its difference steps."""
+
+    t: np.ndarray
+    y: np.ndarray
+    steps: tuple[np.ndarray, np.ndarray]
+    swing: float
+    scale: float
+    period: float
+
+    @staticmethod
+    def of(history: Samples, mv0: float, period: float) -> _Problem | None:
+        """The problem of the record ``history`` (the MV's deviations from ``mv0``, MV units, as held), its first
+        whole ``period`` (s); None where the record does not move or its input changed too often (MAX_STEPS)."""
+        swing = float(np.ptp(history.y))
+        # The held input as steps from mv0 (the relay's switches and their blended samples).
+        size = np.diff(history.u, prepend=mv0)
+        moved = size != 0.0
+        if swing <= 0.0 or not 0 < int(np.count_nonzero(moved)) <= MAX_STEPS:
+            return None
+        return _Problem(history.t, history.y, (history.s[moved], size[moved]), swing, period / (2.0 * math.pi),
+                        period)
+
+    @property
+    def lower(self) -> np.ndarray:
+        """The lower bounds of (ln Ta, ln Tb, L)."""
+        return np.array([math.log(self.scale) - 8.0, math.log(self.scale) - 8.0, 0.0])
+
+    @property
+    def upper(self) -> np.ndarray:
+        """The upper bounds of (ln Ta, ln Tb, L)."""
+        return np.array([math.log(self.scale) + 8.0, math.log(self.scale) + 8.0, self.period])
+
+    @property
+    def step(self) -> np.ndarray:
+        """The forward differences' steps of (ln Ta, ln Tb, L)."""
+        return np.array([1e-4, 1e-4, 1e-4 * self.scale])
+
+    def misfit(self, residual: np.ndarray) -> float:
+        """The RMS of ``residual`` (PV units) as a share of the swing."""
+        return float(np.sqrt(np.mean(residual * residual))) / self.swing
+
+
+def _lags(params: np.ndarray) -> tuple[float, float]:
+    """(T1, T2), T1 ≥ T2 (s), of ``params`` = (ln Ta, ln Tb, …)."""
+    t1, t2 = sorted((math.exp(params[0]), math.exp(params[1])), reverse=True)
+    return t1, t2
+
+
+def _params(model: ProcessModel) -> np.ndarray:
+    """(ln T1, ln T2, L) of ``model`` (a pure lag's T2 a hair above zero)."""
+    return np.array([math.log(model.t1), math.log(max(model.t2, 1e-9 * model.t1)), model.delay])
+
+
+def fit_load(history: Samples, mv0: float, period: float, plain: ProcessModel, enough: float,
+             start: ProcessModel | None = None) -> ProcessModel | None:
+    """The model with a load at the process input through the record ``history`` (as :func:`fit`), where the
+    ``plain`` model (:func:`fit`'s, on the same record) misfits: a ramp from the record's start, or a step at a
+    time of its own, through the model's lags and dead time; None where the record cannot be fitted.
+
+    Each load is one more linear regressor (the model's response to it, its coefficient K0 × the load), solved
+    for with K0 and the PV's level at each trial; the step's time is one more nonlinear parameter, started from
+    the best of a scan of candidate times at the plain model's lags. The searches start from ``start`` (a model
+    fitted to the same record at an earlier switch) where it has a load, then the ramp, then the scanned step
+    (both from the plain model's lags or ``start``'s, whichever explains more), until one misfits by at most
+    ``enough`` (a share of the PV's swing); the best of them."""
+    problem = _Problem.of(history, mv0, period)
+    if problem is None:
+        return None
+
+    def cost(x: np.ndarray) -> float:
+        return float(np.sum(_loaded_residual(problem, x)[0] ** 2))
+
+    # The lags and dead time to start from: the plain model's, or the earlier model's where they explain more (a
+    # plain search that lost the earlier switch's exact model to a load settles far from it).
+    bases = [_params(plain)] + ([_params(start)] if start is not None else [])
+    tries = [lambda: min(bases, key=cost), lambda: min((np.append(b, _scan_step(problem, b)) for b in bases), key=cost)]
+    if start is not None and start.loaded:
+        warm = _params(start)
+        # (A fitted ramp is never exactly nought: the ramp's model, else the step's.)
+        tries.insert(0, lambda: warm if start.ramp != 0.0 else np.append(warm, start.step_time))
+    best: ProcessModel | None = None
+    for x in tries:
+        model = _search_load(problem, x())
+        if model is not None and (best is None or model.misfit < best.misfit):
+            best = model
+        if best is not None and best.misfit <= enough:
+            break
+    return best
+
+
+def _search_load(problem: _Problem, x: np.ndarray) -> ProcessModel | None:
+    """The load model (:func:`fit_load`) the search from ``x`` (ln Ta, ln Tb, L[, t_s]) finds; None where it has
+    no gain."""
+    lower, upper, step = problem.lower, problem.upper, problem.step
+    if len(x) == 4:  # (the step's time: from the record's start to its end)
+        lower = np.append(lower, problem.t[0])
+        upper = np.append(upper, problem.t[-1])
+        step = np.append(step, 1e-4 * problem.scale)
+    found = _levenberg_marquardt(lambda p: _loaded_residual(problem, p)[0], np.clip(x, lower, upper), lower, upper,
+                                 step)
+    res, coef = _loaded_residual(problem, found)
+    k0 = float(coef[0])
+    if k0 == 0.0:
+        return None
+    t1, t2 = _lags(found)
+    start = float(problem.t[0])
+    model = ProcessModel(k0, t1, t2, float(found[2]), problem.misfit(res), start=start)
+    if len(found) == 4:
+        return replace(model, step=float(coef[1]) / k0, step_time=float(found[3]))
+    return replace(model, ramp=float(coef[1]) / k0, step=float(coef[2]) / k0, step_time=start)
+
+
+def _load_columns(problem: _Problem, params: np.ndarray) -> np.ndarray:
+    """The unit-gain model's responses to its load's parts at the record's times: with ``params`` = (ln Ta, ln Tb,
+    L), a ramp of unit rate from the record's start and a unit step there (the ramp's start is known to a sample:
+    a load held at each sample is a ramp half a sample late, and a drift's phase in its samples is unknown); with
+    (…, t_s), a unit step at t_s (s)."""
+    t1, t2 = _lags(params)
+    if len(params) == 3:
+        since = problem.t - problem.t[0] - params[2]
+        return np.vstack((ramp_response(since, t1, t2), step_response(since, t1, t2)))
+    return step_response(problem.t - params[3] - params[2], t1, t2)[None, :]
+
+
+def _loaded_residual(problem: _Problem, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(residual, coefficients) of the best ``level + K0·unit + K0·Σ loadᵢ·columnᵢ`` through the PV at ``params``
+    (:func:`_load_columns`); the coefficients K0 and K0·loadᵢ."""
+    columns = np.vstack((_unit_response(problem.t, problem.steps, params[:3]), _load_columns(problem, params)))
+    centred = columns - columns.mean(axis=1)[:, None]
+    y = problem.y - problem.y.mean()
+    # (lstsq: a step after the record's end leaves its column zero.)
+    coef = np.linalg.lstsq(centred @ centred.T, centred @ y, rcond=1e-12)[0]
+    return y - coef @ centred, coef
+
+
+def _scan_step(problem: _Problem, params: np.ndarray) -> float:
+    """The time (s) of a load step at the input that best explains what the model of ``params`` (ln Ta, ln Tb, L)
+    leaves of the record, among at most SCAN of the sample times (those whose step reaches the PV before the
+    record's end)."""
+    t, y = problem.t, problem.y
+    candidates = t[t < t[-1] - params[2]]
+    if len(candidates) == 0:
+        return float(t[-1])
+    candidates = candidates[::max(1, math.ceil(len(candidates) / SCAN))]
+    t1, t2 = _lags(params)
+    columns = step_response(t[None, :] - candidates[:, None] - params[2], t1, t2)
+    # Project the level and the relay's response out of the PV and of each candidate's column: what each explains
+    # of the rest is (column · rest)² / |column|².
+    unit = _unit_response(t, problem.steps, params)
+    unit = unit - unit.mean()
+    unit /= math.sqrt(float(unit @ unit)) or 1.0
+    rest = y - y.mean()
+    rest = rest - unit * float(unit @ rest)
+    columns -= columns.mean(axis=1)[:, None]
+    columns -= np.outer(columns @ unit, unit)
+    norms = np.einsum("ij,ij->i", columns, columns)
+    explained = np.where(norms > 0.0, (columns @ rest) ** 2 / np.where(norms > 0.0, norms, 1.0), 0.0)
+    return float(candidates[int(np.argmax(explained))])
 
 
 def _levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray], x: np.ndarray, lower: np.ndarray,

@@ -104,8 +104,10 @@ class RelayExperiment:
         self._pending = 0
         # The model rule's point at the latest switch (model_rule.py), None where its fit did not explain the record.
         self._model_point: model_rule.ModelPoint | None = None
-        # The latest model fitted to the record (process_fit.py; the next fit's search starts from it).
+        # The latest model fitted to the record (process_fit.py; the next fit's search starts from it), and the
+        # latest with a load at the process input (process_fit.fit_load), None where the plain one explained it.
         self._model: ProcessModel | None = None
+        self._loaded: ProcessModel | None = None
         # What the latest fit says of the run's length (ite's, progress.py).
         self._fit_hint = model_rule.Fit.UNKNOWN
         if levels.high <= mv0 or levels.low >= mv0:
@@ -296,8 +298,8 @@ class RelayExperiment:
             # (A PV still settling at TUNE makes any process's first |F|/K0 negative: the load fit judges it.)
             self._unstable.suspect(mean_x(self._loop, raw, ta, tb, abs(value)), omega)
         self._unstable.recognise(self._since())
-        model = self._fit_record(aim=True)
-        self._by_model(model)
+        model, explaining = self._fit_record(aim=True)
+        self._by_model(explaining)
         aims = model is not None and model.misfit <= MODEL_MISFIT and len(self._adaptation.lags) <= MODEL_PERIODS
         self._adapt(ta, omega, period_lag, model if aims else None)
         if len(switching.rising) >= 3:
@@ -315,7 +317,7 @@ class RelayExperiment:
             self._unstable.enter()  # as after a rescue, until the estimates say otherwise
         self._adaptation.start(half, switching.peak_error, self._unstable.unstable)
         # ite's first look: whether the model rule is likely to stop the run at its first chances.
-        self._fit_hint = model_rule.first_look(self._fit_record(aim=False), convergence.tolerances(self.config))
+        self._fit_hint = model_rule.first_look(self._fit_record(aim=False)[0], convergence.tolerances(self.config))
 
     def _period_samples(self) -> tuple[Samples, Samples]:
         """The samples of this period's estimates as recorded and with the PV's drift removed (refitting a
@@ -349,43 +351,69 @@ class RelayExperiment:
                                                               levels.low - levels.center):
                 self._adaptation.adapt(omega, period_lag)
 
-    def _fit_record(self, aim: bool) -> ProcessModel | None:
-        """A model of the process fitted to the whole record at this switch (process_fit.py), on a quiet run with
+    def _fit_record(self, aim: bool) -> tuple[ProcessModel | None, ProcessModel | None]:
+        """Models of the process fitted to the whole record at this switch (process_fit.py), on a quiet run with
         the relay's levels as they started, when the filter's aim wants one (``aim``: a rising switch of the first
-        MODEL_PERIODS whole periods) or the model rule does (model_rule.py: from the first rising switch, ite's
-        first look, to model_rule.PERIODS whole periods, noise low enough for its misfit); None elsewhere (under
-        noise, a load, a process that is or may be unstable, an inverse response, a gain of the wrong sign)."""
+        MODEL_PERIODS whole periods, the relay's levels as they started) or the model rule does (model_rule.py:
+        from the first rising switch, ite's first look, to model_rule.PERIODS whole periods, noise low enough for
+        its misfit); None elsewhere (under noise, a load followed, a process that is or may be unstable, an inverse
+        response, a gain of the wrong sign). The first is the plain model (the aim's and ite's first look's, with the
+        levels as they started only), the second the rule's (:meth:`_explaining`)."""
         loop, switching, levels, estimates = self._loop, self._switching, self._levels, self._estimates
-        if (self._load.fit is not None or self._unstable.unstable or levels.center != loop.mv0
-                or levels.changed_at > -math.inf or not switching.rising):
-            return None
+        if self._load.fit is not None or self._unstable.unstable or not switching.rising:
+            return None, None
+        # The aim wants the relay's levels as they started; the rule's fit takes the MV as held, whatever its levels
+        # (a relay strengthened while a drift looked like an unstable process's runaway: runaway.py).
+        started = levels.center == loop.mv0 and levels.changed_at == -math.inf
+        aim = aim and started
         if not switching.periods and switching.switches[-1] != switching.rising[0]:
-            return None  # (before a whole period, only the first rising switch: ite's first look)
+            return None, None  # (before a whole period, only the first rising switch: ite's first look)
         record, tol = loop.record.all(), convergence.tolerances(self.config)
         # (A stall of the session leaves the rule out, as it leaves the estimates over it out: estimates.STALL.)
-        rule = (switching.periods <= model_rule.PERIODS and model_rule.worth_fitting(self._model, tol)
+        # (Worth it while the plain model or, where that misfits, the load's may explain the record: no load fit
+        # yet, as when the noise gate kept the rule out of the first switches, lets it try one.)
+        worth = model_rule.worth_fitting(self._model, tol) or model_rule.worth_fitting(self._loaded, tol)
+        rule = (switching.periods <= model_rule.PERIODS and worth
                 and model_rule.could_explain(convergence.sigma(loop, estimates), float(np.ptp(record.y)), tol)
                 and longest_gap(record.t, record.t[0], record.t[-1]) <= GAP * loop.dt)
         if not (rule or aim and len(self._adaptation.lags) <= MODEL_PERIODS):
-            return None
+            return None, None
         time = loop.record.time
         # (At the first rising switch only half a period is known.)
         period = (switching.period() if switching.periods
                   else 2.0 * (time(switching.rising[0]) - time(switching.switches[-2])))
         if convergence.too_scattered(loop, estimates, switching.peak_error, period):
-            return None
-        model = self._model = process_fit.fit(record, loop.mv0, period, loop.noise, self._model)
-        return model if model is not None and loop.sign * model.k0 > 0.0 else None
+            return None, None
+        earlier = self._model
+        model = self._model = process_fit.fit(record, loop.mv0, period, loop.noise, earlier)
+        if model is None or loop.sign * model.k0 <= 0.0:
+            return None, None
+        return model if started else None, self._explaining(model, earlier, record, period) if rule else model
+
+    def _explaining(self, model: ProcessModel, earlier: ProcessModel | None, record: Samples,
+                    period: float) -> ProcessModel:
+        """The plain ``model`` fitted to the ``record`` (``period``: the fit's scale, s), unless it misfits beyond the
+        model rule's bound and the fit with a load at the process input (process_fit.fit_load, from the latest load
+        fit or the ``earlier`` plain one) explains the record within it. (A load fit that does not, e.g. on three
+        lags, tells ite nothing the plain one does not.)"""
+        bound = model_rule.MISFIT_SHARE * convergence.tolerances(self.config).gain_tol
+        if model.misfit <= bound:
+            self._loaded = None
+            return model
+        start = self._loaded if self._loaded is not None else earlier
+        loaded = self._loaded = process_fit.fit_load(record, self._loop.mv0, period, model, bound, start)
+        return loaded if loaded is not None and loaded.misfit <= bound and self._loop.sign * loaded.k0 > 0.0 else model
 
     def _by_model(self, model: ProcessModel | None) -> None:
         """The model rule (model_rule.py) on the ``model`` fitted at this switch and the previous switch's: stop with
-        the model's point when both explain the record and agree."""
+        the model's point when both explain the record and agree (a load the latest explained reported)."""
         tol = convergence.tolerances(self.config)
         latest = model_rule.model_point(model, self._loop.sign, self._adaptation.target_deg, tol)
         previous, self._model_point = self._model_point, latest
         period = self._switching.period()
         self._fit_hint = model_rule.hint(model, latest, period, tol)
-        self._accept(model_rule.judge(previous, latest, period, tol), explained=True)
+        load = model.load_at(self._loop.record.time(-1)) if model is not None and model.loaded else None
+        self._accept(model_rule.judge(previous, latest, period, tol), explained=True, load=load)
 
     def _judge(self, raw: Samples, detrended: Samples) -> None:
         """Estimate the point over the last period and stop if it has converged."""
@@ -452,14 +480,15 @@ class RelayExperiment:
         """A falling switch: a quiet run may stop half a period sooner."""
         if self._load.fit is None:
             if self._switching.periods > 0:
-                self._by_model(self._fit_record(aim=False))
+                self._by_model(self._fit_record(aim=False)[1])
             self._accept(convergence.at_falling(self._loop, self._switching, self._estimates, self._since(),
                                                 self._adaptation.target_deg))
 
-    def _accept(self, verdict: Verdict | None, explained: bool = False) -> None:
+    def _accept(self, verdict: Verdict | None, explained: bool = False, load: float | None = None) -> None:
         """End the experiment with the ``verdict`` (nothing without one), unless the record holds a load: a quiet
         result is first looked through for one (load_following.py), but not where a model ``explained`` the whole
-        record (model_rule.py: a load would misfit it)."""
+        record (model_rule.py: a load it did not fit would misfit it; ``load``: the one it fitted at the process
+        input at the end, MV units, None where it fitted none)."""
         if verdict is None:
             return
         # Before accepting a quiet result, make sure the record holds no
@@ -475,6 +504,8 @@ class RelayExperiment:
         self.result = identification(self._loop, verdict.point, x, fit,
                                      self._estimates.discarded(self._load.discard_before),
                                      self._adaptation.hysteresis, self._adaptation.target_deg)
+        if load is not None:
+            self.result = replace(self.result, disturbance=True, load_estimate=load)
         raise Ended(Code.OK, MESSAGES[Code.OK])
 
     # -- endings ----------------------------------------------------------
