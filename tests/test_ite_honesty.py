@@ -17,8 +17,8 @@ runs) 42 % and 59 %; since branch ite-refit a quiet run whose settled point is o
 (progress.CLEAN_FIT, CLEAN_TYPICAL_PERIODS): 66 % and 59 %, p10 0.65 and 0.46, never rising in 9 and 7 of 11.
 Since the model rule (model_rule.py: the quiet runs the model explains end at 1.4–2.9 periods) the quiet runs are
 judged on every fourth process (QUIET_SAMPLE, below), where ite counts by what the model's first look says
-(progress.CLEAN_TYPICAL_PERIODS): within ±30 % on 70 % and 65 % of the statuses, p10 0.66 and 0.53, median 1.06 and
-0.91, p90 1.54 and 1.32, never rising in 29 and 29 of 34.
+(progress.CLEAN_TYPICAL_PERIODS): within ±30 % on 70 % and 66 % of the statuses, p10 0.83 and 0.53, median 1.09 and
+0.90, p90 1.66 and 1.31, never rising (judged) in 82 % and 85 % of the 34 runs.
 """
 
 from __future__ import annotations

@@ -48,16 +48,16 @@ SCAN = 200
 @dataclass(frozen=True)
 class ProcessModel:
     """``K0·e^{−Ls}/((T1·s + 1)(T2·s + 1))``: ``k0`` (PV per MV unit), ``t1`` ≥ ``t2`` ≥ 0 and ``delay`` (s);
-    ``misfit``: the fit's RMS residual as a share of the PV's swing over the record."""
+    ``misfit``: the fit's RMS residual as a share of the PV's swing over the record. A load at the process input
+    the fit explained too (:func:`fit_load`): a ramp from the record's ``start`` (s) of ``ramp`` MV units per s
+    and a step of ``step`` MV units at ``step_time`` (s: the start where the ramp is fitted, its own time
+    elsewhere); none on a plain fit (``step_time`` None)."""
 
     k0: float
     t1: float
     t2: float
     delay: float
     misfit: float
-    # A load at the process input the fit explained too (:func:`fit_load`): a ramp from the record's ``start`` (s)
-    # of ``ramp`` MV units per s and a step of ``step`` MV units at ``step_time`` (s: the start where the ramp is
-    # fitted, its own time elsewhere); none on a plain fit.
     start: float = 0.0
     ramp: float = 0.0
     step: float = 0.0
@@ -250,9 +250,10 @@ def _params(model: ProcessModel) -> np.ndarray:
 
 def fit_load(history: Samples, mv0: float, period: float, plain: ProcessModel, enough: float,
              start: ProcessModel | None = None) -> ProcessModel | None:
-    """The model with a load at the process input through the record ``history`` (as :func:`fit`), where the
-    ``plain`` model (:func:`fit`'s, on the same record) misfits: a ramp from the record's start, or a step at a
-    time of its own, through the model's lags and dead time; None where the record cannot be fitted.
+    """The model with a load at the process input through the record ``history`` (the MV's deviations from ``mv0``,
+    MV units, as :func:`fit`; ``period``: the latest whole period, s, the search's scale), where the ``plain``
+    model (:func:`fit`'s, on the same record) misfits: a ramp from the record's start, or a step at a time of its
+    own, through the model's lags and dead time; None where the record cannot be fitted.
 
     Each load is one more linear regressor (the model's response to it, its coefficient K0 × the load), solved
     for with K0 and the PV's level at each trial; the step's time is one more nonlinear parameter, started from
