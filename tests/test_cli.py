@@ -253,9 +253,9 @@ def test_tune_via_modbus_tunes_through_the_real_protocol_stack() -> None:
 
 
 def test_tune_via_can_with_a_load_step_made_by_the_plc() -> None:
-    # --load with --via: the simulated PLC steps its load 12 s after the session takes the loop over (at 2× real
-    # time: see test_hil's load test).
-    result = _invoke("tune", "--plant", PLANT, "--via", "can", "--speed", "2", "--load", "12:-0.3", "--json")
+    # --load with --via: the simulated PLC steps its load 7 s (1.3 periods) after the session takes the loop over
+    # (at 2× real time: see test_hil's load test; a quiet run ends at 2.2 periods, the model rule's).
+    result = _invoke("tune", "--plant", PLANT, "--via", "can", "--speed", "2", "--load", "7:-0.3", "--json")
     assert result.exit_code == 0, result.output
     doc = _last_json(result.stdout)
     assert doc["ite"] == 0 and doc["experiment"]["disturbance"] is True

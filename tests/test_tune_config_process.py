@@ -75,11 +75,12 @@ def test_tune_config_on_an_offline_plc_is_refused_as_an_unhealthy_link(tmp_path)
 
 
 def test_a_load_step_the_plc_makes_during_the_experiment_is_estimated_through(tmp_path):
-    # The external PLC steps its load by 0.2 × amp 45 plant seconds (about 2 periods) after the tuner takes the
-    # loop over. Load following was off over links: the relay took the load's response for its own.
+    # The external PLC steps its load by 0.2 × amp 28 plant seconds (1.3 periods; a quiet run ends at 2.2, the
+    # model rule's) after the tuner takes the loop over. Load following was off over links: the relay took the
+    # load's response for its own.
     # At 10× real time (30 ms of wall time per sample; at 20× a machine loaded beyond its cores refused with 11
     # now and then: see test_hil's load test).
-    plc = Plc(tmp_path, speed=10.0, options=("--plant", "exp(-4*s)/(8*s+1)", "--load", "45:1"))
+    plc = Plc(tmp_path, speed=10.0, options=("--plant", "exp(-4*s)/(8*s+1)", "--load", "28:1"))
     try:
         code, out, err = tune_config(tmp_path, plc, [0, 100])
         assert code == 0 and out["ite"] == 0, (out, err)
