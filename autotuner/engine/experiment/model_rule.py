@@ -94,23 +94,34 @@ class ModelPoint:
     x: float
 
 
+def bound(tol: Tolerances) -> float:
+    """The misfit the rule lets a fit leave with the tolerances ``tol`` (a share of the PV's swing)."""
+    return MISFIT_SHARE * tol.gain_tol
+
+
+def _rough(model: ProcessModel, tol: Tolerances) -> bool:
+    """True when ``model`` misfits by at most EARLY_SHARE of ``tol.gain_tol``: near enough that the rule's bound may
+    follow (ite's first look, and whether the rule fits again)."""
+    return model.misfit <= EARLY_SHARE * tol.gain_tol
+
+
 def could_explain(noise: float, swing: float, tol: Tolerances) -> bool:
     """True when a record of PV ``swing`` (PV units, its range) with measurement noise of σ ``noise`` (PV units)
     can be fitted within the rule's misfit (``tol``): the noise alone misfits by σ over the swing."""
-    return swing > 0.0 and noise <= MISFIT_SHARE * tol.gain_tol * swing
+    return swing > 0.0 and noise <= bound(tol) * swing
 
 
 def first_look(model: ProcessModel | None, tol: Tolerances) -> Fit:
     """ite's hint from a ``model`` fitted at the first rising switch: EXPLAINS where it misfits by at most
     EARLY_SHARE of ``tol.gain_tol`` (the run is likely one the rule stops at its first chances), else NO."""
-    return Fit.EXPLAINS if model is not None and model.misfit <= EARLY_SHARE * tol.gain_tol else Fit.NO
+    return Fit.EXPLAINS if model is not None and _rough(model, tol) else Fit.NO
 
 
 def worth_fitting(previous: ProcessModel | None, tol: Tolerances) -> bool:
     """True when the rule should fit the record at this switch: no fit yet, or the ``previous`` one misfits by at most
     EARLY_SHARE of ``tol.gain_tol`` (the batch's three lags and more misfit by 1.5–3 % at every switch: their fits
     are the filter's aim's only, at the first two rising switches)."""
-    return previous is None or previous.misfit <= EARLY_SHARE * tol.gain_tol
+    return previous is None or _rough(previous, tol)
 
 
 def hint(model: ProcessModel | None, latest: ModelPoint | None, period: float, tol: Tolerances) -> Fit:
@@ -132,7 +143,7 @@ def model_point(model: ProcessModel | None, sign: float, target_deg: float, tol:
     """The point at ``target_deg`` (degrees of lag) of a ``model`` fitted within the rule's misfit (``tol``), the
     loop's ``sign`` (+1 direct, −1 reverse acting) applied; None where there is no model, it misfits, or it
     never lags that much."""
-    if model is None or model.misfit > MISFIT_SHARE * tol.gain_tol or sign * model.k0 <= 0.0:
+    if model is None or model.misfit > bound(tol) or sign * model.k0 <= 0.0:
         return None
     omega = model.frequency(math.radians(target_deg))
     if omega is None:

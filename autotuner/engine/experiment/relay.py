@@ -396,7 +396,7 @@ class RelayExperiment:
         model rule's bound and the fit with a load at the process input (process_fit.fit_load, from the latest load
         fit or the ``earlier`` plain one) explains the record within it. (A load fit that does not, e.g. on three
         lags, tells ite nothing the plain one does not.)"""
-        bound = model_rule.MISFIT_SHARE * convergence.tolerances(self.config).gain_tol
+        bound = model_rule.bound(convergence.tolerances(self.config))
         if model.misfit <= bound:
             self._loaded = None
             return model
