@@ -42,13 +42,13 @@ points within 0.04 % of the exact ones; no other process's fits pass.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 
 import numpy as np
 
 from autotuner.engine.experiment.point import Point
-from autotuner.engine.experiment.process_fit import ProcessModel
+from autotuner.engine.experiment.process_fit import ProcessModel, Spread
 from autotuner.engine.experiment.stopping import Tolerances, Verdict, static_bound
 
 # The misfit a fit may leave, as a share of gain_tol (RMS residual over the PV's swing): 3e-4 at the default
@@ -74,6 +74,27 @@ EARLY_SHARE = 0.1
 # Fits are tried at the switches of the first this many whole periods (a fit costs 2–3 ms of CPU; on the batch
 # every run the rule stops, it stops within three).
 PERIODS = 4
+# Under noise (the rule's misfit bound below the noise's σ): the residual's lag-1 autocorrelation a fit may leave,
+# CORRELATION_SIGMAS of its standard error for white noise (1/√samples) and at most CORRELATION. On the batch at 2 %
+# noise with a load step, the two lags and dead time's fits leave 0.25–0.81 on three lags and more, 0.3–0.99
+# without the load's term once the step is in the record; white noise 0.17 at 300 samples one fit in a thousand.
+CORRELATION = 0.2
+CORRELATION_SIGMAS = 3.0
+# And the rising switches of the first this many whole periods it is tried at (a fit or two per period).
+NOISY_PERIODS = 8
+# ite's first look under noise: a fit at the first rising switch whose residual is the noise, whose point is known
+# within FIRST_SPREAD (relative standard error) on a record whose noise is at most FIRST_NOISE of its swing says
+# the noisy rule will likely stop the run at its first chances. (On the batch, every eighth process: the runs it
+# stopped within 2.7 periods at 1 % noise, 0.5–2.5 % and 0.9–1.9 %; the slower ones at 1 % 9–60 % or 3–7 %; every
+# run at 5 % noise, which the rule stops at 3.6 periods and later, 3.8–8.7 % of the swing.)
+FIRST_SPREAD = 0.025
+FIRST_NOISE = 0.025
+# ite's hint under noise counts the standard error of the point falling by at most this factor a period (at 5 %
+# noise, a slow lag's fell 4.4 times from its first whole period to its second, then 1.5 times).
+SPREAD_FALL = 3.0
+# Two consecutive fits of a noisy record agree where their F differ by at most this many of their standard errors
+# together (each within the noise tolerance; the later one's record holds the earlier's).
+AGREE_SIGMAS = 2.0
 
 
 class Fit(Enum):
@@ -83,15 +104,18 @@ class Fit(Enum):
     EXPLAINS = "the model explains the record (the first look, or a cycle not yet within REACH of the target)"
     NEXT = "the model explains the record near the target: the next switch's fit stops the run if it agrees"
     JUDGING = "that next switch has come, its analysis is pending"
+    NOISY = "under noise, the first look's residual is the noise and its point near enough: the noisy rule's run"
     NO = "the model does not explain the record"
 
 
 @dataclass(frozen=True)
 class ModelPoint:
-    """The ``point`` at the target of a fitted model and its ``x`` = |F|/K0."""
+    """The ``point`` at the target of a fitted model, its ``x`` = |F|/K0 and, fitted to a noisy record, the
+    ``spread``: the standard error of its F relative to |F| (process_fit.spread)."""
 
     point: Point
     x: float
+    spread: float = 0.0
 
 
 def bound(tol: Tolerances) -> float:
@@ -115,6 +139,25 @@ def first_look(model: ProcessModel | None, tol: Tolerances) -> Fit:
     """ite's hint from a ``model`` fitted at the first rising switch: EXPLAINS where it misfits by at most
     EARLY_SHARE of ``tol.gain_tol`` (the run is likely one the rule stops at its first chances), else NO."""
     return Fit.EXPLAINS if model is not None and _rough(model, tol) else Fit.NO
+
+
+def white(spread: Spread | None) -> bool:
+    """True when the residual of the fit whose ``spread`` it is (process_fit.spread; None: no fit) is the noise, as
+    far as its lag-1 autocorrelation tells: within CORRELATION_SIGMAS of white noise's and CORRELATION."""
+    if spread is None:
+        return False
+    return spread.correlation <= min(CORRELATION, CORRELATION_SIGMAS / math.sqrt(max(spread.samples, 1)))
+
+
+def noisy_look(spread: Spread | None, noise: float, swing: float) -> Fit:
+    """ite's first look under noise, from the ``spread`` of a model fitted at the first rising switch
+    (process_fit.spread; None where there is none) and the noise's σ ``noise`` (PV units) against the record's
+    ``swing`` (PV units): NOISY where its residual is the noise (CORRELATION), its point known within FIRST_SPREAD
+    and the noise at most FIRST_NOISE of the swing (the run is likely one the noisy rule stops at its first
+    chances), else NO."""
+    if white(spread) and spread.point <= FIRST_SPREAD and noise <= FIRST_NOISE * swing:
+        return Fit.NOISY
+    return Fit.NO
 
 
 def worth_fitting(previous: ProcessModel | None, tol: Tolerances) -> bool:
@@ -143,7 +186,26 @@ def model_point(model: ProcessModel | None, sign: float, target_deg: float, tol:
     """The point at ``target_deg`` (degrees of lag) of a ``model`` fitted within the rule's misfit (``tol``), the
     loop's ``sign`` (+1 direct, −1 reverse acting) applied; None where there is no model, it misfits, or it
     never lags that much."""
-    if model is None or model.misfit > bound(tol) or sign * model.k0 <= 0.0:
+    if model is None or model.misfit > bound(tol):
+        return None
+    return _read(model, sign, target_deg)
+
+
+def noisy_point(model: ProcessModel | None, spread: Spread | None, sign: float,
+                target_deg: float) -> ModelPoint | None:
+    """The point at ``target_deg`` (degrees of lag) of a ``model`` fitted to a noisy record, the loop's ``sign``
+    applied, where its ``spread`` (process_fit.spread) says it holds the process (its residual is the noise:
+    :func:`white`), with its standard error; None elsewhere."""
+    if model is None or not white(spread):
+        return None
+    point = _read(model, sign, target_deg)
+    return None if point is None else replace(point, spread=spread.point)
+
+
+def _read(model: ProcessModel, sign: float, target_deg: float) -> ModelPoint | None:
+    """The point at ``target_deg`` (degrees of lag) of ``model``, the loop's ``sign`` applied; None where its gain
+    has the wrong sign or it never lags that much."""
+    if sign * model.k0 <= 0.0:
         return None
     omega = model.frequency(math.radians(target_deg))
     if omega is None:
@@ -166,3 +228,41 @@ def judge(previous: ModelPoint | None, latest: ModelPoint | None, period: float,
     if abs(latest.x - previous.x) > AGREE * static_bound(tol, latest.x):
         return None
     return Verdict(latest.point, latest.x, 2)
+
+
+def judge_noisy(previous: ModelPoint | None, latest: ModelPoint | None, period: float,
+                tol: Tolerances) -> Verdict | None:
+    """The verdict of the model rule on a noisy record's fits at two consecutive rising switches (``previous``,
+    ``latest``: :func:`noisy_point`'s, None where a fit's residual was not the noise) with the tolerances ``tol``,
+    the latest whole ``period`` of the cycle (s) within REACH of the latest model's at the target: the latest
+    model's point where its standard error is within ``tol.noise_tol`` (what the estimates' averaged rule
+    accepts) and the previous one's F agrees within AGREE_SIGMAS of their standard errors together, |F|/K0
+    within the static bound (a search that fell into another minimum jumps by more)."""
+    if previous is None or latest is None or latest.spread > tol.noise_tol or not _reached(latest, period):
+        return None
+    gain = latest.point.gain
+    if abs(latest.point.value - previous.point.value) > AGREE_SIGMAS * math.hypot(latest.spread, previous.spread) * gain:
+        return None
+    if abs(latest.x - previous.x) > static_bound(tol, latest.x):
+        return None
+    return Verdict(latest.point, latest.x, 2)
+
+
+def noisy_end(previous: ModelPoint | None, latest: ModelPoint | None, now: float, ran: float, period: float,
+              periods: int, tol: Tolerances) -> float | None:
+    """ite's hint under noise: the time (s, the record's clock) of the rising switch at which :func:`judge_noisy` is
+    expected to stop the run, from the ``latest`` fit's point at the rising switch of ``now`` (s) and the
+    ``previous`` one's a period before, the relay having ``ran`` (s) for ``periods`` whole ``period`` (s) by then:
+    the first whole period after which the point's standard error is within ``tol.noise_tol`` (at least the next
+    one). The error falls as the inverse square root of the record's length once the model is well determined, and
+    faster before (at 1 % noise on the batch's slow lags: 20 % to 0.5 % in a period): the faster of that law and the
+    latest period's ratio kept. None where there is no point (the residual is not the noise) or that switch comes
+    after NOISY_PERIODS (the estimates' rules judge)."""
+    if latest is None or period <= 0.0:
+        return None
+    ratio = (latest.spread / tol.noise_tol) ** 2
+    more = max(1, math.ceil((ratio - 1.0) * ran / period))
+    if previous is not None and 0.0 < latest.spread < previous.spread and ratio > 1.0:
+        fall = min(previous.spread / latest.spread, SPREAD_FALL)
+        more = min(more, max(1, math.ceil(math.log(ratio) / math.log(fall))))
+    return now + more * period if periods + more <= NOISY_PERIODS else None

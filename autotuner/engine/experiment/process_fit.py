@@ -32,6 +32,10 @@ DOUBLE = 0.999  # lags closer than this ratio are one double pole
 # A PV that first moves against the MV's step by more than this share of its swing has an inverse response (the
 # batch's (1-a*s)/(s+1)^3: 0.1 % at a = 0.1, 3.2 % at 0.5, 7.8 % at 0.9; every other process 0).
 INVERSE = 0.01
+# ... and by more than this many of the noise's standard deviations: the PV is compared with one noisy sample, so the
+# differences scatter by σ·√2, and a hundred of them reach 3σ one run in two (the fit under noise gave up on a
+# first-order process that often); this many, one in a thousand.
+NOISE_SIGMAS = 6.0
 # The most changes of the held MV the fit takes (each relay switch makes two: its blended sample and the level;
 # an MV rate limit's ramps make more): the fit's cost grows with them.
 MAX_STEPS = 40
@@ -41,6 +45,9 @@ SETTLED = 1e-3  # a step gaining less than this share of the cost ends the searc
 # three times the model rule's bound: model_rule.py); elsewhere the search from the period's scale does, as without
 # an earlier model (the filter's aim on the batch's higher orders is the same).
 WARM = 1e-3
+# The spread's covariance leaves out the directions whose singular values are below this share of the largest (of
+# the Jacobian's normal matrix, its columns scaled to unit length).
+RCOND = 1e-7
 # The candidate times of a load step a scan tries at most (fit_load: each a column of the record's length).
 SCAN = 200
 
@@ -145,7 +152,7 @@ def _project(y: np.ndarray, unit: np.ndarray) -> tuple[np.ndarray, float, float]
 def inverse_response(y: np.ndarray, size: np.ndarray, noise: float) -> bool:
     """True when the PV ``y`` (PV units, a sample per held MV) moved against the MV's first step (``size``: the
     held MV's change at each sample, MV units, the relay's start first) before the relay's first switch, by more
-    than INVERSE of its swing and 3 noise standard deviations (``noise``, PV units): a zero in the right
+    than INVERSE of its swing and NOISE_SIGMAS noise standard deviations (``noise``, PV units): a zero in the right
     half-plane, which lags and dead time cannot model (the cycle's phase balance came out 0.8° off on
     ``(1-0.9*s)/(s+1)^3``, where the secant's first step landed within 0.2°)."""
     changes = np.nonzero(size)[0]
@@ -154,19 +161,20 @@ def inverse_response(y: np.ndarray, size: np.ndarray, noise: float) -> bool:
     later = changes[changes > first + 1]
     before = y[first:later[0] if len(later) else len(y)] - y[first]
     against = float(np.max(-np.sign(size[first]) * before))
-    return against > max(INVERSE * float(np.ptp(y)), 3.0 * noise)
+    return against > max(INVERSE * float(np.ptp(y)), NOISE_SIGMAS * noise)
 
 
 def fit(history: Samples, mv0: float, period: float, noise: float = 0.0,
-        start: ProcessModel | None = None) -> ProcessModel | None:
+        start: ProcessModel | None = None, enough: float = WARM) -> ProcessModel | None:
     """The model through the record ``history`` (the MV's deviations from ``mv0``, MV units, as held), the
     first whole period ``period`` (s) setting the search's scale; None where the record does not move or shows
     an inverse response (:func:`inverse_response`, ``noise``: the PV's noise standard deviation, PV units).
 
     ``start``: a model fitted to the same record at an earlier switch. The search starts from it first, and
-    its result stands where it misfits by at most WARM (a slow process's cold searches settle in a local
-    minimum one switch in two: ``exp(-s)/(10*s+1)^2`` misfit 1e-7, then 2e-2, then 1e-7); elsewhere the search
-    starts from the period's scale as without one."""
+    its result stands where it misfits by at most ``enough`` (a share of the PV's swing; WARM by default: a slow
+    process's cold searches settle in a local minimum one switch in two, ``exp(-s)/(10*s+1)^2`` misfit 1e-7, then
+    2e-2, then 1e-7; under noise, about the earlier model's misfit); elsewhere the search starts from the period's
+    scale as without one."""
     problem = _Problem.of(history, mv0, period)
     if problem is None or inverse_response(history.y, np.diff(history.u, prepend=mv0), noise):
         return None
@@ -185,7 +193,7 @@ def fit(history: Samples, mv0: float, period: float, noise: float = 0.0,
 
     if start is not None and start.t1 > 0.0:
         warm = search(_params(start))
-        if warm.misfit <= WARM:
+        if warm.misfit <= enough:
             return warm
     scale = problem.scale
     return search(np.array([math.log(scale), math.log(0.3 * scale), 0.25 * period]))
@@ -388,3 +396,85 @@ def _levenberg_marquardt(residual: Callable[[np.ndarray], np.ndarray], x: np.nda
         if done:
             return x
     return x
+
+
+@dataclass(frozen=True)
+class Spread:
+    """How surely a fit's point stands under measurement noise (:func:`spread`): ``point``, the standard error of F
+    at the target lag relative to |F| (its real and imaginary parts' together); ``correlation``, the residual's
+    lag-1 autocorrelation (a model that holds the process leaves the noise, near 0 where it is white, within a
+    few of 1/√``samples``; one that misses it leaves a smooth residual, near 1); ``samples``, the record's."""
+
+    point: float
+    correlation: float
+    samples: int
+
+
+def spread(history: Samples, mv0: float, period: float, model: ProcessModel, lag: float) -> Spread | None:
+    """The :class:`Spread` of the point at ``lag`` (radians) of ``model``, fitted (:func:`fit` or :func:`fit_load`)
+    to the record ``history`` (the MV's deviations from ``mv0``, MV units; ``period``: the fit's scale, s); None
+    where the record is not a problem (:func:`_Problem.of`) or the model never lags that much.
+
+    The standard error is the linearised least squares': the covariance σ²(JᵀJ)⁻¹ of every parameter (the lags,
+    the dead time, a load step's time, K0, the loads' coefficients, the PV's level), σ² the residual's variance,
+    carried to F through its gradient in the lags, the dead time and K0."""
+    problem = _Problem.of(history, mv0, period)
+    omega = model.frequency(lag)
+    if problem is None or omega is None:
+        return None
+    # (In the lags themselves, not their logarithms: a lag near nought moves the PV and F by a derivative the
+    # logarithm's scales to nothing, and the covariance of its logarithm, which its gradient's scale cancels,
+    # comes out of a near-singular matrix.)
+    physical = np.concatenate(([model.t1, model.t2, model.delay], _search_params(model)[3:]))
+    loaded = model.loaded
+
+    def columns(x: np.ndarray) -> np.ndarray:
+        search = np.concatenate((np.log(np.maximum(x[:2], 1e-12 * x[0])), x[2:]))
+        unit = _unit_response(problem.t, problem.steps, search[:3])[None, :]
+        return np.vstack((unit, _load_columns(problem, search))) if loaded else unit
+
+    coef = np.array([model.k0] + _load_coefficients(model))
+    fitted = coef @ columns(physical)
+    step = 1e-4 * problem.scale
+    moved = [np.where(np.arange(len(physical)) == i, step, 0.0) for i in range(len(physical))]
+    jac = np.vstack([(coef @ columns(physical + m) - fitted) / step for m in moved]
+                    + list(columns(physical)) + [np.ones(len(problem.t))]).T
+    residual = problem.y - fitted
+    residual = residual - residual.mean()  # (the level: solved for with the others)
+    dof = max(len(residual) - jac.shape[1], 1)
+    # (Directions the record cannot tell apart — two lags and the dead time all short of a sample interval — are
+    # left out: F at the cycle's frequencies does not tell them apart either, and the inverse of a near-singular
+    # matrix carried rounding to it, 3-10 times its error.)
+    norm = np.linalg.norm(jac, axis=0)
+    norm[norm == 0.0] = 1.0
+    cov = float(residual @ residual) / dof * np.linalg.pinv((jac / norm).T @ (jac / norm), rcond=RCOND,
+                                                             hermitian=True) / np.outer(norm, norm)
+    value = complex(model.response(np.array([omega]))[0])
+    gradient = np.zeros((2, jac.shape[1]))
+    for i in range(3):  # (a load step's time does not move F)
+        t1, t2, delay = physical[:3] + moved[i][:3]
+        w = replace(model, t1=t1, t2=t2, delay=delay).frequency(lag)
+        d = (complex(replace(model, t1=t1, t2=t2, delay=delay).response(np.array([w]))[0]) - value) / step \
+            if w is not None else 0.0
+        gradient[:, i] = d.real, d.imag
+    gradient[:, len(physical)] = (value / model.k0).real, (value / model.k0).imag
+    point = math.sqrt(max(float(np.trace(gradient @ cov @ gradient.T)), 0.0)) / abs(value)
+    correlation = float(residual[1:] @ residual[:-1]) / max(float(residual @ residual), 1e-300)
+    return Spread(point, correlation, len(residual))
+
+
+def _search_params(model: ProcessModel) -> np.ndarray:
+    """The search's parameters of ``model``: (ln T1, ln T2, L), and a load step's time where it fitted one at a
+    time of its own (not a ramp's)."""
+    if model.loaded and model.ramp == 0.0:
+        return np.append(_params(model), model.step_time)
+    return _params(model)
+
+
+def _load_coefficients(model: ProcessModel) -> list[float]:
+    """The load columns' coefficients (K0 × the load's parts, :func:`_load_columns`) of ``model``."""
+    if not model.loaded:
+        return []
+    if model.ramp == 0.0:
+        return [model.k0 * model.step]
+    return [model.k0 * model.ramp, model.k0 * model.step]

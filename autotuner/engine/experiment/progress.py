@@ -42,7 +42,7 @@ SAMPLES_PER_PERIOD = 100.0
 # median), and from the first rising switch on (the first look's) where the model explains the record (the median of
 # the batch's runs the model rule stopped: 1.34, p10–p90 1.2–1.6) or does not (of the others).
 TYPICAL_PERIODS = {False: 4.0, True: 6.0}
-CLEAN_TYPICAL_PERIODS = {Fit.UNKNOWN: 2.8, Fit.EXPLAINS: 1.34, Fit.NO: 3.36}
+CLEAN_TYPICAL_PERIODS = {Fit.UNKNOWN: 2.8, Fit.EXPLAINS: 1.34, Fit.NOISY: 1.85, Fit.NO: 3.36}
 
 
 @dataclass(frozen=True)
@@ -220,10 +220,13 @@ class Progress:
             return convergence.too_scattered(self.loop, self.estimates, *self.first_cycle())
         return self._noisy or (self.load is not None and self.load.fit is not None)
 
-    def seconds_left(self, relaying: bool, phase_error_deg: float | None, fit: Fit = Fit.UNKNOWN) -> float:
+    def seconds_left(self, relaying: bool, phase_error_deg: float | None, fit: Fit = Fit.UNKNOWN,
+                     until: float | None = None) -> float:
         """Estimated seconds to the end, never rising by more than its uncertainty (``relaying``: the relay has
         started; ``phase_error_deg``: how far the latest whole period's process lag is from the target, degrees,
-        None before one; ``fit``: what the latest fit of the model rule says of the run's length, model_rule.py).
+        None before one; ``fit``: what the latest fit of the model rule says of the run's length, model_rule.py;
+        ``until``: under noise, when the model rule expects to stop the run, s on the record's clock,
+        model_rule.noisy_end).
 
         The raw estimate (:meth:`raw_seconds_left`) counts down between
         statuses as a clock would; it is followed where it falls below that,
@@ -232,7 +235,7 @@ class Progress:
         complain about; one that lies low is worse); a rise beyond that of at
         most ``PAUSE`` of the shown value stops the clock instead.
         """
-        raw = self.raw_seconds_left(relaying, phase_error_deg, fit)
+        raw = self.raw_seconds_left(relaying, phase_error_deg, fit, until)
         now = self.loop.elapsed()
         if self._shown is None:
             shown = raw
@@ -246,11 +249,14 @@ class Progress:
         self._shown = (now, shown)
         return shown
 
-    def raw_seconds_left(self, relaying: bool, phase_error_deg: float | None, fit: Fit = Fit.UNKNOWN) -> float:
+    def raw_seconds_left(self, relaying: bool, phase_error_deg: float | None, fit: Fit = Fit.UNKNOWN,
+                         until: float | None = None) -> float:
         """The seconds left as the record says now (``relaying``: the relay has started; ``phase_error_deg``: the
-        latest whole period's lag off the target, degrees, None before one; ``fit``: as for :meth:`seconds_left`),
-        a disturbed or noisy run's (:meth:`longer`) or a quiet one's.
+        latest whole period's lag off the target, degrees, None before one; ``fit``, ``until``: as for
+        :meth:`seconds_left`), a disturbed or noisy run's (:meth:`longer`) or a quiet one's.
 
+        Where the model rule under noise expects to stop the run (``until``): the time to then, and at least
+        ``LAST_SHARE`` of the latest period.
         Where the model rule may stop the run at the next switch (``fit`` NEXT): the time to that switch; once it
         has come and its analysis is pending (JUDGING), a sample interval. Before
         two whole periods, and while the model explains the record but the cycle has not reached the target:
@@ -261,6 +267,10 @@ class Progress:
         (:func:`periods_left`) of the latest whole period, less the time since it ended, and at least
         ``LAST_SHARE`` of it.
         """
+        if until is not None:
+            # (A cycle still slowing down brings the switch later than its latest period says.)
+            left = max(until - self.loop.record.time(-1), LAST_SHARE * self.switching.period())
+            return max(left, self.loop.mean_interval() or 0.0, 1e-9)
         if fit is Fit.NEXT:
             return self.switch_left()
         if fit is Fit.JUDGING:
@@ -276,7 +286,8 @@ class Progress:
             noise_left = max(c.noise_samples - len(loop.record), 0) * (dt or 0.0)
             prior = self.prior_period(dt, relaying)
             ran = time(-1) - time(switching.start) if relaying else 0.0
-            averaged = longer or self.averaged_point(relaying)
+            # (A run the noisy rule likely stops is counted as its own, whatever the estimates' rules would take.)
+            averaged = (longer or self.averaged_point(relaying)) and fit is not Fit.NOISY
             typical = TYPICAL_PERIODS[longer] if averaged else CLEAN_TYPICAL_PERIODS[fit]
             if not averaged and fit is not Fit.UNKNOWN:
                 ran = time(-1) - time(switching.rising[0])  # (counted from the first look's switch)

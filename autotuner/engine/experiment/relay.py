@@ -73,6 +73,9 @@ MODEL_MISFIT = 0.05
 # fit, until a point is held (the settled rule judges up to four estimates by the seventh period; each re-reading
 # runs the model over the record three times).
 REREAD = 4
+# The noisy rule's search from the previous switch's load model stands where it misfits by at most this factor of
+# that model's misfit (the noise's share of the swing, about the same at every switch): one search, not three.
+ENOUGH = 1.05
 
 
 class RelayExperiment:
@@ -104,6 +107,9 @@ class RelayExperiment:
         self._pending = 0
         # The model rule's point at the latest switch (model_rule.py), None where its fit did not explain the record.
         self._model_point: model_rule.ModelPoint | None = None
+        self._noisy_point: model_rule.ModelPoint | None = None  # (the noisy rule's latest: _by_noisy_model)
+        self._loaded_explained = False  # (whether _loaded's residual was the noise: _by_noisy_model)
+        self._noisy_end: float | None = None  # (when the noisy rule is expected to stop the run: ite's hint)
         # The latest model fitted to the record (process_fit.py; the next fit's search starts from it), and the
         # latest with a load at the process input (process_fit.fit_load), None where the plain one explained it.
         self._model: ProcessModel | None = None
@@ -211,7 +217,7 @@ class RelayExperiment:
                 # (A status between that switch and its analysis — a field session's, whose analysis runs in a
                 # worker after the write — read a whole half period more.)
                 fit = model_rule.Fit.JUDGING
-            ite = self._progress.seconds_left(self.stage is Stage.RELAY, error, fit)
+            ite = self._progress.seconds_left(self.stage is Stage.RELAY, error, fit, self._noisy_end)
             progress = self._progress.fraction(ite)
         return Status(stage=self.stage, progress=progress, ite=ite, relay=self._switching.relay,
                       filter_phase_deg=self._adaptation.phase_deg(), periods=max(self._switching.periods, 0),
@@ -300,6 +306,7 @@ class RelayExperiment:
         self._unstable.recognise(self._since())
         model, explaining = self._fit_record(aim=True)
         self._by_model(explaining)
+        self._by_noisy_model(model)
         aims = model is not None and model.misfit <= MODEL_MISFIT and len(self._adaptation.lags) <= MODEL_PERIODS
         self._adapt(ta, omega, period_lag, model if aims else None)
         if len(switching.rising) >= 3:
@@ -316,8 +323,22 @@ class RelayExperiment:
         if self._unstable.slow_return(half, switching.react):
             self._unstable.enter()  # as after a rescue, until the estimates say otherwise
         self._adaptation.start(half, switching.peak_error, self._unstable.unstable)
-        # ite's first look: whether the model rule is likely to stop the run at its first chances.
-        self._fit_hint = model_rule.first_look(self._fit_record(aim=False)[0], convergence.tolerances(self.config))
+        self._fit_hint = self._first_look()
+
+    def _first_look(self) -> model_rule.Fit:
+        """ite's first look, at the first rising switch: whether the model rule is likely to stop the run at its first
+        chances (model_rule.first_look), under noise the noisy rule (model_rule.noisy_look)."""
+        loop, tol = self._loop, convergence.tolerances(self.config)
+        record, sigma = loop.record.all(), convergence.sigma(loop, self._estimates)
+        if self._unstable.unstable or model_rule.could_explain(sigma, float(np.ptp(record.y)), tol):
+            return model_rule.first_look(self._fit_record(aim=False)[0], tol)
+        # (Half a period known: its length twice over is the fit's scale.)
+        period = 2.0 * (record.t[-1] - loop.record.time(self._switching.switches[-2]))
+        noise = max(sigma, cycle_noise(record.t, record.y))
+        model = process_fit.fit(record, loop.mv0, period, noise)
+        lag = math.radians(self._adaptation.target_deg)
+        spread = None if model is None else process_fit.spread(record, loop.mv0, period, model, lag)
+        return model_rule.noisy_look(spread, noise, float(np.ptp(record.y)))
 
     def _period_samples(self) -> tuple[Samples, Samples]:
         """The samples of this period's estimates as recorded and with the PV's drift removed (refitting a
@@ -415,6 +436,46 @@ class RelayExperiment:
         load = model.load_at(self._loop.record.time(-1)) if model is not None and model.loaded else None
         self._accept(model_rule.judge(previous, latest, period, tol), explained=True, load=load)
 
+    def _by_noisy_model(self, plain: ProcessModel | None) -> None:
+        """The model rule under noise (model_rule.noisy_point), at a rising switch: the ``plain`` model fitted to the
+        whole record at this switch (None: fitted here), or where its residual is not the noise, the model with a
+        load at the process input; its point accepted when it is known within the noise tolerance and the previous
+        switch's agrees. Not where the quiet rule's misfit judges, nor on a process that is or may be unstable,
+        nor over a stall, nor after NOISY_PERIODS."""
+        loop, switching, tol = self._loop, self._switching, convergence.tolerances(self.config)
+        record, sigma = loop.record.all(), convergence.sigma(loop, self._estimates)
+        if (self._unstable.unstable or switching.periods > model_rule.NOISY_PERIODS
+                or model_rule.could_explain(sigma, float(np.ptp(record.y)), tol)
+                or longest_gap(record.t, record.t[0], record.t[-1]) > GAP * loop.dt):
+            self._noisy_point = self._noisy_end = None
+            return
+        period, lag = switching.period(), math.radians(self._adaptation.target_deg)
+        if plain is None:
+            earlier = self._model
+            enough = ENOUGH * earlier.misfit if earlier is not None else process_fit.WARM
+            # (The noise stage's σ, of its few samples, may read low: the whole record's reads it as surely as the
+            # test for an inverse response needs, process_fit.inverse_response.)
+            noise = max(sigma, cycle_noise(record.t, record.y))
+            plain = self._model = process_fit.fit(record, loop.mv0, period, noise, earlier, enough)
+        model = plain
+        spread = None if plain is None else process_fit.spread(record, loop.mv0, period, plain, lag)
+        if plain is not None and not model_rule.white(spread):
+            earlier = self._loaded
+            # (Where the previous switch's load model did not explain the record either, the model is likely not
+            # of the process's family: one search from it, not three, 8-16 ms each on three lags.)
+            enough = (math.inf if not self._loaded_explained else ENOUGH * earlier.misfit) if earlier else 0.0
+            model = self._loaded = process_fit.fit_load(record, loop.mv0, period, plain, enough, earlier)
+            spread = None if model is None else process_fit.spread(record, loop.mv0, period, model, lag)
+            self._loaded_explained = model_rule.white(spread)
+        latest = model_rule.noisy_point(model, spread, loop.sign, self._adaptation.target_deg)
+        previous, self._noisy_point = self._noisy_point, latest
+        now = record.t[-1]
+        self._noisy_end = model_rule.noisy_end(previous, latest, now, now - loop.record.time(switching.start), period,
+                                               switching.periods, tol)
+        verdict = model_rule.judge_noisy(previous, latest, period, tol)
+        load = model.load_at(record.t[-1]) if model is not None and model.loaded else None
+        self._accept(verdict, explained=True, load=load)
+
     def _judge(self, raw: Samples, detrended: Samples) -> None:
         """Estimate the point over the last period and stop if it has converged."""
         loop, crossings, fit = self._loop, self._switching.crossings, self._load.fit
@@ -500,7 +561,7 @@ class RelayExperiment:
             return
         fit = self._load.fit
         # (Where the load's share was taken out, the verdict's |F|/K0 is the fit's K0 at the verdict's |F|.)
-        x = fit.x if fit is not None and not self._load.corrects else verdict.x
+        x = fit.x if fit is not None and not self._load.corrects and not explained else verdict.x
         self.result = identification(self._loop, verdict.point, x, fit,
                                      self._estimates.discarded(self._load.discard_before),
                                      self._adaptation.hysteresis, self._adaptation.target_deg)
