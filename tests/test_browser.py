@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from datetime import datetime
 
 import httpx
@@ -262,6 +263,70 @@ def redrawn_by_a_state_event(page, daemon: Daemon) -> None:
         daemon.proxy.up()
     page.locator("[data-banner=stream]").wait_for(state="detached")
     page.wait_for_function("(n) => window.redraws > n", arg=before)
+
+
+# The pointer events the page receives and its route changes, in window.pointerLog: a click that was lost shows
+# as a mousedown and a mouseup with no click after them ("connected" false: the target was out of the document).
+POINTER_LOG = """
+window.pointerLog = [];
+for (const type of ["mousedown", "mouseup", "click"]) {
+  document.addEventListener(type, (e) => window.pointerLog.push(
+    `${type} ${e.target.id || e.target.tagName} connected=${e.target.isConnected}`), true);
+}
+window.addEventListener("hashchange", () => window.pointerLog.push(`hashchange ${location.hash}`));
+"""
+
+
+@contextmanager
+def evidence_on_failure(page, daemon: Daemon, loop_id: str, directory: Path) -> Iterator[None]:
+    """On a failure inside: a screenshot of ``page`` in ``directory``, and in the failure's notes what the page
+    showed (URL, heading, alerts), its console, its pointer events (POINTER_LOG, if installed) and the loop's
+    newest sessions in the daemon's history."""
+    console: list[str] = []
+    page.on("console", lambda msg: console.append(f"{msg.type}: {msg.text}"))
+    try:
+        yield
+    except Exception as exc:
+        def screenshot() -> str:
+            page.screenshot(path=directory / "failure.png", full_page=True, timeout=10_000)
+            return str(directory / "failure.png")
+
+        for what, read in (
+                ("screenshot", screenshot),
+                ("url", lambda: page.url),
+                ("page", lambda: page.evaluate("() => [document.querySelector('#main h1, #main h2')?.textContent,"
+                                               " ...[...document.querySelectorAll('[role=alert], .banner')]"
+                                               ".map((e) => e.textContent)]")),
+                ("pointer", lambda: page.evaluate("() => window.pointerLog")),
+                ("console", lambda: console[-20:]),
+                ("history", lambda: [{k: s.get(k) for k in ("id", "state", "outcome", "applied_at")}
+                                     for s in daemon.get(f"/loops/{loop_id}/history?limit=3")])):
+            try:
+                exc.add_note(f"{what}: {read()}")
+            except Exception as why:  # the evidence is best effort: never hide the failure itself
+                exc.add_note(f"{what}: not read ({why})")
+        raise
+
+
+@pytest.mark.parametrize("link,opened", [("#tab-history", "#tab-history.active"), (".loop-head .title a", "#loops")])
+def test_a_click_on_the_loop_heads_links_is_not_lost_to_a_redraw_between_press_and_release(
+        page, daemon, tmp_path, link, opened):
+    """The mouse pressed on the History tab (or "← all loops"), a state event redraws the loop page (the stream cut
+    and reconnected starts with the loop's state), the mouse released there: the view opens. Chromium sends no
+    click when the pressed element left the document before the release, and the head's redraw took its links out
+    for a moment: after an apply (state events coming) the screen-size test waited 90 s for the history."""
+    page.add_init_script(POINTER_LOG)
+    login(page, daemon, OPERATOR, "operator")
+    with evidence_on_failure(page, daemon, "TIC-101", tmp_path):
+        page.goto(daemon.url + "#/loop/TIC-101")
+        page.wait_for_selector("#tune:enabled")
+        page.evaluate(WATCH_ACTIONS)
+        box = page.locator(link).bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.down()
+        redrawn_by_a_state_event(page, daemon)
+        page.mouse.up()
+        page.wait_for_selector(opened)
 
 
 def test_login_with_an_unknown_token_is_refused_in_words(page, daemon):
@@ -624,47 +689,49 @@ def test_an_open_history_shows_a_session_that_ends_meanwhile(browser, daemon):
 
 
 @pytest.mark.parametrize("width,height", [(390, 844), (820, 1180), (1920, 1080)])
-def test_every_screen_size_tune_result_apply(browser, daemon, width, height):
+def test_every_screen_size_tune_result_apply(browser, daemon, width, height, tmp_path):
     context = browser.new_context(viewport={"width": width, "height": height})
+    context.add_init_script(POINTER_LOG)
     page = context.new_page()
     page.set_default_timeout(TIMEOUT_MS)
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     try:
-        daemon.wait_idle("TIC-101")
-        login(page, daemon, OPERATOR, "operator")
-        no_horizontal_scroll(page)
-        usable(page, "tr[data-loop=TIC-101] a.loop-id", 40)
-        page.click("tr[data-loop=TIC-101] a.loop-id")
-        page.wait_for_selector("#tune:enabled")
-        page.wait_for_selector("#trend[data-samples]")
-        no_horizontal_scroll(page)
-        for field in ("#f-controller", "#f-amp", "#f-hysteresis", "#f-phase", "#f-ms", "#f-apply"):
-            usable(page, field, 90)  # wide enough to read "0.001" or "auto (3σ of noise)"
-        for button in ("#tune", "#tbrk", "#apply", "#tab-history"):
-            usable(page, button, 44)
-        legible(page, "#trend")
-        page.select_option("#f-apply", "false")
-        page.click("#tune")
-        page.wait_for_selector("#badge:has-text('TUNING')")
-        no_horizontal_scroll(page)
-        page.wait_for_selector("#badge:not(:has-text('TUNING'))")
-        assert page.inner_text("#badge") == "OK", daemon.get("/loops/TIC-101")["message"]
-        page.wait_for_selector("#nyquist [data-role=point]")
-        page.wait_for_selector("#step-load path[data-series='PV new']")
-        no_horizontal_scroll(page)
-        for plot in ("#trend", "#nyquist", "#step-setpoint", "#step-load"):
-            legible(page, plot)
-        usable(page, "#apply:enabled", 44)
-        page.click("#apply")
-        usable(page, "#apply-confirm", 44)
-        assert page.locator("#apply-changes tr[data-param=pk]").count() == 1
-        no_horizontal_scroll(page)
-        page.click("#apply-confirm")
-        page.wait_for_selector("#result #applied:has-text('applied')")
-        page.click("#tab-history")
-        page.wait_for_selector("#history tbody tr")
-        no_horizontal_scroll(page)
+        with evidence_on_failure(page, daemon, "TIC-101", tmp_path):
+            daemon.wait_idle("TIC-101")
+            login(page, daemon, OPERATOR, "operator")
+            no_horizontal_scroll(page)
+            usable(page, "tr[data-loop=TIC-101] a.loop-id", 40)
+            page.click("tr[data-loop=TIC-101] a.loop-id")
+            page.wait_for_selector("#tune:enabled")
+            page.wait_for_selector("#trend[data-samples]")
+            no_horizontal_scroll(page)
+            for field in ("#f-controller", "#f-amp", "#f-hysteresis", "#f-phase", "#f-ms", "#f-apply"):
+                usable(page, field, 90)  # wide enough to read "0.001" or "auto (3σ of noise)"
+            for button in ("#tune", "#tbrk", "#apply", "#tab-history"):
+                usable(page, button, 44)
+            legible(page, "#trend")
+            page.select_option("#f-apply", "false")
+            page.click("#tune")
+            page.wait_for_selector("#badge:has-text('TUNING')")
+            no_horizontal_scroll(page)
+            page.wait_for_selector("#badge:not(:has-text('TUNING'))")
+            assert page.inner_text("#badge") == "OK", daemon.get("/loops/TIC-101")["message"]
+            page.wait_for_selector("#nyquist [data-role=point]")
+            page.wait_for_selector("#step-load path[data-series='PV new']")
+            no_horizontal_scroll(page)
+            for plot in ("#trend", "#nyquist", "#step-setpoint", "#step-load"):
+                legible(page, plot)
+            usable(page, "#apply:enabled", 44)
+            page.click("#apply")
+            usable(page, "#apply-confirm", 44)
+            assert page.locator("#apply-changes tr[data-param=pk]").count() == 1
+            no_horizontal_scroll(page)
+            page.click("#apply-confirm")
+            page.wait_for_selector("#result #applied:has-text('applied')")
+            page.click("#tab-history")
+            page.wait_for_selector("#history tbody tr")
+            no_horizontal_scroll(page)
     finally:
         context.close()
     assert not errors, errors

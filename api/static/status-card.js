@@ -8,22 +8,23 @@ import { PARAMS, paramText } from "./gains.js";
 import { mvText, pvText, unitsOf } from "./units.js";
 
 export function loopHead(id) {
-  const node = h("section", { class: "loop-head" });
-  // Built once and moved into each new head: a click on a tab is never lost to an update that would replace the
-  // tab between the mouse's press and release (no click event then).
-  const tabs = loopTabs(id, "live");
+  // Its links (← all loops, the tabs) never leave the page; an update refills the text around them. Chromium sends
+  // no click when the pressed element left the document before the release, even if it is back by then: a state
+  // event redrawing the head (the tabs moved into the new one) between the press and the release lost a click.
+  const heading = h("h1", {});
+  const link = h("div", { class: "muted small" });
+  const readouts = h("div", { class: "readouts" });
+  const node = h("section", { class: "loop-head" },
+    h("div", { class: "title" }, h("a", { href: "#/", class: "muted small" }, "← all loops"), heading, link),
+    readouts, loopTabs(id, "live"));
   return {
     node,
     update(loop) {
       const u = unitsOf(loop);
-      fill(node,
-        h("div", { class: "title" }, h("a", { href: "#/", class: "muted small" }, "← all loops"),
-          h("h1", {}, loop.id, " ", h("span", { class: "desc" }, loop.description || "")),
-          h("div", { class: "muted small" }, `link ${loop.link}`, loop.group ? ` · exclusion group ${loop.group}` : "")),
-        h("div", { class: "readouts" },
-          readout("Mode", modeBadge(loop.mode)), readout("PV", pvText(loop.pv, u), "pv"),
-          readout("SP", pvText(loop.sp, u), "sp"), readout("MV", mvText(loop.mv, u), "mv")),
-        tabs);
+      fill(heading, loop.id, " ", h("span", { class: "desc" }, loop.description || ""));
+      fill(link, `link ${loop.link}`, loop.group ? ` · exclusion group ${loop.group}` : "");
+      fill(readouts, readout("Mode", modeBadge(loop.mode)), readout("PV", pvText(loop.pv, u), "pv"),
+        readout("SP", pvText(loop.sp, u), "sp"), readout("MV", mvText(loop.mv, u), "mv"));
     },
     // The readouts from the newest sample (cheap: no rebuild).
     live(loop) {
