@@ -317,7 +317,21 @@ class RelayExperiment:
             self._unstable.enter()  # as after a rescue, until the estimates say otherwise
         self._adaptation.start(half, switching.peak_error, self._unstable.unstable)
         # ite's first look: whether the model rule is likely to stop the run at its first chances.
-        self._fit_hint = model_rule.first_look(self._fit_record(aim=False)[0], convergence.tolerances(self.config))
+        model = self._fit_record(aim=False)[0]
+        noise = self._noise_share() if model is not None else math.inf  # (no fit, nothing to judge)
+        self._fit_hint = model_rule.first_look(model, convergence.tolerances(self.config), noise)
+
+    def _noise_share(self) -> float:
+        """The record's measurement noise as the model's fits meet it, over the PV's swing (dimensionless; inf
+        before a swing): the larger of the noise stage's σ and the relay's samples' so far (loop.cycle_noise,
+        PV units). A sampling whose time stamps are not the PV's times, a simulated PLC's, reads there as noise
+        of the cycle's slope times the spread; the noise stage's flat PV does not show it."""
+        loop = self._loop
+        record = loop.record.all()
+        swing = float(np.ptp(record.y))
+        relay = loop.record.since(loop.record.time(self._switching.start))
+        sigma = max(loop.noise, cycle_noise(relay.t, relay.y))
+        return sigma / swing if swing > 0.0 else math.inf
 
     def _period_samples(self) -> tuple[Samples, Samples]:
         """The samples of this period's estimates as recorded and with the PV's drift removed (refitting a
@@ -411,7 +425,8 @@ class RelayExperiment:
         latest = model_rule.model_point(model, self._loop.sign, self._adaptation.target_deg, tol)
         previous, self._model_point = self._model_point, latest
         period = self._switching.period()
-        self._fit_hint = model_rule.hint(model, latest, period, tol)
+        noise = self._noise_share() if model is not None else math.inf  # (no fit, nothing to judge)
+        self._fit_hint = model_rule.hint(model, latest, period, tol, noise)
         load = model.load_at(self._loop.record.time(-1)) if model is not None and model.loaded else None
         self._accept(model_rule.judge(previous, latest, period, tol), explained=True, load=load)
 
