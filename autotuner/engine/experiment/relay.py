@@ -426,7 +426,7 @@ class RelayExperiment:
         previous, self._model_point = self._model_point, latest
         period = self._switching.period()
         noise = self._noise_share() if model is not None else math.inf  # (no fit, nothing to judge)
-        self._fit_hint = model_rule.hint(model, latest, period, tol, noise)
+        self._fit_hint = model_rule.hint(model, latest, period, tol, noise, self._fit_hint)
         load = model.load_at(self._loop.record.time(-1)) if model is not None and model.loaded else None
         self._accept(model_rule.judge(previous, latest, period, tol), explained=True, load=load)
 
