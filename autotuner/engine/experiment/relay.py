@@ -318,14 +318,16 @@ class RelayExperiment:
         self._adaptation.start(half, switching.peak_error, self._unstable.unstable)
         # ite's first look: whether the model rule is likely to stop the run at its first chances.
         model = self._fit_record(aim=False)[0]
-        noise = self._noise_share() if model is not None else math.inf  # (no fit, nothing to judge)
-        self._fit_hint = model_rule.first_look(model, convergence.tolerances(self.config), noise)
+        self._fit_hint = model_rule.first_look(model, convergence.tolerances(self.config), self._noise_share(model))
 
-    def _noise_share(self) -> float:
-        """The record's measurement noise as the model's fits meet it, over the PV's swing (dimensionless; inf
-        before a swing): the larger of the noise stage's σ and the relay's samples' so far (loop.cycle_noise,
-        PV units). A sampling whose time stamps are not the PV's times, a simulated PLC's, reads there as noise
-        of the cycle's slope times the spread; the noise stage's flat PV does not show it."""
+    def _noise_share(self, model: ProcessModel | None) -> float:
+        """The record's measurement noise as the ``model`` fitted at this switch meets it, over the PV's swing
+        (dimensionless; inf without a model or a swing: nothing to judge): the larger of the noise stage's σ and
+        the relay's samples' so far (loop.cycle_noise, PV units). A sampling whose time stamps are not the PV's
+        times, a simulated PLC's, reads there as noise of the cycle's slope times the spread; the noise stage's
+        flat PV does not show it."""
+        if model is None:
+            return math.inf
         loop = self._loop
         record = loop.record.all()
         swing = float(np.ptp(record.y))
@@ -425,8 +427,7 @@ class RelayExperiment:
         latest = model_rule.model_point(model, self._loop.sign, self._adaptation.target_deg, tol)
         previous, self._model_point = self._model_point, latest
         period = self._switching.period()
-        noise = self._noise_share() if model is not None else math.inf  # (no fit, nothing to judge)
-        self._fit_hint = model_rule.hint(model, latest, period, tol, noise, self._fit_hint)
+        self._fit_hint = model_rule.hint(model, latest, period, tol, self._noise_share(model), self._fit_hint)
         load = model.load_at(self._loop.record.time(-1)) if model is not None and model.loaded else None
         self._accept(model_rule.judge(previous, latest, period, tol), explained=True, load=load)
 
