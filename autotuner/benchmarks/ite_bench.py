@@ -11,8 +11,9 @@ process's own period, not the experiment's): before, nothing has been
 measured; after, the stop depends on one switch's estimate, which no count
 of periods can foresee.
 
-``python -m autotuner.benchmarks.ite_bench [--noise 0.01] [--every 7] [--workers N]`` prints the table;
-``--field`` a row per field scenario (field_bench.py) instead, ``--sample 13`` every 13th process only.
+``python -m autotuner.benchmarks.ite_bench [--noise 0.01] [--every 7] [--workers N] [--prior 0.5]`` prints the table;
+``--field`` a row per field scenario (field_bench.py) instead, ``--sample 13`` every 13th process only, ``--prior``
+the period the time limit implies as a share of the true one (a daemon's loop configures a time limit, not a period).
 """
 
 from __future__ import annotations
