@@ -11,8 +11,9 @@ process's own period, not the experiment's): before, nothing has been
 measured; after, the stop depends on one switch's estimate, which no count
 of periods can foresee.
 
-``python -m autotuner.benchmarks.ite_bench [--noise 0.01] [--every 7] [--workers N]`` prints the table;
-``--field`` a row per field scenario (field_bench.py) instead, ``--sample 13`` every 13th process only.
+``python -m autotuner.benchmarks.ite_bench [--noise 0.01] [--every 7] [--workers N] [--prior 0.5]`` prints the table;
+``--field`` a row per field scenario (field_bench.py) instead, ``--sample 13`` every 13th process only, ``--prior``
+the period the time limit implies as a share of the true one (a daemon's loop configures a time limit, not a period).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import numpy as np
 
 from autotuner.benchmarks.design_bench import default_batch, load_batch, pool_map
 from autotuner.benchmarks.field_bench import SCENARIOS, Scenario, scenario_sim
+from autotuner.engine.experiment.progress import LIMIT_SHARE
 from autotuner.engine.experiment.relay import RelayConfig, Status
 from autotuner.engine.plant.expression import parse_process
 from autotuner.engine.plant.process import Process
@@ -70,11 +72,12 @@ class Honesty:
     judged_rise: float
 
 
-def run_one(expr: str, ident: str, noise: float = 0.0, every: int = 1) -> IteRun:
+def run_one(expr: str, ident: str, noise: float = 0.0, every: int = 1, prior: float = 1.0) -> IteRun:
     """Run the experiment on the process ``expr`` (named ``ident``) with noise of σ ``noise`` × |F(jω135)|·amp (the
-    PV's oscillation at the point, as ``autotuner bench`` sets it), reading the status every ``every`` samples."""
+    PV's oscillation at the point, as ``autotuner bench`` sets it), reading the status every ``every`` samples; the
+    period the configuration implies is ``prior`` × the 135° period (:func:`_setting`)."""
     process = parse_process(expr)
-    period, ts, config = _setting(process)
+    period, ts, config = _setting(process, prior)
     if noise <= 0.0:
         return statuses(PlantSim(process, ts), config, ident, period, every)
     std = noise * abs(complex(process.freqresp(2.0 * math.pi / period))) * config.amp  # (as autotuner bench's)
@@ -96,12 +99,16 @@ def field_one(expr: str, ident: str, every: int = 1, scenarios: tuple[Scenario, 
     return runs
 
 
-def _setting(process: Process) -> tuple[float, float, RelayConfig]:
-    """The period at 135° (s), the sample time (s) and the experiment's settings of ``autotuner bench``."""
+def _setting(process: Process, prior: float = 1.0) -> tuple[float, float, RelayConfig]:
+    """The period at 135° (s), the sample time (s) and the experiment's settings of ``autotuner bench``, with the
+    time limit that makes the period the configuration implies (progress.configured_period) ``prior`` times the
+    135° one: 1 as ``autotuner bench`` sets it; a daemon's loop sets a time limit of its own (tests/test_handshake:
+    the period it implies is half the plant's)."""
     w135 = phase_frequency(process, 135.0)
     assert w135 is not None
     period = 2.0 * math.pi / w135
-    return period, period / EXPERIMENT_SAMPLES_PER_PERIOD, RelayConfig(amp=1.0, time_limit=200 * period)
+    limit = prior * LIMIT_SHARE * period
+    return period, period / EXPERIMENT_SAMPLES_PER_PERIOD, RelayConfig(amp=1.0, time_limit=limit)
 
 
 def statuses(sim: PlantSim, config: RelayConfig, ident: str, period: float, every: int) -> IteRun:
@@ -160,14 +167,15 @@ def summarise(judged: list[Honesty]) -> Summary:
                    p90=float(np.percentile(ratios, 90)), runs=len(judged), statuses=len(ratios))
 
 
-def run_batch(noise: float, every: int, workers: int | None, sample: int = 1) -> list[IteRun]:
+def run_batch(noise: float, every: int, workers: int | None, sample: int = 1, prior: float = 1.0) -> list[IteRun]:
     """Every ``sample``-th process of the batch with ``noise``, statuses every ``every`` samples, on ``workers``
-    processes."""
-    return pool_map(partial(_batch_one, noise=noise, every=every), load_batch(default_batch())[::sample], workers)
+    processes, the configuration's period ``prior`` × the 135° one."""
+    return pool_map(partial(_batch_one, noise=noise, every=every, prior=prior), load_batch(default_batch())[::sample],
+                    workers)
 
 
-def _batch_one(row: dict[str, str], noise: float, every: int) -> IteRun:
-    return run_one(row["expr"], row["id"], noise, every)
+def _batch_one(row: dict[str, str], noise: float, every: int, prior: float) -> IteRun:
+    return run_one(row["expr"], row["id"], noise, every, prior)
 
 
 def _field_one(row: dict[str, str], every: int) -> list[IteRun | None]:
@@ -207,12 +215,14 @@ def main() -> None:
     parser.add_argument("--workers", type=_at_least(1, int), default=None,
                         help="worker processes (default: one per core)")
     parser.add_argument("--worst", type=int, default=0, help="also list this many least honest runs")
+    parser.add_argument("--prior", type=_at_least(0.01, float), default=1.0,
+                        help="the period the time limit implies as a share of the 135° one (default 1)")
     parser.add_argument("--field", action="store_true", help="the field scenarios instead (no --noise)")
     a = parser.parse_args()
     if a.field:
         print(field_table(a.every, a.workers, a.sample))
         return
-    runs = run_batch(a.noise, a.every, a.workers, a.sample)
+    runs = run_batch(a.noise, a.every, a.workers, a.sample, a.prior)
     judged = [judge(r) for r in runs]
     s = summarise(judged)
     print("| runs | statuses | within ±30 % | never rising (≤ 2 %): all / judged | ite/true p10 | median | p90 |")

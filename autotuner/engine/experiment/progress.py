@@ -364,7 +364,8 @@ class Progress:
     def prior_period(self, dt: float | None, relaying: bool) -> float:
         """The period expected before the estimates measure it (s), given the mean sample interval ``dt`` (s; None
         before two samples); ``relaying``: the relay has started. The configured one (:meth:`configured_period`),
-        at least twice the relay's time until its first rising switch, at least the latest whole period after."""
+        at least twice the relay's time until its first rising switch, twice the latest half period until the
+        second, the latest whole period after."""
         time, switching = self.loop.record.time, self.switching
         guess = self.configured_period(dt)
         if len(switching.rising) >= 2:
@@ -372,6 +373,11 @@ class Progress:
         if relaying and not switching.rising:
             # (The first rising switch comes after half a period at most.)
             guess = max(guess, 2.0 * (time(-1) - time(switching.start)))
+        elif relaying:
+            # (Between the first two rising switches: at least twice the latest half period. A configuration's
+            # period implied by its time limit may be half the plant's, and the period measured at the second
+            # rising switch raised ite by two periods: tests/test_handshake.)
+            guess = max(guess, 2.0 * (time(switching.switches[-1]) - time(switching.switches[-2])))
         return guess
 
     def fraction(self, left: float) -> float:

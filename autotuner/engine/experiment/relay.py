@@ -331,7 +331,8 @@ class RelayExperiment:
         loop, tol = self._loop, convergence.tolerances(self.config)
         record, sigma = loop.record.all(), convergence.sigma(loop, self._estimates)
         if self._unstable.unstable or model_rule.could_explain(sigma, float(np.ptp(record.y)), tol):
-            return model_rule.first_look(self._fit_record(aim=False)[0], tol)
+            model = self._fit_record(aim=False)[0]
+            return model_rule.first_look(model, tol, self._noise_share(model))
         # (Half a period known: its length twice over is the fit's scale.)
         period = 2.0 * (record.t[-1] - loop.record.time(self._switching.switches[-2]))
         noise = max(sigma, cycle_noise(record.t, record.y))
@@ -339,6 +340,21 @@ class RelayExperiment:
         lag = math.radians(self._adaptation.target_deg)
         spread = None if model is None else process_fit.spread(record, loop.mv0, period, model, lag)
         return model_rule.noisy_look(spread, noise, float(np.ptp(record.y)))
+
+    def _noise_share(self, model: ProcessModel | None) -> float:
+        """The record's measurement noise as the ``model`` fitted at this switch meets it, over the PV's swing
+        (dimensionless; inf without a model or a swing: nothing to judge): the larger of the noise stage's σ and
+        the relay's samples' so far (loop.cycle_noise, PV units). A sampling whose time stamps are not the PV's
+        times, a simulated PLC's, reads there as noise of the cycle's slope times the spread; the noise stage's
+        flat PV does not show it."""
+        if model is None:
+            return math.inf
+        loop = self._loop
+        record = loop.record.all()
+        swing = float(np.ptp(record.y))
+        relay = loop.record.since(loop.record.time(self._switching.start))
+        sigma = max(loop.noise, cycle_noise(relay.t, relay.y))
+        return sigma / swing if swing > 0.0 else math.inf
 
     def _period_samples(self) -> tuple[Samples, Samples]:
         """The samples of this period's estimates as recorded and with the PV's drift removed (refitting a
@@ -432,7 +448,7 @@ class RelayExperiment:
         latest = model_rule.model_point(model, self._loop.sign, self._adaptation.target_deg, tol)
         previous, self._model_point = self._model_point, latest
         period = self._switching.period()
-        self._fit_hint = model_rule.hint(model, latest, period, tol)
+        self._fit_hint = model_rule.hint(model, latest, period, tol, self._noise_share(model), self._fit_hint)
         load = model.load_at(self._loop.record.time(-1)) if model is not None and model.loaded else None
         self._accept(model_rule.judge(previous, latest, period, tol), explained=True, load=load)
 
