@@ -50,7 +50,7 @@ from autotuner.engine.experiment.load_fit import LoadFit
 from autotuner.engine.experiment.load_following import LoadFollowing
 from autotuner.engine.experiment.loop import Loop, cycle_noise
 from autotuner.engine.experiment.point import Point
-from autotuner.engine.experiment.process_fit import ProcessModel
+from autotuner.engine.experiment.process_fit import ProcessModel, Spread
 from autotuner.engine.experiment.progress import Progress, Stage, Status, final_ite
 from autotuner.engine.experiment.record import Record, Samples
 from autotuner.engine.experiment.runaway import Runaway
@@ -107,9 +107,7 @@ class RelayExperiment:
         self._pending = 0
         # The model rule's point at the latest switch (model_rule.py), None where its fit did not explain the record.
         self._model_point: model_rule.ModelPoint | None = None
-        self._noisy_point: model_rule.ModelPoint | None = None  # (the noisy rule's latest: _by_noisy_model)
-        self._loaded_explained = False  # (whether _loaded's residual was the noise: _by_noisy_model)
-        self._noisy_end: float | None = None  # (when the noisy rule is expected to stop the run: ite's hint)
+        self._noisy = model_rule.NoisyFits()
         # The latest model fitted to the record (process_fit.py; the next fit's search starts from it), and the
         # latest with a load at the process input (process_fit.fit_load), None where the plain one explained it.
         self._model: ProcessModel | None = None
@@ -217,7 +215,7 @@ class RelayExperiment:
                 # (A status between that switch and its analysis — a field session's, whose analysis runs in a
                 # worker after the write — read a whole half period more.)
                 fit = model_rule.Fit.JUDGING
-            ite = self._progress.seconds_left(self.stage is Stage.RELAY, error, fit, self._noisy_end)
+            ite = self._progress.seconds_left(self.stage is Stage.RELAY, error, fit, self._noisy.end)
             progress = self._progress.fraction(ite)
         return Status(stage=self.stage, progress=progress, ite=ite, relay=self._switching.relay,
                       filter_phase_deg=self._adaptation.phase_deg(), periods=max(self._switching.periods, 0),
@@ -453,44 +451,51 @@ class RelayExperiment:
         self._accept(model_rule.judge(previous, latest, period, tol), explained=True, load=load)
 
     def _by_noisy_model(self, plain: ProcessModel | None) -> None:
-        """The model rule under noise (model_rule.noisy_point), at a rising switch: the ``plain`` model fitted to the
-        whole record at this switch (None: fitted here), or where its residual is not the noise, the model with a
-        load at the process input; its point accepted when it is known within the noise tolerance and the previous
-        switch's agrees. Not where the quiet rule's misfit judges, nor on a process that is or may be unstable,
-        nor over a stall, nor after NOISY_PERIODS."""
-        loop, switching, tol = self._loop, self._switching, convergence.tolerances(self.config)
+        """The model rule under noise (model_rule.noisy_point), at a rising switch, on the model fitted to the whole
+        record (:meth:`_noisy_fit`; ``plain``: the filter's aim's fit at this switch, None where it made none): its
+        point accepted when it is known within the noise tolerance and the previous switch's agrees. Not where the
+        quiet rule's misfit judges, nor on a process that is or may be unstable, nor over a stall, nor after
+        NOISY_PERIODS. Its fits are its own (``_noisy``): the quiet rule's, where it judges later, are as without it."""
+        loop, switching, tol, noisy = self._loop, self._switching, convergence.tolerances(self.config), self._noisy
         record, sigma = loop.record.all(), convergence.sigma(loop, self._estimates)
         if (self._unstable.unstable or switching.periods > model_rule.NOISY_PERIODS
                 or model_rule.could_explain(sigma, float(np.ptp(record.y)), tol)
                 or longest_gap(record.t, record.t[0], record.t[-1]) > GAP * loop.dt):
-            self._noisy_point = self._noisy_end = None
+            noisy.point = noisy.end = None
             return
-        period, lag = switching.period(), math.radians(self._adaptation.target_deg)
-        if plain is None:
-            earlier = self._model
-            enough = ENOUGH * earlier.misfit if earlier is not None else process_fit.WARM
-            # (The noise stage's σ, of its few samples, may read low: the whole record's reads it as surely as the
-            # test for an inverse response needs, process_fit.inverse_response.)
-            noise = max(sigma, cycle_noise(record.t, record.y))
-            plain = self._model = process_fit.fit(record, loop.mv0, period, noise, earlier, enough)
-        model = plain
-        spread = None if plain is None else process_fit.spread(record, loop.mv0, period, plain, lag)
-        if plain is not None and not model_rule.white(spread):
-            earlier = self._loaded
-            # (Where the previous switch's load model did not explain the record either, the model is likely not
-            # of the process's family: one search from it, not three, 8-16 ms each on three lags.)
-            enough = (math.inf if not self._loaded_explained else ENOUGH * earlier.misfit) if earlier else 0.0
-            model = self._loaded = process_fit.fit_load(record, loop.mv0, period, plain, enough, earlier)
-            spread = None if model is None else process_fit.spread(record, loop.mv0, period, model, lag)
-            self._loaded_explained = model_rule.white(spread)
+        period = switching.period()
+        model, spread = self._noisy_fit(record, max(sigma, cycle_noise(record.t, record.y)), period, plain)
         latest = model_rule.noisy_point(model, spread, loop.sign, self._adaptation.target_deg)
-        previous, self._noisy_point = self._noisy_point, latest
+        previous, noisy.point = noisy.point, latest
         now = record.t[-1]
-        self._noisy_end = model_rule.noisy_end(previous, latest, now, now - loop.record.time(switching.start), period,
-                                               switching.periods, tol)
-        verdict = model_rule.judge_noisy(previous, latest, period, tol)
-        load = model.load_at(record.t[-1]) if model is not None and model.loaded else None
-        self._accept(verdict, explained=True, load=load)
+        noisy.end = model_rule.noisy_end(previous, latest, now, now - loop.record.time(switching.start), period,
+                                         switching.periods, tol)
+        load = model.load_at(now) if model is not None and model.loaded else None
+        self._accept(model_rule.judge_noisy(previous, latest, period, tol), explained=True, load=load)
+
+    def _noisy_fit(self, record: Samples, noise: float, period: float,
+                   plain: ProcessModel | None) -> tuple[ProcessModel | None, Spread | None]:
+        """The noisy rule's model of the ``record`` (``noise``: its σ, PV units, the whole record's where the noise
+        stage's few samples read low; ``period``: the fit's scale, s) and its spread (process_fit.spread): the plain
+        model (``plain`` where given, else fitted from the previous switch's), or where its residual is not the
+        noise (model_rule.white), the one with a load at the process input."""
+        loop, noisy, lag = self._loop, self._noisy, math.radians(self._adaptation.target_deg)
+        if plain is None:
+            earlier = noisy.plain
+            enough = ENOUGH * earlier.misfit if earlier is not None else process_fit.WARM
+            plain = process_fit.fit(record, loop.mv0, period, noise, earlier, enough)
+        noisy.plain = plain
+        spread = None if plain is None else process_fit.spread(record, loop.mv0, period, plain, lag)
+        if plain is None or model_rule.white(spread):
+            return plain, spread
+        earlier = noisy.loaded
+        # (Where the previous switch's load model did not explain the record either, the model is likely not of
+        # the process's family: one search from it, not three, 8-16 ms each on three lags.)
+        enough = (ENOUGH * earlier.misfit if noisy.loaded_white else math.inf) if earlier is not None else 0.0
+        model = noisy.loaded = process_fit.fit_load(record, loop.mv0, period, plain, enough, earlier)
+        spread = None if model is None else process_fit.spread(record, loop.mv0, period, model, lag)
+        noisy.loaded_white = model_rule.white(spread)
+        return model, spread
 
     def _judge(self, raw: Samples, detrended: Samples) -> None:
         """Estimate the point over the last period and stop if it has converged."""
