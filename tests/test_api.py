@@ -254,8 +254,12 @@ def test_the_overview_stream_carries_every_loops_state_and_throttled_live_values
     idle = [d for d in live if d["loop"] == "LIC-201"]
     assert set(idle[-1]) == {"loop", "time", "pv", "sp", "mv", "mode"}
     # At most one live event per loop every LIVE_PERIOD (the newest sample): the experiment's samples are thinned.
+    # (TIC-101's last one left out: its experiment, 2.4 periods on the demo's noisy loop since the noisy model rule,
+    # can end within the 3 s, and then the last live event carries the experiment's last sample, whenever it came
+    # after the one before — 0.1 s of samples in a CI run.)
     for loop_id in ("TIC-101", "LIC-201"):
         times = [d["time"] for d in live if d["loop"] == loop_id]
+        times = times[:-1] if loop_id == "TIC-101" else times
         assert len(times) >= 2, loop_id
         gaps = [b - a for a, b in zip(times, times[1:])]
         # Two sends are LIVE_PERIOD apart; the samples they carry, within one sample interval of that.

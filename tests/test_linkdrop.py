@@ -26,9 +26,10 @@ from drivers.modbus_server import serve_modbus
 from drivers.simplc import SimulatedPlc
 
 PLANT = "exp(-s)/(2*s+1)"
-# B's, slower: its experiment (~9 s of wall time) must go on through the whole of A's outage (B's on PLANT took
-# ~6 s once the experiments got shorter, and ended during it).
-PLANT_B = "exp(-3*s)/(6*s+1)"
+# B's, slower: its experiment must go on through the whole of A's outage (B's on PLANT took ~6 s once the
+# experiments got shorter, and ended during it; on exp(-3*s)/(6*s+1), once the noisy model rule ended the
+# daemon's runs sooner — its sampling's timing reads as noise —, it ended 0.4 s after the outage).
+PLANT_B = "exp(-6*s)/(12*s+1)"
 TS = 0.1
 SPEED = 5.0  # 20 ms of wall time per sample
 OUTAGE = 4.0  # wall seconds: longer than a Modbus call's retries (timeout 1 s, 2 retries)
