@@ -182,17 +182,20 @@ def test_tune_from_the_hmi_runs_the_experiment_then_a_set_point_step_settles(cap
     busy = [s for s in seen if s["tbsy"]]
     assert busy, seen
     assert seen[-1]["tbsy"] is False and seen[-1]["te"] is False and seen[-1]["ite"] == 0.0, (seen[-1], status["message"])
-    # ite counts down the seconds left (rough until the first periods are measured).
+    # ite counts down the seconds left (rough until the first periods are measured), to about a period at the last
+    # switch (progress.LAST_SHARE: whether that switch ends the run is not known before it). (Not half its first
+    # reading: that is the prior the time limit implies, 10 s here against the plant's 5.3 s period, and a run of 2.5–4
+    # periods read 5.5 s — 1.04 periods — at its last busy reading in CI-like runs.)
     ites = [s["ite"] for s in busy]
     peak = int(np.argmax(ites))
-    assert len(ites) - peak >= 3 and ites[-1] < 0.5 * ites[peak], str(ites)
+    period = 2 * math.pi / status["point"]["omega"]
+    assert len(ites) - peak >= 3 and ites[-1] < ites[peak] and ites[-1] <= 1.3 * period, (str(ites), period)
     assert status["te"] is False and status["ite"] == 0, status["message"]
     assert record["user"] == PLC_USER and record["outcome"] == "success" and record["request"]["apply"] is True
     gains = Gains.from_json(status["gains"])
     assert plc.gains.k == pytest.approx(gains.k, rel=1e-3) and plc.gains != before and plc.mode is Mode.AUTO
 
     # Set-point step with the new gains: ~20 periods of the identified point.
-    period = 2 * math.pi / status["point"]["omega"]
     assert plc.sp == pytest.approx(55.0)  # written through Modbus
     rest.sp = 50.0
     assert abs(rest.pv - 50.0) < 0.05  # settled before the step
