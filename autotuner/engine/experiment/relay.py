@@ -597,8 +597,8 @@ class RelayExperiment:
     def _checked_x(self, point: Point, x: float) -> tuple[float, float | None]:
         """The quiet estimates' |F|/K0 ``x`` at the accepted ``point``, checked against the process model with a load
         at the process input fitted to the whole record (process_fit.fit_load): where that model finds a load of at
-        least LOAD_FRACTION of amp and a K0 more than K0_AGREE times apart (or of the other sign), the model's x
-        and its load at the end (MV units), else ``x`` and None.
+        least LOAD_FRACTION of amp and a K0 more than K0_AGREE times apart (or of the other sign), and explains the
+        record within MODEL_MISFIT, the model's x and its load at the end (MV units), else ``x`` and None.
 
         A load step with the relay's bias before the first estimate leaves the estimates' mean MV and PV off from
         the start and the load following's fit finds nothing: on three lags and more (which the model fits within
@@ -606,14 +606,15 @@ class RelayExperiment:
         true 1, and no disturbance reported."""
         loop = self._loop
         record = loop.record.all()
-        # (Nor on an integrator as the estimates read it, whose K0 the model cannot tell from a very slow lag's.)
+        # (Nor on an integrator as the estimates read it, whose K0 the model cannot tell from a very slow lag's, nor
+        # on a resonance, |F| above K0, which lags and a dead time never reach: the load term invents a load there.)
         integrating = x * INTEGRATING_RATIO <= 1.0 and x > -loop.config.static_tol
-        if self._unstable.unstable or integrating or not self._switching.periods:
+        if self._unstable.unstable or integrating or x >= 1.0 or not self._switching.periods:
             return x, None
         period = self._switching.period()
         plain = process_fit.fit(record, loop.mv0, period, max(loop.noise, cycle_noise(record.t, record.y)))
         loaded = None if plain is None else process_fit.fit_load(record, loop.mv0, period, plain, 0.0)
-        if loaded is None or loop.sign * loaded.k0 <= 0.0:
+        if loaded is None or loop.sign * loaded.k0 <= 0.0 or loaded.misfit > MODEL_MISFIT:
             return x, None
         load = loaded.load_at(record.t[-1])
         model_x = point.gain / (loop.sign * loaded.k0)
