@@ -193,7 +193,7 @@ def white(spread: Spread | None) -> bool:
 def noisy_look(spread: Spread | None, noise: float, swing: float) -> Fit:
     """ite's first look under noise, from the ``spread`` of a model fitted at the first rising switch
     (process_fit.spread; None where there is none) and the noise's σ ``noise`` (PV units) against the record's
-    ``swing`` (PV units): NOISY where its residual is the noise (CORRELATION), its point known within FIRST_SPREAD
+    ``swing`` (PV units): NOISY where its residual is the noise (:func:`white`), its point known within FIRST_SPREAD
     and the noise at most FIRST_NOISE of the swing (the run is likely one the noisy rule stops at its first
     chances), else NO."""
     if white(spread) and spread.point <= FIRST_SPREAD and noise <= FIRST_NOISE * swing:

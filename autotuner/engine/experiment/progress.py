@@ -256,8 +256,7 @@ class Progress:
         :meth:`seconds_left`), a disturbed or noisy run's (:meth:`longer`) or a quiet one's.
 
         Where the model rule under noise expects to stop the run (``until``): the time to then, and at least
-        ``LAST_SHARE`` of the latest period.
-        Where the model rule may stop the run at the next switch (``fit`` NEXT): the time to that switch; once it
+        ``LAST_SHARE`` of the latest period. Where the model rule may stop the run at the next switch (``fit`` NEXT): the time to that switch; once it
         has come and its analysis is pending (JUDGING), a sample interval. Before
         two whole periods, and while the model explains the record but the cycle has not reached the target:
         the noise stage's rest and ``TYPICAL_PERIODS`` (``CLEAN_TYPICAL_PERIODS`` by ``fit`` on a quiet run) of

@@ -335,11 +335,18 @@ class RelayExperiment:
             return model_rule.first_look(model, tol, self._noise_share(model))
         # (Half a period known: its length twice over is the fit's scale.)
         period = 2.0 * (record.t[-1] - loop.record.time(self._switching.switches[-2]))
-        noise = max(sigma, cycle_noise(record.t, record.y))
+        noise = self._record_noise(record)
         model = process_fit.fit(record, loop.mv0, period, noise)
         lag = math.radians(self._adaptation.target_deg)
         spread = None if model is None else process_fit.spread(record, loop.mv0, period, model, lag)
         return model_rule.noisy_look(spread, noise, float(np.ptp(record.y)))
+
+    def _record_noise(self, record: Samples) -> float:
+        """The measurement noise's σ (PV units) the fits of the whole ``record`` are judged by: the stopping rule's
+        (convergence.sigma) or the record's own (loop.cycle_noise), the larger — the noise stage's few samples may
+        read low (0.57 of the true σ on the bench's seed), and an inverse response is judged against it
+        (process_fit.inverse_response)."""
+        return max(convergence.sigma(self._loop, self._estimates), cycle_noise(record.t, record.y))
 
     def _noise_share(self, model: ProcessModel | None) -> float:
         """The record's measurement noise as the ``model`` fitted at this switch meets it, over the PV's swing
@@ -466,7 +473,7 @@ class RelayExperiment:
             noisy.point = noisy.end = None
             return
         period = switching.period()
-        model, spread = self._noisy_fit(record, max(sigma, cycle_noise(record.t, record.y)), period, plain)
+        model, spread = self._noisy_fit(record, self._record_noise(record), period, plain)
         latest = model_rule.noisy_point(model, spread, loop.sign, self._adaptation.target_deg)
         previous, noisy.point = noisy.point, latest
         now = record.t[-1]
@@ -612,7 +619,7 @@ class RelayExperiment:
         if self._unstable.unstable or integrating or x >= 1.0 or not self._switching.periods:
             return x, None
         period = self._switching.period()
-        plain = process_fit.fit(record, loop.mv0, period, max(loop.noise, cycle_noise(record.t, record.y)))
+        plain = process_fit.fit(record, loop.mv0, period, self._record_noise(record))
         loaded = None if plain is None else process_fit.fit_load(record, loop.mv0, period, plain, 0.0)
         if loaded is None or loop.sign * loaded.k0 <= 0.0 or loaded.misfit > MODEL_MISFIT:
             return x, None
